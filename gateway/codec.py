@@ -1,0 +1,538 @@
+"""Registers to values and back, exactly as the sensor manuals define each data type.
+
+The codec is pure: it knows data types, word orders and the float fault values, not
+devices or buses. A point's :class:`Format` is resolved once from its profile; decoding
+and encoding then dispatch through a table keyed by :class:`DataType`, never an ``if``
+chain over vendors.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone
+from enum import StrEnum
+
+from gateway.errors import DecodeError, EncodeError
+
+
+class DataType(StrEnum):
+    """Every register data type used by the four sensor families."""
+
+    FLOAT32 = "float32"
+    UINT8 = "uint8"  # low byte of a word, high byte unused (digiLine "char")
+    INT8 = "int8"
+    BOOL = "bool"  # least significant bit of a word
+    UINT16 = "uint16"
+    INT16 = "int16"
+    UINT32 = "uint32"  # high word first (ABCD) in all four families
+    INT32 = "int32"
+    ENUM = "enum"  # 16-bit code with labels
+    ENUM32 = "enum32"  # 32-bit code with labels (H10/H20 configuration registers)
+    BITFIELD = "bitfield"  # 16 named bits
+    BITFIELD32 = "bitfield32"
+    STRING = "string"  # NUL-terminated, 2 bytes per register, first byte in the MSB
+    YYMMDDHHMM = "yymmddhhmm"  # tecLine/Reiss calibration stamp as a decimal uint32
+    DATETIME = "datetime"  # digiLine block: year, month, day, hour, min, sec, tz offset
+
+
+class WordOrder(StrEnum):
+    """Byte order of a 32-bit float on the wire; letters are IEEE 754 bytes, A = sign."""
+
+    ABCD = "ABCD"  # IEEE 754 big endian
+    CDAB = "CDAB"  # "standard Modbus format": words swapped (default of all families)
+    BADC = "BADC"  # bytes swapped within each word
+    DCBA = "DCBA"  # IEEE 754 little endian
+
+
+DEFAULT_FLOAT_ORDER = WordOrder.CDAB  # S10 manual 2.6.2, H10/H20 2.6.2, tecLine 2.6.3
+
+# Position in the IEEE 754 big-endian byte string of each byte as it arrives on the wire.
+_WIRE_TO_IEEE: dict[WordOrder, tuple[int, int, int, int]] = {
+    WordOrder.ABCD: (0, 1, 2, 3),
+    WordOrder.CDAB: (2, 3, 0, 1),
+    WordOrder.BADC: (1, 0, 3, 2),
+    WordOrder.DCBA: (3, 2, 1, 0),
+}
+
+# Fixed register counts; strings take theirs from the profile (n bytes -> n/2 registers).
+REGISTER_COUNT: dict[DataType, int] = {
+    DataType.FLOAT32: 2,
+    DataType.UINT8: 1,
+    DataType.INT8: 1,
+    DataType.BOOL: 1,
+    DataType.UINT16: 1,
+    DataType.INT16: 1,
+    DataType.UINT32: 2,
+    DataType.INT32: 2,
+    DataType.ENUM: 1,
+    DataType.ENUM32: 2,
+    DataType.BITFIELD: 1,
+    DataType.BITFIELD32: 2,
+    DataType.YYMMDDHHMM: 2,
+    DataType.DATETIME: 7,
+}
+
+NUMERIC_TYPES = frozenset(
+    {
+        DataType.FLOAT32,
+        DataType.UINT8,
+        DataType.INT8,
+        DataType.UINT16,
+        DataType.INT16,
+        DataType.UINT32,
+        DataType.INT32,
+    }
+)
+ENUM_TYPES = frozenset({DataType.ENUM, DataType.ENUM32})
+BITFIELD_TYPES = frozenset({DataType.BITFIELD, DataType.BITFIELD32})
+
+_INT_BOUNDS: dict[DataType, tuple[int, int]] = {
+    DataType.UINT8: (0, 0xFF),
+    DataType.INT8: (-0x80, 0x7F),
+    DataType.UINT16: (0, 0xFFFF),
+    DataType.INT16: (-0x8000, 0x7FFF),
+    DataType.UINT32: (0, 0xFFFF_FFFF),
+    DataType.INT32: (-0x8000_0000, 0x7FFF_FFFF),
+    DataType.ENUM: (0, 0xFFFF),
+    DataType.ENUM32: (0, 0xFFFF_FFFF),
+    DataType.BITFIELD: (0, 0xFFFF),
+    DataType.BITFIELD32: (0, 0xFFFF_FFFF),
+}
+
+# Float error values, S10 manual 2.8.2 and H10/H20 manual 2.8.2: a fault, never a value.
+FLOAT_FAULTS: dict[int, str] = {
+    struct.unpack(">I", struct.pack(">f", k * 1.0e37))[0]: name
+    for k, name in enumerate(
+        (
+            "underrange",
+            "overrange",
+            "no_valid_input",
+            "division_by_zero",
+            "math_error",
+            "invalid_compensation_temperature",
+            "probe_short_circuit",
+            "probe_break",
+            "timeout",
+        ),
+        start=1,
+    )
+}
+
+# YYMMDDHHMM must fit a uint32: tecLine manual 7.1, last date 2042-12-31 23:59.
+_YYMMDDHHMM_LAST = datetime(2042, 12, 31, 23, 59)  # noqa: DTZ001 - the stamp has no zone
+_STRING_ENCODINGS = {"ascii": "ascii", "utf-8": "utf-8", "iso-8859-1": "iso-8859-1"}
+
+
+@dataclass(frozen=True, slots=True)
+class Fault:
+    """A float register that carries one of the documented error values."""
+
+    name: str
+    raw: float
+
+
+@dataclass(frozen=True, slots=True)
+class EnumValue:
+    """A decoded enumeration: the code on the wire and the profile's label for it."""
+
+    code: int
+    label: str
+    known: bool = True
+
+    def __str__(self) -> str:
+        """Show the label, which is what users see in topics and tables."""
+        return self.label
+
+
+@dataclass(frozen=True, slots=True)
+class BitfieldValue:
+    """A decoded bit field: the raw word and every named bit's state, in bit order."""
+
+    raw: int
+    flags: tuple[tuple[str, bool], ...]
+
+    @property
+    def active(self) -> tuple[str, ...]:
+        """Names of the bits that are set."""
+        return tuple(name for name, state in self.flags if state)
+
+    def __str__(self) -> str:
+        """Show the set bits, or ``-`` when none is set."""
+        return ",".join(self.active) or "-"
+
+
+Value = float | int | bool | str | datetime | EnumValue | BitfieldValue | None
+Decoded = Value | Fault
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Format:
+    """What the codec needs to know about one point, resolved once from its profile.
+
+    Example::
+
+        Format(dtype=DataType.FLOAT32, count=2, minimum=0.0, maximum=99.99)
+    """
+
+    dtype: DataType
+    count: int
+    encoding: str = "ascii"
+    enum: Mapping[int, str] = field(default_factory=dict)
+    bits: Mapping[int, str] = field(default_factory=dict)
+    minimum: float | None = None
+    maximum: float | None = None
+    tz_signed_byte: bool = False  # S10 stores some time-zone offsets as a "char"
+    float_faults: bool = False  # digiLine floats may carry 1.0e37 ... 9.0e37
+
+    @property
+    def byte_capacity(self) -> int:
+        """Bytes a string point holds, terminating NUL included."""
+        return 2 * self.count
+
+
+# --- helpers ---------------------------------------------------------------------------
+
+
+def _u32(registers: Sequence[int]) -> int:
+    return (registers[0] << 16) | registers[1]
+
+
+def _signed(value: int, bits: int) -> int:
+    return value - (1 << bits) if value & (1 << (bits - 1)) else value
+
+
+def registers_to_bytes(registers: Sequence[int]) -> bytes:
+    """Registers as they travel on the wire, high byte first."""
+    return b"".join(r.to_bytes(2, "big") for r in registers)
+
+
+def bytes_to_registers(data: bytes) -> tuple[int, ...]:
+    """Big-endian byte pairs as register values; ``data`` must have an even length."""
+    return tuple(int.from_bytes(data[i : i + 2], "big") for i in range(0, len(data), 2))
+
+
+def float_to_registers(value: float, order: WordOrder) -> tuple[int, int]:
+    """Encode a float32 in the given wire order."""
+    ieee = struct.pack(">f", value)
+    wire = bytearray(4)
+    for wire_index, ieee_index in enumerate(_WIRE_TO_IEEE[order]):
+        wire[wire_index] = ieee[ieee_index]
+    regs = bytes_to_registers(bytes(wire))
+    return regs[0], regs[1]
+
+
+def _float_bits(registers: Sequence[int], order: WordOrder) -> int:
+    wire = registers_to_bytes(registers[:2])
+    ieee = bytearray(4)
+    for wire_index, ieee_index in enumerate(_WIRE_TO_IEEE[order]):
+        ieee[ieee_index] = wire[wire_index]
+    return int.from_bytes(ieee, "big")
+
+
+# --- decoders --------------------------------------------------------------------------
+
+_Decoder = Callable[[Format, Sequence[int], WordOrder], Decoded]
+
+
+def _decode_float(fmt: Format, regs: Sequence[int], order: WordOrder) -> Decoded:
+    bits = _float_bits(regs, order)
+    value: float = struct.unpack(">f", bits.to_bytes(4, "big"))[0]
+    if fmt.float_faults and (name := FLOAT_FAULTS.get(bits)) is not None:
+        return Fault(name=name, raw=value)
+    return value
+
+
+def _decode_uint8(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return regs[0] & 0xFF
+
+
+def _decode_int8(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _signed(regs[0] & 0xFF, 8)
+
+
+def _decode_bool(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return bool(regs[0] & 0x0001)
+
+
+def _decode_uint16(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return regs[0]
+
+
+def _decode_int16(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _signed(regs[0], 16)
+
+
+def _decode_uint32(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _u32(regs)
+
+
+def _decode_int32(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _signed(_u32(regs), 32)
+
+
+def _enum_value(fmt: Format, code: int) -> EnumValue:
+    label = fmt.enum.get(code)
+    if label is None:
+        return EnumValue(code=code, label=f"unknown_{code}", known=False)
+    return EnumValue(code=code, label=label)
+
+
+def _decode_enum(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _enum_value(fmt, regs[0])
+
+
+def _decode_enum32(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _enum_value(fmt, _u32(regs))
+
+
+def _bitfield_value(fmt: Format, raw: int) -> BitfieldValue:
+    flags = tuple((name, bool(raw >> bit & 1)) for bit, name in sorted(fmt.bits.items()))
+    return BitfieldValue(raw=raw, flags=flags)
+
+
+def _decode_bitfield(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _bitfield_value(fmt, regs[0])
+
+
+def _decode_bitfield32(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    return _bitfield_value(fmt, _u32(regs))
+
+
+def _decode_string(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    raw = registers_to_bytes(regs)
+    text, _nul, _garbage = raw.partition(b"\x00")  # bytes after the first NUL mean nothing
+    try:
+        return text.decode(_STRING_ENCODINGS[fmt.encoding])
+    except UnicodeDecodeError as exc:
+        raise DecodeError(f"string bytes {text!r} are not valid {fmt.encoding}") from exc
+
+
+def _decode_yymmddhhmm(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    stamp = _u32(regs)
+    if stamp == 0:  # the documented initial value: never calibrated
+        return None
+    minute, hour = stamp % 100, stamp // 100 % 100
+    day, month, year = stamp // 10**4 % 100, stamp // 10**6 % 100, stamp // 10**8
+    try:
+        return datetime(2000 + year, month, day, hour, minute)  # noqa: DTZ001 - zone-less stamp
+    except ValueError as exc:
+        raise DecodeError(f"{stamp} is not a YYMMDDHHMM date: {exc}") from exc
+
+
+def _decode_datetime(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
+    if not any(regs):  # never set
+        return None
+    year = regs[0]
+    month, day, hour, minute, second = (r & 0xFF for r in regs[1:6])
+    offset = _signed(regs[6] & 0xFF, 8) if fmt.tz_signed_byte else _signed(regs[6], 16)
+    try:
+        zone = timezone(timedelta(minutes=offset))
+        return datetime(year, month, day, hour, minute, second, tzinfo=zone)
+    except ValueError as exc:
+        raise DecodeError(f"registers {list(regs)} are not a date and time: {exc}") from exc
+
+
+_DECODERS: dict[DataType, _Decoder] = {
+    DataType.FLOAT32: _decode_float,
+    DataType.UINT8: _decode_uint8,
+    DataType.INT8: _decode_int8,
+    DataType.BOOL: _decode_bool,
+    DataType.UINT16: _decode_uint16,
+    DataType.INT16: _decode_int16,
+    DataType.UINT32: _decode_uint32,
+    DataType.INT32: _decode_int32,
+    DataType.ENUM: _decode_enum,
+    DataType.ENUM32: _decode_enum32,
+    DataType.BITFIELD: _decode_bitfield,
+    DataType.BITFIELD32: _decode_bitfield32,
+    DataType.STRING: _decode_string,
+    DataType.YYMMDDHHMM: _decode_yymmddhhmm,
+    DataType.DATETIME: _decode_datetime,
+}
+
+
+def decode(
+    fmt: Format, registers: Sequence[int], *, float_order: WordOrder = DEFAULT_FLOAT_ORDER
+) -> Decoded:
+    """Decode a point's registers; a float error value comes back as a :class:`Fault`."""
+    if len(registers) != fmt.count:
+        raise DecodeError(f"{fmt.dtype} needs {fmt.count} registers, got {len(registers)}")
+    return _DECODERS[fmt.dtype](fmt, registers, float_order)
+
+
+# --- encoders --------------------------------------------------------------------------
+
+_Encoder = Callable[[Format, object, WordOrder], tuple[int, ...]]
+
+
+def _check_range(fmt: Format, number: float) -> None:
+    if fmt.minimum is not None and number < fmt.minimum:
+        raise EncodeError(f"{number} is below the minimum {fmt.minimum}")
+    if fmt.maximum is not None and number > fmt.maximum:
+        raise EncodeError(f"{number} is above the maximum {fmt.maximum}")
+
+
+def _as_int(value: object, dtype: DataType) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise EncodeError(f"{dtype} needs an integer, got {value!r}")
+    if isinstance(value, float) and not value.is_integer():
+        raise EncodeError(f"{dtype} needs an integer, got {value!r}")
+    number = int(value)
+    low, high = _INT_BOUNDS[dtype]
+    if not low <= number <= high:
+        raise EncodeError(f"{number} does not fit {dtype} ({low} to {high})")
+    return number
+
+
+def _split32(number: int) -> tuple[int, int]:
+    number &= 0xFFFF_FFFF
+    return number >> 16, number & 0xFFFF
+
+
+def _encode_float(fmt: Format, value: object, order: WordOrder) -> tuple[int, ...]:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise EncodeError(f"float32 needs a number, got {value!r}")
+    number = float(value)
+    if not math.isfinite(number):
+        raise EncodeError(f"{value!r} is not a finite number")
+    if abs(number) > struct.unpack(">f", b"\x7f\x7f\xff\xff")[0]:
+        raise EncodeError(f"{value!r} does not fit a float32")
+    _check_range(fmt, number)
+    return float_to_registers(number, order)
+
+
+def _encode_small_int(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    number = _as_int(value, fmt.dtype)
+    _check_range(fmt, number)
+    return (number & 0xFF if fmt.dtype in {DataType.UINT8, DataType.INT8} else number & 0xFFFF,)
+
+
+def _encode_int32(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    number = _as_int(value, fmt.dtype)
+    _check_range(fmt, number)
+    return _split32(number)
+
+
+def _encode_bool(_fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    if not isinstance(value, bool):
+        raise EncodeError(f"bool needs true or false, got {value!r}")
+    return (int(value),)
+
+
+def _enum_code(fmt: Format, value: object) -> int:
+    if isinstance(value, EnumValue):
+        value = value.code
+    if isinstance(value, str):
+        for code, label in fmt.enum.items():
+            if label == value:
+                return code
+        raise EncodeError(f"{value!r} is not one of {sorted(fmt.enum.values())}")
+    code = _as_int(value, fmt.dtype)
+    if code not in fmt.enum:
+        raise EncodeError(f"{code} is not one of the codes {sorted(fmt.enum)}")
+    return code
+
+
+def _encode_enum(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    code = _enum_code(fmt, value)
+    return _split32(code) if fmt.dtype is DataType.ENUM32 else (code,)
+
+
+def _encode_bitfield(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    if isinstance(value, BitfieldValue):
+        value = value.raw
+    if isinstance(value, Mapping):
+        names = {name: bit for bit, name in fmt.bits.items()}
+        raw = 0
+        for name, state in value.items():
+            if name not in names:
+                raise EncodeError(f"{name!r} is not a bit of this field: {sorted(names)}")
+            if not isinstance(state, bool):
+                raise EncodeError(f"bit {name!r} needs true or false, got {state!r}")
+            raw |= int(state) << names[name]
+    else:
+        raw = _as_int(value, fmt.dtype)
+    return _split32(raw) if fmt.dtype is DataType.BITFIELD32 else (raw,)
+
+
+def _encode_string(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    if not isinstance(value, str):
+        raise EncodeError(f"string needs text, got {value!r}")
+    try:
+        raw = value.encode(_STRING_ENCODINGS[fmt.encoding])
+    except UnicodeEncodeError as exc:
+        raise EncodeError(f"{value!r} cannot be written as {fmt.encoding}") from exc
+    if b"\x00" in raw:
+        raise EncodeError("text must not contain NUL characters")
+    raw += b"\x00"  # the terminator is part of the capacity (S10 manual 2.6.3)
+    if len(raw) > fmt.byte_capacity:
+        raise EncodeError(
+            f"{len(raw)} bytes with the terminating NUL exceed the {fmt.byte_capacity} bytes "
+            "of this field"
+        )
+    if len(raw) % 2:
+        raw += b"\x00"  # whole registers only: pad to an even length
+    return bytes_to_registers(raw)
+
+
+def _encode_yymmddhhmm(_fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    if not isinstance(value, datetime):
+        raise EncodeError(f"a calibration stamp needs a date and time, got {value!r}")
+    if not datetime(2000, 1, 1) <= value.replace(tzinfo=None) <= _YYMMDDHHMM_LAST:  # noqa: DTZ001
+        raise EncodeError(f"{value:%Y-%m-%d %H:%M} is outside 2000-01-01 to 2042-12-31 23:59")
+    stamp = int(f"{value.year % 100:02d}{value:%m%d%H%M}")
+    return _split32(stamp)
+
+
+def _encode_datetime(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
+    if not isinstance(value, datetime):
+        raise EncodeError(f"a date and time is needed, got {value!r}")
+    offset = value.utcoffset() if value.tzinfo is not None else None
+    if offset is None:
+        raise EncodeError("the date and time needs a time zone (the sensor stores the offset)")
+    minutes = int(offset.total_seconds() // 60)
+    low, high = (-0x80, 0x7F) if fmt.tz_signed_byte else (-0x8000, 0x7FFF)
+    if not low <= minutes <= high:
+        raise EncodeError(f"a time-zone offset of {minutes} minutes does not fit this field")
+    return (
+        value.year,
+        value.month,
+        value.day,
+        value.hour,
+        value.minute,
+        value.second,
+        minutes & (0xFF if fmt.tz_signed_byte else 0xFFFF),
+    )
+
+
+_ENCODERS: dict[DataType, _Encoder] = {
+    DataType.FLOAT32: _encode_float,
+    DataType.UINT8: _encode_small_int,
+    DataType.INT8: _encode_small_int,
+    DataType.BOOL: _encode_bool,
+    DataType.UINT16: _encode_small_int,
+    DataType.INT16: _encode_small_int,
+    DataType.UINT32: _encode_int32,
+    DataType.INT32: _encode_int32,
+    DataType.ENUM: _encode_enum,
+    DataType.ENUM32: _encode_enum,
+    DataType.BITFIELD: _encode_bitfield,
+    DataType.BITFIELD32: _encode_bitfield,
+    DataType.STRING: _encode_string,
+    DataType.YYMMDDHHMM: _encode_yymmddhhmm,
+    DataType.DATETIME: _encode_datetime,
+}
+
+
+def encode(
+    fmt: Format, value: object, *, float_order: WordOrder = DEFAULT_FLOAT_ORDER
+) -> tuple[int, ...]:
+    """Encode a value for writing; anything that does not fit raises :class:`EncodeError`.
+
+    Strings yield only the registers the text needs (terminator and padding included),
+    so a short text is written with a short frame, as the manuals' examples do.
+    """
+    return _ENCODERS[fmt.dtype](fmt, value, float_order)

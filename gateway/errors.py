@@ -1,0 +1,127 @@
+"""The gateway's exception tree: one root, context carried as attributes.
+
+::
+
+    GatewayError
+    ├── ConfigError                 a config file or setting is wrong (key path, line)
+    ├── ProfileError                a profile data file is wrong (file, point, problem)
+    ├── CodecError
+    │   ├── DecodeError             registers that cannot be a value of the point's type
+    │   └── EncodeError             a value that cannot be written to the point
+    ├── FrameError                  bytes on the wire that are not the expected answer
+    │   ├── CrcError                checksum mismatch
+    │   ├── UnexpectedDeviceError   an answer from another device address
+    │   └── MalformedFrameError     wrong function code, byte count or length
+    ├── DeviceExceptionError        the device answered with a Modbus exception code
+    ├── BusError                    the line itself
+    │   ├── BusTimeoutError         no (complete) answer in time
+    │   └── BusClosedError          the port is closed or went away
+    ├── PublishError                a sink could not deliver
+    └── CommandRejectedError        a write command failed validation; nothing was sent
+
+Foreign exceptions (pymodbus, pyserial, yaml) are translated into these at exactly
+one boundary each, with ``raise ... from exc``.
+"""
+
+from __future__ import annotations
+
+
+class GatewayError(Exception):
+    """Root of every error the gateway raises on purpose."""
+
+
+class ConfigError(GatewayError):
+    """A configuration problem, located by key path and, where known, file line."""
+
+    def __init__(self, message: str, *, key: str = "", line: int | None = None) -> None:
+        """Keep the key path and line so callers can point at the offending spot."""
+        self.key = key
+        self.line = line
+        where = key + (f" (line {line})" if line is not None else "")
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class ProfileError(GatewayError):
+    """A profile data file that does not describe a consistent register map."""
+
+    def __init__(self, message: str, *, source: str, point: str = "") -> None:
+        """Name the file and point so a profile author can find the problem at once."""
+        self.source = source
+        self.point = point
+        where = f"{source}: point {point!r}" if point else source
+        super().__init__(f"{where}: {message}")
+
+
+class CodecError(GatewayError):
+    """Registers and values that do not fit a point's data type."""
+
+
+class DecodeError(CodecError):
+    """The registers read cannot be a value of the point's type."""
+
+
+class EncodeError(CodecError):
+    """The value cannot be written to the point: wrong type, out of range, too long."""
+
+
+class FrameError(GatewayError):
+    """Bytes on the wire that are not the answer to the request in flight."""
+
+
+class CrcError(FrameError):
+    """The frame's CRC does not match its content."""
+
+
+class UnexpectedDeviceError(FrameError):
+    """A well-formed frame from a device address other than the one asked."""
+
+    def __init__(self, message: str, *, expected: int, received: int) -> None:
+        """Keep both addresses for counting and logs."""
+        self.expected = expected
+        self.received = received
+        super().__init__(message)
+
+
+class MalformedFrameError(FrameError):
+    """Wrong function code, byte count or length for the request in flight."""
+
+
+class DeviceExceptionError(GatewayError):
+    """The device answered with a Modbus exception response."""
+
+    def __init__(self, *, device: int, function: int, code: int, meaning: str) -> None:
+        """Keep the exception code and the family's meaning of it."""
+        self.device = device
+        self.function = function
+        self.code = code
+        self.meaning = meaning
+        super().__init__(
+            f"device {device} answered function {function:#04x} with exception "
+            f"{code:02d} ({meaning})"
+        )
+
+
+class BusError(GatewayError):
+    """A problem with the line itself rather than one device's answer."""
+
+
+class BusTimeoutError(BusError):
+    """No complete answer arrived within the response timeout."""
+
+
+class BusClosedError(BusError):
+    """The port is closed locally or went away (adapter unplugged)."""
+
+
+class PublishError(GatewayError):
+    """A sink could not deliver a sample."""
+
+
+class CommandRejectedError(GatewayError):
+    """A write command failed validation; nothing reached the bus."""
+
+    def __init__(self, reason: str, *, point: str = "") -> None:
+        """Keep the reason for the result topic."""
+        self.reason = reason
+        self.point = point
+        super().__init__(f"{point}: {reason}" if point else reason)

@@ -1,0 +1,379 @@
+"""Modbus RTU frames: requests built and responses parsed with pymodbus's framer and PDUs.
+
+pymodbus does the Modbus part well (PDU classes, ``FramerRTU``, its CRC); this module
+adds what a strict master needs on top and what pymodbus's client cannot give us:
+matching a response against the request in flight (device, function, byte count,
+length), classifying every failure as its own error, the frame length expected from
+the first bytes, and the digiLine string quirk as an explicit, reported tolerance.
+The server-side helpers serve the simulator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Final
+
+from pymodbus.framer import FramerRTU
+from pymodbus.pdu import DecodePDU, ExceptionResponse
+from pymodbus.pdu.register_message import (
+    ReadHoldingRegistersRequest,
+    ReadHoldingRegistersResponse,
+    ReadInputRegistersRequest,
+    ReadInputRegistersResponse,
+    WriteMultipleRegistersRequest,
+    WriteMultipleRegistersResponse,
+    WriteSingleRegisterRequest,
+    WriteSingleRegisterResponse,
+)
+
+from gateway.errors import (
+    CrcError,
+    DeviceExceptionError,
+    EncodeError,
+    MalformedFrameError,
+    UnexpectedDeviceError,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+READ_HOLDING: Final = 0x03
+READ_INPUT: Final = 0x04
+WRITE_SINGLE: Final = 0x06
+WRITE_MULTIPLE: Final = 0x10
+READ_FUNCTIONS: Final = frozenset({READ_HOLDING, READ_INPUT})
+BROADCAST: Final = 0
+MAX_ADDRESS: Final = 0xFFFF
+MAX_REGISTER_VALUE: Final = 0xFFFF
+MAX_READ_REGISTERS: Final = 125  # Modbus application protocol 6.3; all four manuals
+MAX_WRITE_REGISTERS: Final = 123  # Modbus application protocol 6.12
+EXCEPTION_FLAG: Final = 0x80
+EXCEPTION_FRAME_LENGTH: Final = 5  # device, function | 0x80, code, CRC
+WRITE_RESPONSE_LENGTH: Final = 8  # device, function, address, value or count, CRC
+QUIRK_STRING_BYTE_COUNT: Final = "string_byte_count_16bit"
+
+# Standard Modbus meanings; each profile supplies its family's own.
+STANDARD_EXCEPTIONS: Final[Mapping[int, str]] = {
+    1: "illegal_function",
+    2: "illegal_address",
+    3: "illegal_value",
+    4: "device_failure",
+}
+
+_CLIENT_DECODER = DecodePDU(is_server=False)
+_SERVER_DECODER = DecodePDU(is_server=True)
+_FRAMER = FramerRTU(_CLIENT_DECODER)
+
+
+def crc16(data: bytes) -> bytes:
+    """The Modbus CRC of ``data`` in wire order (low byte first)."""
+    return int(FramerRTU.compute_CRC(data)).to_bytes(2, "big")
+
+
+def crc_ok(frame: bytes) -> bool:
+    """Whether the last two bytes of ``frame`` are the CRC of the rest."""
+    return len(frame) >= 4 and crc16(frame[:-2]) == frame[-2:]  # noqa: PLR2004
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Request:
+    """A request as sent: what it asks, and its bytes with CRC."""
+
+    device: int
+    function: int
+    address: int
+    count: int
+    values: tuple[int, ...] = ()
+    frame: bytes
+
+    @property
+    def is_broadcast(self) -> bool:
+        """Broadcast requests (address 0) get no answer."""
+        return self.device == BROADCAST
+
+    @property
+    def is_write(self) -> bool:
+        """Whether the request writes registers."""
+        return self.function in {WRITE_SINGLE, WRITE_MULTIPLE}
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Response:
+    """A response that matched its request."""
+
+    device: int
+    function: int
+    address: int = 0
+    count: int = 0
+    registers: tuple[int, ...] = ()
+    tolerated: str | None = None  # name of the documented quirk the frame needed
+
+
+def _build(pdu: Any) -> bytes:  # noqa: ANN401 - pymodbus PDUs are untyped
+    return bytes(_FRAMER.buildFrame(pdu))
+
+
+def _check_device(device: int, *, broadcast_ok: bool) -> None:
+    low = BROADCAST if broadcast_ok else 1
+    if not low <= device <= 247:  # noqa: PLR2004 - Modbus unicast range
+        raise EncodeError(f"device address {device} outside {low}..247")
+
+
+def _check_register(value: int) -> None:
+    if not 0 <= value <= MAX_REGISTER_VALUE:
+        raise EncodeError(f"register value {value} outside 0..65535")
+
+
+def read_request(device: int, address: int, count: int, *, function: int = READ_HOLDING) -> Request:
+    """Build a read of ``count`` registers (function 03, or 04 which reads the same map)."""
+    _check_device(device, broadcast_ok=False)
+    if function not in READ_FUNCTIONS:
+        raise EncodeError(f"function {function} does not read registers")
+    if not 1 <= count <= MAX_READ_REGISTERS:
+        raise EncodeError(f"cannot read {count} registers (1..{MAX_READ_REGISTERS})")
+    if not 0 <= address <= MAX_ADDRESS - count + 1:
+        raise EncodeError(f"address {address} with {count} registers is outside the map")
+    cls = ReadHoldingRegistersRequest if function == READ_HOLDING else ReadInputRegistersRequest
+    frame = _build(cls(address=address, count=count, dev_id=device))
+    return Request(device=device, function=function, address=address, count=count, frame=frame)
+
+
+def write_single_request(device: int, address: int, value: int) -> Request:
+    """Build a function 06 write of one register (device 0 broadcasts)."""
+    _check_device(device, broadcast_ok=True)
+    _check_register(value)
+    frame = _build(WriteSingleRegisterRequest(address=address, registers=[value], dev_id=device))
+    return Request(
+        device=device, function=WRITE_SINGLE, address=address, count=1, values=(value,), frame=frame
+    )
+
+
+def write_multiple_request(device: int, address: int, values: Sequence[int]) -> Request:
+    """Build a function 16 write of consecutive registers (device 0 broadcasts)."""
+    _check_device(device, broadcast_ok=True)
+    if not 1 <= len(values) <= MAX_WRITE_REGISTERS:
+        raise EncodeError(f"cannot write {len(values)} registers (1..{MAX_WRITE_REGISTERS})")
+    for value in values:
+        _check_register(value)
+    pdu = WriteMultipleRegistersRequest(address=address, registers=list(values), dev_id=device)
+    return Request(
+        device=device,
+        function=WRITE_MULTIPLE,
+        address=address,
+        count=len(values),
+        values=tuple(values),
+        frame=_build(pdu),
+    )
+
+
+def write_request(device: int, address: int, values: Sequence[int]) -> Request:
+    """Function 06 for one register, 16 for more: what the manuals use for each type."""
+    if len(values) == 1:
+        return write_single_request(device, address, values[0])
+    return write_multiple_request(device, address, values)
+
+
+# --- master side: lengths and parsing --------------------------------------------------
+
+
+def response_length(request: Request, head: bytes, *, byte_count_16bit: bool = False) -> int:
+    """Total length of the response that starts with ``head``; 0 while more bytes are needed.
+
+    Raises :class:`MalformedFrameError` when the function code can answer neither the
+    request nor an exception to it, so the caller can resynchronise at once.
+    """
+    if len(head) < 2:  # noqa: PLR2004
+        return 0
+    function = head[1]
+    if function == request.function | EXCEPTION_FLAG:
+        return EXCEPTION_FRAME_LENGTH
+    if function != request.function:
+        raise MalformedFrameError(
+            f"function {function:#04x} does not answer function {request.function:#04x}"
+        )
+    if function not in READ_FUNCTIONS:
+        return WRITE_RESPONSE_LENGTH
+    if len(head) < 3:  # noqa: PLR2004
+        return 0
+    if byte_count_16bit and head[2] == 0:
+        return 6 + 2 * request.count  # device, function, 2-byte count, data, CRC
+    return 5 + head[2]
+
+
+def parse_response(
+    request: Request,
+    frame: bytes,
+    *,
+    exceptions: Mapping[int, str] = STANDARD_EXCEPTIONS,
+    byte_count_16bit: bool = False,
+) -> Response:
+    """Check ``frame`` against ``request`` and decode it.
+
+    Raises :class:`CrcError`, :class:`UnexpectedDeviceError`, :class:`MalformedFrameError`
+    or, for an exception response, :class:`DeviceExceptionError` with the family's meaning.
+    With ``byte_count_16bit`` a read response with a two-byte byte count (documented in
+    both digiLine manuals for strings) is accepted when unambiguous, and marked.
+    """
+    if len(frame) < EXCEPTION_FRAME_LENGTH:
+        raise MalformedFrameError(f"{len(frame)} bytes cannot be a response")
+    if not crc_ok(frame):
+        raise CrcError(f"CRC {frame[-2:].hex()} does not match {crc16(frame[:-2]).hex()}")
+    if frame[0] != request.device:
+        raise UnexpectedDeviceError(
+            f"answer from device {frame[0]} to a request for device {request.device}",
+            expected=request.device,
+            received=frame[0],
+        )
+    tolerated = None
+    if (
+        byte_count_16bit
+        and request.function in READ_FUNCTIONS
+        and frame[1] == request.function
+        and len(frame) == 6 + 2 * request.count
+        and frame[2] == 0
+        and frame[3] == 2 * request.count
+    ):
+        frame = frame[:2] + frame[3:]  # the standard form; the CRC was checked above
+        tolerated = QUIRK_STRING_BYTE_COUNT
+    pdu = _CLIENT_DECODER.decode(frame[1:-2])
+    if pdu is None:
+        raise MalformedFrameError(f"cannot decode response {frame.hex(' ')}")
+    if isinstance(pdu, ExceptionResponse):
+        function = pdu.function_code & ~EXCEPTION_FLAG
+        if function != request.function:
+            raise MalformedFrameError(
+                f"exception for function {function:#04x} while {request.function:#04x} was asked"
+            )
+        code = int(pdu.exception_code)
+        raise DeviceExceptionError(
+            device=request.device,
+            function=function,
+            code=code,
+            meaning=exceptions.get(code, f"exception_{code}"),
+        )
+    if pdu.function_code != request.function:
+        raise MalformedFrameError(
+            f"function {pdu.function_code:#04x} does not answer {request.function:#04x}"
+        )
+    if request.function in READ_FUNCTIONS:
+        return _read_response(request, frame, tuple(pdu.registers), tolerated)
+    return _write_response(request, int(pdu.address), pdu)
+
+
+def _read_response(
+    request: Request, frame: bytes, registers: tuple[int, ...], tolerated: str | None
+) -> Response:
+    if frame[2] != 2 * request.count or len(frame) != 5 + 2 * request.count:
+        raise MalformedFrameError(
+            f"{len(frame)} bytes with byte count {frame[2]} for {request.count} registers"
+        )
+    return Response(
+        device=request.device,
+        function=request.function,
+        address=request.address,
+        count=request.count,
+        registers=registers,
+        tolerated=tolerated,
+    )
+
+
+def _write_response(request: Request, address: int, pdu: Any) -> Response:  # noqa: ANN401
+    if request.function == WRITE_SINGLE:
+        echoed = (address, tuple(pdu.registers))
+        if echoed != (request.address, request.values):
+            raise MalformedFrameError(f"write echo {echoed} differs from the request")
+        return Response(device=request.device, function=WRITE_SINGLE, address=address, count=1)
+    if (address, int(pdu.count)) != (request.address, request.count):
+        raise MalformedFrameError(
+            f"write confirmation {address:#06x}/{pdu.count} differs from the request"
+        )
+    return Response(
+        device=request.device, function=WRITE_MULTIPLE, address=address, count=request.count
+    )
+
+
+# --- slave side: the simulator ---------------------------------------------------------
+
+
+def request_length(head: bytes) -> int:
+    """Total length of a request starting with ``head``; 0 while more bytes are needed.
+
+    Unknown function codes are assumed to be 8 bytes long, the length of every fixed-size
+    request, so a slave can check their CRC and answer exception 01 as the manuals say.
+    """
+    if len(head) < 2:  # noqa: PLR2004
+        return 0
+    if head[1] != WRITE_MULTIPLE:
+        return 8
+    if len(head) < 7:  # noqa: PLR2004
+        return 0
+    return 9 + head[6]
+
+
+def parse_request(frame: bytes) -> Request:
+    """Decode a request frame received by a slave; CRC and structure are checked."""
+    if len(frame) < 4:  # noqa: PLR2004
+        raise MalformedFrameError(f"{len(frame)} bytes cannot be a request")
+    if not crc_ok(frame):
+        raise CrcError(f"CRC {frame[-2:].hex()} does not match {crc16(frame[:-2]).hex()}")
+    device, function = frame[0], frame[1]
+    pdu = _SERVER_DECODER.decode(frame[1:-2])
+    if pdu is None:
+        raise MalformedFrameError(f"cannot decode request {frame.hex(' ')}")
+    if function in READ_FUNCTIONS:
+        return Request(
+            device=device, function=function, address=pdu.address, count=pdu.count, frame=frame
+        )
+    if function == WRITE_SINGLE:
+        values = tuple(pdu.registers)
+        return Request(
+            device=device,
+            function=function,
+            address=pdu.address,
+            count=1,
+            values=values,
+            frame=frame,
+        )
+    if function == WRITE_MULTIPLE:
+        values = tuple(pdu.registers)
+        byte_count = frame[6]
+        if byte_count != 2 * pdu.count or len(values) != pdu.count:
+            raise MalformedFrameError(
+                f"write of {pdu.count} registers with byte count {byte_count}"
+            )
+        return Request(
+            device=device,
+            function=function,
+            address=pdu.address,
+            count=pdu.count,
+            values=values,
+            frame=frame,
+        )
+    raise MalformedFrameError(f"function {function:#04x} is not supported")
+
+
+def read_response(
+    device: int, function: int, registers: Sequence[int], *, byte_count_16bit: bool = False
+) -> bytes:
+    """A slave's answer to a read; optionally with the digiLine two-byte byte count."""
+    cls = ReadHoldingRegistersResponse if function == READ_HOLDING else ReadInputRegistersResponse
+    frame = _build(cls(registers=list(registers), dev_id=device))
+    if not byte_count_16bit:
+        return frame
+    body = frame[:2] + b"\x00" + frame[2:-2]
+    return body + crc16(body)
+
+
+def write_single_response(device: int, address: int, value: int) -> bytes:
+    """A slave's echo of a function 06 write."""
+    return _build(WriteSingleRegisterResponse(address=address, registers=[value], dev_id=device))
+
+
+def write_multiple_response(device: int, address: int, count: int) -> bytes:
+    """A slave's confirmation of a function 16 write."""
+    return _build(WriteMultipleRegistersResponse(address=address, count=count, dev_id=device))
+
+
+def exception_response(device: int, function: int, code: int) -> bytes:
+    """A slave's exception answer."""
+    return _build(ExceptionResponse(function, code, device_id=device))

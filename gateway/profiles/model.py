@@ -1,0 +1,232 @@
+"""The register map of one sensor variant, as immutable values built by the loader."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import TYPE_CHECKING, Any
+
+from gateway.codec import BITFIELD_TYPES, ENUM_TYPES, DataType, Format, WordOrder
+from gateway.errors import ConfigError
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+
+class Access(StrEnum):
+    """Whether the gateway may write a point."""
+
+    READ = "r"
+    READ_WRITE = "rw"
+
+
+class Storage(StrEnum):
+    """Where a writable register lives, which decides how often it may be written."""
+
+    FLASH = "flash"  # EEPROM/flash: ~10,000-100,000 cycles, never written cyclically
+    RAM = "ram"  # S10 RAM compensation block: meant for cyclic writes
+    VOLATILE = "volatile"  # H10/H20 "not written to flash"
+
+
+class PollGroup(StrEnum):
+    """How often a point is worth reading."""
+
+    PROCESS = "process"  # measured values, at the device's poll interval
+    STATUS = "status"  # status and error words, at the device's poll interval
+    DIAGNOSTICS = "diagnostics"  # counters, logbooks: slowly
+    IDENTITY = "identity"  # nameplate: once at start and after reconnection
+    CONFIGURATION = "configuration"  # settings: slowly, and after writes
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Point:
+    """One value in a register map: where it is, how to decode it, how it may be written."""
+
+    name: str
+    address: int
+    format: Format
+    access: Access
+    unit: str | None  # None when the unit comes from another register (unit_from)
+    unit_from: str | None
+    enum_units: Mapping[int, str]  # for unit-selecting enums: code -> unit text
+    storage: Storage | None
+    post_write_wait_s: float
+    group: PollGroup
+    description: str
+    view: bool = False
+    repeat: str | None = None
+    index: int | None = None
+
+    @property
+    def dtype(self) -> DataType:
+        """The point's data type."""
+        return self.format.dtype
+
+    @property
+    def count(self) -> int:
+        """Registers the point occupies."""
+        return self.format.count
+
+    @property
+    def last(self) -> int:
+        """Address of the point's last register."""
+        return self.address + self.format.count - 1
+
+    @property
+    def writable(self) -> bool:
+        """Whether the gateway may write the point at all."""
+        return self.access is Access.READ_WRITE
+
+    def as_dict(self) -> dict[str, Any]:
+        """The point as plain data, the contract of ``gateway profiles show --json``."""
+        fmt = self.format
+        data: dict[str, Any] = {
+            "name": self.name,
+            "address": self.address,
+            "address_hex": f"0x{self.address:04X}",
+            "type": fmt.dtype.value,
+            "count": fmt.count,
+            "access": self.access.value,
+            "unit": self.unit,
+            "unit_from": self.unit_from,
+            "group": self.group.value,
+            "description": self.description,
+            "storage": self.storage.value if self.storage else None,
+            "post_write_wait_s": self.post_write_wait_s,
+        }
+        if fmt.dtype in ENUM_TYPES:
+            data["enum"] = {str(code): label for code, label in fmt.enum.items()}
+            if self.enum_units:
+                data["enum_units"] = {str(code): unit for code, unit in self.enum_units.items()}
+        if fmt.dtype in BITFIELD_TYPES:
+            data["bits"] = {str(bit): name for bit, name in fmt.bits.items()}
+        if fmt.minimum is not None or fmt.maximum is not None:
+            data["range"] = [fmt.minimum, fmt.maximum]
+        if fmt.dtype is DataType.STRING:
+            data["encoding"] = fmt.encoding
+        if self.view:
+            data["view"] = True
+        if self.repeat is not None:
+            data["repeat"] = self.repeat
+            data["index"] = self.index
+        return data
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class WaitRule:
+    """A longer post-write wait after writes touching ``first``..``last``."""
+
+    first: int
+    last: int
+    wait_s: float
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Timing:
+    """A family's timing rules, each named after its manual section in the data file."""
+
+    min_gap_s: float = 0.0  # minimum inter-frame gap on top of 3.5 character times
+    processing_time_s: float = 0.1  # t1 upper bound before the device answers
+    min_response_time_point: str | None = None  # register adding to t1 (digiLine 0x0305)
+    post_write_wait_s: float = 0.0  # wait after every write before the next request
+    post_write_waits: tuple[WaitRule, ...] = ()
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SerialSettings:
+    """Factory serial settings where a manual documents them."""
+
+    address: int | None = None
+    baudrate: int | None = None
+    parity: str | None = None
+    stopbits: int | None = None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Limits:
+    """Registers per request the family accepts."""
+
+    max_read: int = 125
+    max_write: int = 123
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Quirks:
+    """Documented deviations from standard Modbus that the gateway tolerates."""
+
+    string_byte_count_16bit: bool = False
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FloatOrderRegister:
+    """A register that selects the float word order (digiLine 0x0307)."""
+
+    point: str
+    orders: Mapping[int, WordOrder]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Profile:
+    """A complete, validated register map of one sensor variant."""
+
+    id: str
+    family: str
+    title: str
+    spec: str
+    source: str
+    points: tuple[Point, ...]
+    readable: tuple[tuple[int, int], ...]
+    float_order: WordOrder
+    float_order_register: FloatOrderRegister | None
+    float_faults: bool
+    limits: Limits
+    timing: Timing
+    quirks: Quirks
+    exceptions: Mapping[int, str]
+    serial: SerialSettings | None
+    identify: Mapping[str, int]
+    unit_availability: Mapping[str, tuple[str, ...]]
+    _by_name: dict[str, Point] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        """Index points by name once."""
+        object.__setattr__(self, "_by_name", {p.name: p for p in self.points})
+
+    def has_point(self, name: str) -> bool:
+        """Whether the map defines a point of that name."""
+        return name in self._by_name
+
+    def point(self, name: str) -> Point:
+        """The point of that name, or a :class:`ConfigError` listing close names."""
+        try:
+            return self._by_name[name]
+        except KeyError:
+            close = [n for n in self._by_name if name in n or n in name][:5]
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise ConfigError(
+                f"profile {self.id} has no point {name!r}{hint}", key="points"
+            ) from None
+
+    def points_in(self, *groups: PollGroup) -> tuple[Point, ...]:
+        """Points of the given poll groups, in address order."""
+        return tuple(p for p in self.points if p.group in groups)
+
+    def exception_meaning(self, code: int) -> str:
+        """The family's meaning of a Modbus exception code."""
+        return self.exceptions.get(code, f"exception_{code}")
+
+    def post_write_wait(self, address: int, count: int) -> float:
+        """Wait after writing ``count`` registers from ``address`` before the next request."""
+        last = address + count - 1
+        wait = self.timing.post_write_wait_s
+        for rule in self.timing.post_write_waits:
+            if address <= rule.last and rule.first <= last:
+                wait = max(wait, rule.wait_s)
+        return wait
+
+    def readable_run(self, address: int) -> tuple[int, int] | None:
+        """The readable run containing ``address``, if any; gaps outside runs are unread."""
+        for first, last in self.readable:
+            if first <= address <= last:
+                return first, last
+        return None
