@@ -12,7 +12,7 @@ from rich.table import Table
 
 from gateway import __version__
 from gateway.errors import GatewayError
-from gateway.profiles import Profile, builtin_profiles, get_profile
+from gateway.profiles import Point, builtin_profiles, get_profile
 
 app = typer.Typer(
     name="gateway",
@@ -32,7 +32,7 @@ def _fail(exc: GatewayError) -> typer.Exit:
     return typer.Exit(code=2)
 
 
-@app.callback()
+@app.callback(invoke_without_command=True)
 def _root(
     version: Annotated[
         bool, typer.Option("--version", help="Print the version and exit.", is_eager=True)
@@ -76,8 +76,8 @@ def profiles_list(
     _out.print(table)
 
 
-def _range_text(p: Profile, name: str) -> str:
-    fmt = p.point(name).format
+def _range_text(point: Point) -> str:
+    fmt = point.format
     if fmt.minimum is None and fmt.maximum is None:
         return ""
     return f"{fmt.minimum:g} .. {fmt.maximum:g}"
@@ -145,7 +145,7 @@ def profiles_show(
             unit,
             point.group.value,
             point.storage.value if point.storage else "",
-            _range_text(profile, point.name),
+            _range_text(point),
             point.description,
         )
     _out.print(table)

@@ -37,7 +37,8 @@ def point_at(profile: Profile, address: int, count: int) -> Point | None:
     at = [point for point in profile.points if point.address == address]
     exact = [point for point in at if point.count == count]
     prefix = [p for p in at if p.dtype is codec.DataType.STRING and p.count > count]
-    return (exact or prefix or [None])[0]
+    matches = exact or prefix
+    return matches[0] if matches else None
 
 
 def build_request(case: dict[str, Any]) -> frames.Request:

@@ -438,7 +438,9 @@ def _checked_runs(raw: _RawProfile, source: str) -> list[tuple[int, int]]:
     return runs
 
 
-def _check_map(points: list[Point], raw: _RawProfile, source: str) -> list[tuple[int, int]]:
+def _check_map(
+    points: list[Point], raw: _RawProfile, source: str, origins: Mapping[str, str]
+) -> list[tuple[int, int]]:
     """Cross-point checks: overlaps, readable runs, references; returns the joined runs."""
     runs = _checked_runs(raw, source)
     solid = sorted((p for p in points if not p.view), key=lambda p: p.address)
@@ -446,20 +448,23 @@ def _check_map(points: list[Point], raw: _RawProfile, source: str) -> list[tuple
         if b.address <= a.last:
             raise ProfileError(
                 f"overlaps {a.name!r} ({a.address:#06x}..{a.last:#06x}) at {b.address:#06x}; "
-                "declare one of them a view if that is intended",
-                source=source,
+                f"in profile {raw.id}; declare one of them a view if that is intended",
+                source=origins.get(b.name, source),
                 point=b.name,
             )
     by_name = {p.name: p for p in points}
     for p in points:
         if p.count > raw.limits.max_read:
             raise ProfileError(
-                "needs more registers than one read may take", source=source, point=p.name
+                "needs more registers than one read may take",
+                source=origins.get(p.name, source),
+                point=p.name,
             )
         if not any(first <= p.address and p.last <= last for first, last in runs):
             raise ProfileError(
-                f"{p.address:#06x}..{p.last:#06x} lies outside every readable run",
-                source=source,
+                f"{p.address:#06x}..{p.last:#06x} lies outside every readable run "
+                f"of profile {raw.id}",
+                source=origins.get(p.name, source),
                 point=p.name,
             )
         if p.unit_from is not None:
@@ -467,7 +472,7 @@ def _check_map(points: list[Point], raw: _RawProfile, source: str) -> list[tuple
             if ref is None or not ref.enum_units:
                 raise ProfileError(
                     f"unit_from {p.unit_from!r} must name an enum point whose entries carry units",
-                    source=source,
+                    source=origins.get(p.name, source),
                     point=p.name,
                 )
     _check_references(by_name, raw, source)
@@ -507,7 +512,8 @@ def _build_profile(merged: dict[str, Any], source: str) -> Profile:
     points = sorted(
         (_build_point(p, raw) for p in merged.get("points", [])), key=lambda p: (p.address, p.view)
     )
-    runs = _check_map(points, raw, source)
+    origins = {str(p.get("name")): str(p.get(_SOURCE, source)) for p in merged.get("points", [])}
+    runs = _check_map(points, raw, source, origins)
     timing = raw.timing
     return Profile(
         id=raw.id,
