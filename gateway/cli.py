@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
+import signal
 import sys
+from pathlib import Path
 from typing import Annotated
 
 import typer
@@ -11,8 +14,16 @@ from rich.console import Console
 from rich.table import Table
 
 from gateway import __version__
-from gateway.errors import GatewayError
+from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import Point, builtin_profiles, get_profile
+from gateway.simulator import (
+    SimulationSettings,
+    SimulatorServer,
+    build_bus,
+    load_settings,
+    parse_device_option,
+    parse_settings,
+)
 
 app = typer.Typer(
     name="gateway",
@@ -149,6 +160,134 @@ def profiles_show(
             point.description,
         )
     _out.print(table)
+
+
+def _simulation_settings(
+    devices: list[str],
+    config: Path | None,
+    overrides: dict[str, object],
+) -> SimulationSettings:
+    if config is not None:
+        settings = load_settings(config)
+        if devices:
+            extra = [parse_device_option(text) for text in devices]
+            settings = parse_settings(
+                {
+                    **settings.model_dump(),
+                    "devices": [
+                        *settings.model_dump()["devices"],
+                        *[d.model_dump() for d in extra],
+                    ],
+                },
+                source=str(config),
+            )
+    else:
+        if not devices:
+            raise ConfigError("give at least one --device PROFILE:ADDRESS or a --config file")
+        settings = parse_settings(
+            {"devices": [parse_device_option(t).model_dump() for t in devices]}
+        )
+    data = settings.model_dump()
+    line = {
+        k: v
+        for k, v in overrides.items()
+        if k in {"baudrate", "parity", "stopbits"} and v is not None
+    }
+    data["line"] = {**data["line"], **line}
+    for key in ("pace", "seed"):
+        if overrides.get(key) is not None:
+            data[key] = overrides[key]
+    if overrides.get("static"):
+        for device in data["devices"]:
+            device["animate"] = False
+    return parse_settings(data, source=str(config or "command line"))
+
+
+async def _simulate(
+    settings: SimulationSettings, pty: Path | None, tcp: tuple[str, int] | None, stats: Path | None
+) -> None:
+    bus = build_bus(settings)
+    server = SimulatorServer(bus, stats_path=stats)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    try:
+        where = []
+        if pty is not None:
+            slave = server.open_pty(pty)
+            where.append(f"{pty} (-> {slave})")
+        if tcp is not None:
+            port = await server.open_tcp(*tcp)
+            where.append(f"socket://{tcp[0]}:{port}")
+        server.start_stats()
+        devices = ", ".join(f"{d.profile.id}@{a}" for a, d in sorted(bus.devices.items()))
+        _out.print(f"simulating {devices} on {' and '.join(where)}, {bus.line}; Ctrl-C stops")
+        sys.stdout.flush()
+        await stop.wait()
+    finally:
+        await server.close()
+
+
+def _host_port(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        raise ConfigError(f"--tcp {text!r}: expected HOST:PORT, e.g. 127.0.0.1:5020")
+    return host, int(port)
+
+
+@app.command()
+def simulate(
+    device: Annotated[
+        list[str] | None,
+        typer.Option("--device", "-d", help="PROFILE:ADDRESS of a simulated sensor; repeatable."),
+    ] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", "-c", help="YAML file with line, devices, values, faults."),
+    ] = None,
+    pty: Annotated[
+        Path | None,
+        typer.Option("--pty", help="Create a pseudo-terminal and link it at this path."),
+    ] = None,
+    tcp: Annotated[
+        str | None, typer.Option("--tcp", help="Serve RTU over TCP on HOST:PORT (port 0: any).")
+    ] = None,
+    baudrate: Annotated[
+        int | None, typer.Option(help="Line speed for timing rules and pacing.")
+    ] = None,
+    parity: Annotated[str | None, typer.Option(help="N, E or O.")] = None,
+    stopbits: Annotated[int | None, typer.Option(help="1 or 2.")] = None,
+    pace: Annotated[
+        bool | None, typer.Option("--pace/--no-pace", help="Take the line's real time per frame.")
+    ] = None,
+    static: Annotated[
+        bool, typer.Option("--static", help="Keep values still (for tests).")
+    ] = False,
+    seed: Annotated[int | None, typer.Option(help="Seed for values and fault injection.")] = None,
+    stats: Annotated[
+        Path | None, typer.Option("--stats", help="Keep a JSON stats file up to date here.")
+    ] = None,
+) -> None:
+    """Simulate sensors on a pseudo-terminal or TCP, refereeing the master's timing."""
+    try:
+        if pty is None and tcp is None:
+            raise ConfigError("give --pty PATH and/or --tcp HOST:PORT")
+        settings = _simulation_settings(
+            device or [],
+            config,
+            {
+                "baudrate": baudrate,
+                "parity": parity,
+                "stopbits": stopbits,
+                "pace": pace,
+                "seed": seed,
+                "static": static,
+            },
+        )
+        asyncio.run(_simulate(settings, pty, _host_port(tcp) if tcp else None, stats))
+    except GatewayError as exc:
+        raise _fail(exc) from exc
 
 
 def main() -> None:

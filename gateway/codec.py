@@ -224,6 +224,18 @@ def float_to_registers(value: float, order: WordOrder) -> tuple[int, int]:
     return regs[0], regs[1]
 
 
+def reorder_float(
+    registers: Sequence[int], source: WordOrder, target: WordOrder
+) -> tuple[int, int]:
+    """The same float32 bit pattern moved from one wire order to another (faults included)."""
+    ieee = _float_bits(registers, source).to_bytes(4, "big")
+    wire = bytearray(4)
+    for wire_index, ieee_index in enumerate(_WIRE_TO_IEEE[target]):
+        wire[wire_index] = ieee[ieee_index]
+    regs = bytes_to_registers(bytes(wire))
+    return regs[0], regs[1]
+
+
 def _float_bits(registers: Sequence[int], order: WordOrder) -> int:
     wire = registers_to_bytes(registers[:2])
     ieee = bytearray(4)

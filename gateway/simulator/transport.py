@@ -1,0 +1,223 @@
+"""The simulator's wire: a pseudo-terminal or a TCP socket carrying Modbus RTU.
+
+Bytes are cut into frames the way a slave's UART does it: a silence of 3.5 character
+times ends a burst. A burst that holds more than one request means the master left no
+gap; the bus's referee sees each of them with the arrival time of the burst.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import termios
+import tty
+from pathlib import Path
+from typing import TYPE_CHECKING, Final
+
+from gateway import frames
+from gateway.errors import GatewayError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from gateway.simulator.bus import Reply, SimulatedBus
+
+_LOGGER = logging.getLogger(__name__)
+MIN_SILENCE_S: Final = 0.0015  # below this, event-loop timers are not reliable
+STATS_INTERVAL_S: Final = 0.25
+
+
+class SimulatorError(GatewayError):
+    """The simulator cannot serve: a pty that cannot be created, a port in use."""
+
+
+class _Burst:
+    """Collects bytes until the line has been silent for 3.5 characters."""
+
+    def __init__(self, server: SimulatorServer, send: Callable[[bytes], None]) -> None:
+        self._server = server
+        self._send = send
+        self._buffer = bytearray()
+        self._start = 0.0
+        self._timer: asyncio.TimerHandle | None = None
+
+    def feed(self, data: bytes) -> None:
+        loop = self._server.loop
+        now = loop.time()
+        if not self._buffer:
+            self._start = now
+        self._buffer.extend(data)
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = loop.call_later(self._server.silence_s, self._flush)
+
+    def _flush(self) -> None:
+        self._timer = None
+        burst, self._buffer = bytes(self._buffer), bytearray()
+        start = self._start
+        line = self._server.bus.line
+        while burst:
+            need = frames.request_length(burst)
+            frame = burst if need == 0 or need > len(burst) else burst[:need]
+            if not frames.crc_ok(frame):
+                frame = burst  # a slave cannot find frames inside garbage: all of it is one
+            burst = burst[len(frame) :]
+            self._server.handle(frame, start, self._send)
+            if self._server.bus.pace:
+                start += line.wire_s(len(frame))
+
+
+class SimulatorServer:
+    """Runs a :class:`SimulatedBus` on the event loop: receives, schedules, replies."""
+
+    def __init__(self, bus: SimulatedBus, *, stats_path: Path | None = None) -> None:
+        """Serve ``bus``; with ``stats_path`` keep a JSON stats file up to date."""
+        self.bus = bus
+        self.loop = asyncio.get_running_loop()
+        self.silence_s = max(bus.line.wire_s(1) * 3.5, MIN_SILENCE_S)
+        self.stats_path = stats_path
+        self._pty: _PtyEndpoint | None = None
+        self._servers: list[asyncio.Server] = []
+        self._stats_task: asyncio.Task[None] | None = None
+        bus.start(self.loop.time())
+
+    def handle(self, frame: bytes, start: float, send: Callable[[bytes], None]) -> None:
+        """Give a received frame to the bus and schedule its replies on the line."""
+        for reply in self.bus.on_frame(frame, start):
+            self.loop.call_at(reply.at, self._emit, reply, send)
+
+    def _emit(self, reply: Reply, send: Callable[[bytes], None]) -> None:
+        try:
+            send(reply.data)
+        except OSError as exc:  # the master went away; the line is simply not listened to
+            _LOGGER.debug("reply not delivered: %s", exc)
+        self.bus.on_sent(reply, self.loop.time())
+
+    # --- endpoints -----------------------------------------------------------------------
+
+    def open_pty(self, path: Path) -> Path:
+        """Create a pty pair and link its slave end at ``path`` for a master to open."""
+        self._pty = _PtyEndpoint(self, path)
+        self._pty.open()
+        return self._pty.slave_name
+
+    def unplug_pty(self) -> None:
+        """Make the port disappear, as an unplugged USB adapter does."""
+        if self._pty is not None:
+            self._pty.close()
+
+    def replug_pty(self) -> None:
+        """Bring the port back at the same path."""
+        if self._pty is not None:
+            self._pty.open()
+
+    async def open_tcp(self, host: str, port: int) -> int:
+        """Serve RTU over TCP (what RTU-over-TCP converters speak); returns the port."""
+
+        def connected(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            burst = _Burst(self, writer.write)
+            self._servers[-1].get_loop().create_task(_pump(reader, writer, burst))
+
+        try:
+            server = await asyncio.start_server(connected, host, port)
+        except OSError as exc:
+            raise SimulatorError(f"cannot listen on {host}:{port}: {exc}") from exc
+        self._servers.append(server)
+        return int(server.sockets[0].getsockname()[1])
+
+    def start_stats(self) -> None:
+        """Write the stats file now and every 250 ms while serving."""
+        if self.stats_path is not None:
+            self._stats_task = self.loop.create_task(self._stats_loop(), name="simulator.stats")
+
+    async def _stats_loop(self) -> None:
+        while True:
+            self.write_stats()
+            await asyncio.sleep(STATS_INTERVAL_S)
+
+    def write_stats(self) -> None:
+        """Replace the stats file atomically, so readers never see half of it."""
+        if self.stats_path is None:
+            return
+        temporary = self.stats_path.with_suffix(self.stats_path.suffix + ".tmp")
+        temporary.write_text(json.dumps(self.bus.stats(), indent=1), encoding="utf-8")
+        temporary.replace(self.stats_path)
+
+    async def close(self) -> None:
+        """Stop serving, write the final stats, remove the pty link."""
+        if self._stats_task is not None:
+            self._stats_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._stats_task
+        for server in self._servers:
+            server.close()
+            await server.wait_closed()
+        if self._pty is not None:
+            self._pty.close()
+        self.write_stats()
+
+
+async def _pump(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, burst: _Burst) -> None:
+    try:
+        while data := await reader.read(4096):
+            burst.feed(data)
+    except ConnectionError:
+        pass
+    finally:
+        writer.close()
+
+
+class _PtyEndpoint:
+    """A pseudo-terminal pair whose slave end is linked at a path, socat-style."""
+
+    def __init__(self, server: SimulatorServer, path: Path) -> None:
+        self._server = server
+        self.path = path
+        self.slave_name = Path()
+        self._master = -1
+        self._slave = -1
+        self._burst = _Burst(server, self._write)
+
+    def open(self) -> None:
+        if self.path.is_symlink():
+            self.path.unlink()
+        elif self.path.exists():
+            raise SimulatorError(f"{self.path} exists and is not a link; refusing to replace it")
+        master, slave = os.openpty()
+        tty.setraw(slave, termios.TCSANOW)  # no echo, no line discipline: bytes as they come
+        os.set_blocking(master, False)
+        self.slave_name = Path(os.ttyname(slave))
+        try:
+            self.path.symlink_to(self.slave_name)
+        except OSError as exc:
+            os.close(master)
+            os.close(slave)
+            raise SimulatorError(f"cannot create {self.path}: {exc.strerror}") from exc
+        self._master, self._slave = master, slave
+        self._server.loop.add_reader(master, self._readable)
+
+    def _readable(self) -> None:
+        try:
+            data = os.read(self._master, 4096)
+        except BlockingIOError:
+            return
+        except OSError:  # EIO: no master has the port open right now
+            return
+        if data:
+            self._burst.feed(data)
+
+    def _write(self, data: bytes) -> None:
+        if self._master >= 0:
+            os.write(self._master, data)
+
+    def close(self) -> None:
+        if self._master >= 0:
+            self._server.loop.remove_reader(self._master)
+            os.close(self._master)
+            os.close(self._slave)
+            self._master = self._slave = -1
+        if self.path.is_symlink():
+            self.path.unlink()
