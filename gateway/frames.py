@@ -10,6 +10,7 @@ The server-side helpers serve the simulator.
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final
 
@@ -50,6 +51,7 @@ MAX_WRITE_REGISTERS: Final = 123  # Modbus application protocol 6.12
 EXCEPTION_FLAG: Final = 0x80
 EXCEPTION_FRAME_LENGTH: Final = 5  # device, function | 0x80, code, CRC
 WRITE_RESPONSE_LENGTH: Final = 8  # device, function, address, value or count, CRC
+READ_REQUEST_LENGTH: Final = 8  # device, function, address, count, CRC
 QUIRK_STRING_BYTE_COUNT: Final = "string_byte_count_16bit"
 
 # Standard Modbus meanings; each profile supplies its family's own.
@@ -317,13 +319,14 @@ def parse_request(frame: bytes) -> Request:
     if not crc_ok(frame):
         raise CrcError(f"CRC {frame[-2:].hex()} does not match {crc16(frame[:-2]).hex()}")
     device, function = frame[0], frame[1]
+    if function in READ_FUNCTIONS and len(frame) == READ_REQUEST_LENGTH:
+        # pymodbus refuses counts outside 1..125 while decoding; a slave must instead
+        # answer them with exception 02, so the two fields are read here.
+        address, count = struct.unpack(">HH", frame[2:6])
+        return Request(device=device, function=function, address=address, count=count, frame=frame)
     pdu = _SERVER_DECODER.decode(frame[1:-2])
     if pdu is None:
         raise MalformedFrameError(f"cannot decode request {frame.hex(' ')}")
-    if function in READ_FUNCTIONS:
-        return Request(
-            device=device, function=function, address=pdu.address, count=pdu.count, frame=frame
-        )
     if function == WRITE_SINGLE:
         values = tuple(pdu.registers)
         return Request(

@@ -133,10 +133,10 @@ def _value_for(point: Point, data: st.DataObject) -> object:  # noqa: PLR0911 - 
         alphabet = st.characters(codec="ascii", min_codepoint=32, max_codepoint=126)
         return data.draw(st.text(alphabet, max_size=fmt.byte_capacity - 1))
     if dtype is DataType.YYMMDDHHMM:
-        moment = data.draw(st.datetimes(datetime(2000, 1, 1), datetime(2042, 12, 31)))  # noqa: DTZ001
+        moment = data.draw(st.datetimes(datetime(2000, 1, 1), datetime(2042, 12, 31)))
         return moment.replace(second=0, microsecond=0)
     if dtype is DataType.DATETIME:
-        moment = data.draw(st.datetimes(datetime(2000, 1, 1), datetime(2099, 12, 31)))  # noqa: DTZ001
+        moment = data.draw(st.datetimes(datetime(2000, 1, 1), datetime(2099, 12, 31)))
         return moment.replace(microsecond=0, tzinfo=UTC)
     low, high = fmt.minimum, fmt.maximum
     assert low is not None

@@ -129,13 +129,13 @@ class SimulatedBus:
         self.counters["ignored"] += 1
 
     def _timing_ok(self, frame: bytes, start: float) -> bool:
-        if start < self.answer_until:
-            self._violate("answer_in_progress", frame, start, self.answer_until - start, 0.0)
-            return False
         gap = start - self.last_frame_end
         required = self._gap_required(frame[0])
         if gap < required:
             self._violate("inter_frame_gap", frame, start, required, gap)
+            return False
+        if start < self.answer_until:
+            self._violate("answer_in_progress", frame, start, self.answer_until - start, 0.0)
             return False
         device = self.devices.get(frame[0])
         if device is not None and start < device.last_write_end + device.last_write_wait_s:

@@ -102,7 +102,10 @@ def parse_device_option(text: str) -> DeviceSettings:
     profile, sep, address = text.rpartition(":")
     if not sep or not address.isdigit():
         raise ConfigError(f"--device {text!r}: expected PROFILE:ADDRESS, e.g. reiss-m0c:10")
-    return DeviceSettings(profile=profile, address=int(address))
+    try:
+        return DeviceSettings(profile=profile, address=int(address))
+    except ValidationError as exc:
+        raise ConfigError(f"--device {text!r}: the address must be 1..247") from exc
 
 
 def _value(raw: object) -> object:
