@@ -9,12 +9,11 @@ import signal
 import subprocess
 import sys
 import time
-from typing import TYPE_CHECKING
+from pathlib import Path
 
 import pytest
 
-if TYPE_CHECKING:
-    from pathlib import Path
+from gateway.simulator import build_bus, load_settings
 
 MBPOLL = shutil.which("mbpoll")
 ENV = {**os.environ, "COLUMNS": "200", "PYTHONIOENCODING": "utf-8"}
@@ -145,3 +144,16 @@ def test_existing_file_is_not_replaced(tmp_path: Path) -> None:
     assert result.returncode == 2
     assert "exists and is not a link" in result.stderr
     assert target.read_text(encoding="utf-8") == "keep"
+
+
+def test_the_shipped_example_loads() -> None:
+    example = Path(__file__).parents[2] / "config" / "simulator-plant.yaml"
+    bus = build_bus(load_settings(example))
+    families = {device.profile.family for device in bus.devices.values()}
+    assert families == {
+        "jumo-digiline-odo-s10",
+        "jumo-digiline-odo-h10-h20",
+        "jumo-tecline",
+        "reiss-m0c-m3c",
+    }
+    assert str(bus.line) == "9600 8E1"

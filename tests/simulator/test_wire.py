@@ -263,3 +263,20 @@ async def test_pyserial_socket_url_reaches_the_simulator() -> None:
         finally:
             line.close()
         assert received == CLEAN
+
+
+async def test_wire_pacing_takes_the_real_line_time() -> None:
+    line = {"baudrate": 9600, "parity": "E", "stopbits": 1}
+    async with serving([DEVICES[0]], line=line, pace=True) as server:
+        port = await server.open_tcp("127.0.0.1", 0)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        loop = asyncio.get_running_loop()
+        sent = loop.time()
+        writer.write(TEMPERATURE.frame)
+        answer = await asyncio.wait_for(reader.readexactly(len(CLEAN)), timeout=1)
+        elapsed = loop.time() - sent
+        writer.close()
+    character = 11 / 9600
+    assert answer == CLEAN
+    # request (8 bytes) + t1 (5 ms) + answer (9 bytes) at 1.146 ms per character
+    assert elapsed >= 17 * character + 0.005
