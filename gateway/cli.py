@@ -13,9 +13,12 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from gateway import __version__
+from gateway import __version__, codec
+from gateway.bus import Line
 from gateway.errors import ConfigError, GatewayError
-from gateway.profiles import Point, builtin_profiles, get_profile
+from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
+from gateway.samples import Quality, Sample, json_value
+from gateway.scheduler import BusWorker, DeviceTarget
 from gateway.simulator import (
     SimulationSettings,
     SimulatorServer,
@@ -24,6 +27,8 @@ from gateway.simulator import (
     parse_device_option,
     parse_settings,
 )
+from gateway.sinks.console import format_sample
+from gateway.timing import LineFormat
 
 app = typer.Typer(
     name="gateway",
@@ -288,6 +293,92 @@ def simulate(
         asyncio.run(_simulate(settings, pty, _host_port(tcp) if tcp else None, stats))
     except GatewayError as exc:
         raise _fail(exc) from exc
+
+
+def _read_targets(profile_id: str, points: list[str], *, every: bool) -> dict[str, float | None]:
+    profile = get_profile(profile_id)
+    if points:
+        return {profile.point(name).name: None for name in points}
+    groups = set(PollGroup) if every else {PollGroup.PROCESS, PollGroup.STATUS, PollGroup.IDENTITY}
+    return {p.name: None for p in profile.points if p.group in groups and not p.view}
+
+
+async def _read(port: str, line_format: LineFormat, target: DeviceTarget) -> list[Sample]:
+    line = Line(port=port, line=line_format)
+    await line.open()
+    try:
+        worker = BusWorker(name="read", line=line, devices=[target])
+        return await worker.read_once(target.name)
+    finally:
+        await line.close()
+
+
+@app.command()
+def read(
+    port: Annotated[str, typer.Option(help="Serial device or socket://HOST:PORT.")],
+    address: Annotated[int, typer.Option(help="Device address 1..247.", min=1, max=247)],
+    profile: Annotated[str, typer.Option(help="Profile id, see 'gateway profiles'.")],
+    points: Annotated[
+        list[str] | None,
+        typer.Argument(
+            metavar="[POINT]...", help="Points to read (default: process, status, identity)."
+        ),
+    ] = None,
+    baudrate: Annotated[int, typer.Option(help="Line speed.")] = 9600,
+    parity: Annotated[str, typer.Option(help="N, E or O.")] = "N",
+    stopbits: Annotated[int, typer.Option(help="1 or 2.")] = 1,
+    timeout: Annotated[
+        float | None, typer.Option(help="Response timeout in seconds (default: from the profile).")
+    ] = None,
+    float_order: Annotated[
+        str | None, typer.Option(help="ABCD, CDAB, BADC or DCBA (default: the device's).")
+    ] = None,
+    every: Annotated[bool, typer.Option("--all", help="Read every point of the profile.")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print a JSON object keyed by point name.")
+    ] = False,
+) -> None:
+    """Read points of one device once, with every timing rule of its manual."""
+    try:
+        if parity not in {"N", "E", "O"} or stopbits not in {1, 2}:
+            raise ConfigError("--parity must be N, E or O and --stopbits 1 or 2")
+        order = codec.WordOrder(float_order) if float_order else None
+        target = DeviceTarget(
+            name=f"address_{address}",
+            address=address,
+            profile=get_profile(profile),
+            intervals=_read_targets(profile, points or [], every=every),
+            float_order=order,
+            timeout_s=timeout,
+        )
+        line_format = LineFormat(baudrate=baudrate, parity=parity, stopbits=stopbits)  # type: ignore[arg-type]
+        samples = asyncio.run(_read(port, line_format, target))
+    except ValueError as exc:
+        raise _fail(
+            ConfigError(f"--float-order {float_order!r}: expected ABCD, CDAB, BADC or DCBA")
+        ) from exc
+    except GatewayError as exc:
+        raise _fail(exc) from exc
+    failed = [s for s in samples if s.quality is Quality.COMMS_ERROR]
+    if as_json:
+        data = {
+            s.point: ({"value": json_value(s.value)} if s.good else {s.quality.value: s.fault})
+            | {"unit": s.unit}
+            for s in samples
+        }
+        sys.stdout.write(json.dumps(data, indent=2, ensure_ascii=False) + "\n")
+    else:
+        table = Table(title=f"{profile} at address {address} on {port}")
+        for column in ("point", "value", "unit", "quality"):
+            table.add_column(column, overflow="fold")
+        for s in samples:
+            shown = format_sample(s).split("=", 1)[1]
+            value = shown.removesuffix(f" {s.unit}") if s.unit else shown
+            table.add_row(s.point, value, s.unit or "", s.quality.value)
+        _out.print(table)
+    if failed:
+        _err.print(f"[bold red]error:[/] {len(failed)} of {len(samples)} points could not be read")
+        raise typer.Exit(code=1)
 
 
 def main() -> None:

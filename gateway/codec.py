@@ -249,12 +249,28 @@ def _float_bits(registers: Sequence[int], order: WordOrder) -> int:
 _Decoder = Callable[[Format, Sequence[int], WordOrder], Decoded]
 
 
+def shortest_float32(value: float) -> float:
+    """The shortest decimal that is the same float32: 24.091, not 24.090909957885742.
+
+    Sensors compute in float32; the extra binary digits of a double are not information,
+    and they would reach dashboards and MQTT payloads as noise.
+    """
+    if not math.isfinite(value):
+        return value
+    packed = struct.pack(">f", value)
+    for digits in range(6, 10):
+        candidate = float(f"{value:.{digits}g}")
+        if struct.pack(">f", candidate) == packed:
+            return candidate
+    return value
+
+
 def _decode_float(fmt: Format, regs: Sequence[int], order: WordOrder) -> Decoded:
     bits = _float_bits(regs, order)
     value: float = struct.unpack(">f", bits.to_bytes(4, "big"))[0]
     if fmt.float_faults and (name := FLOAT_FAULTS.get(bits)) is not None:
         return Fault(name=name, raw=value)
-    return value
+    return shortest_float32(value)
 
 
 def _decode_uint8(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:

@@ -167,6 +167,8 @@ def test_every_writable_point_round_trips_its_valid_values(
             assert decoded.label == value
         elif isinstance(decoded, codec.BitfieldValue):
             assert dict(decoded.flags) == value
+        elif isinstance(decoded, float):
+            assert struct.pack(">f", decoded) == struct.pack(">f", value), (profile_id, name)  # type: ignore[arg-type]
         else:
             assert decoded == value, (profile_id, name)
 

@@ -1,0 +1,612 @@
+"""Polling one line: what is due when, in which order, and what happens when it fails.
+
+Every point has a monotonic deadline (``next += interval``); missed deadlines are counted
+and skipped, never piled up. At each step the worker serves pending writes first, then
+the device with the earliest due deadline (fair between devices), as long as the device
+is not inside a post-write wait or a late-answer quarantine. A failed request is retried
+later rather than at once, so one bad device never holds up the others; a device that
+keeps failing goes offline and is probed on a capped, jittered backoff.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import random
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Final
+
+from gateway import codec, frames
+from gateway.errors import (
+    BusClosedError,
+    BusTimeoutError,
+    DeviceExceptionError,
+    EncodeError,
+    FrameError,
+    GatewayError,
+)
+from gateway.plan import CostModel, ReadBlock, plan_reads
+from gateway.profiles import Point, Profile
+from gateway.samples import DeviceEvent, Quality, Sample
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from gateway.bus import Line
+    from gateway.samples import Sink
+
+_LOGGER = logging.getLogger(__name__)
+
+ILLEGAL_ADDRESS: Final = 2
+RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
+LATE_ANSWER_WINDOW_S: Final = 1.0  # after a timeout, a late answer may still come
+BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
+PROBE_BACKOFF_S: Final = (1.0, 60.0)  # first and largest wait between probes of an offline device
+PORT_BACKOFF_FIRST_S: Final = 0.5
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceTarget:
+    """One device to poll, with everything resolved from the config and its profile."""
+
+    name: str
+    address: int
+    profile: Profile
+    intervals: Mapping[str, float | None]  # point -> seconds; None: identity, read once
+    float_order: codec.WordOrder | None = None  # explicit override of the profile/register
+    timeout_s: float | None = None  # None: computed from the profile's timing
+    min_response_time_s: float = 0.0
+    extra_gap_s: float = 0.0
+    retries: int = 2
+    offline_after: int = 3
+
+
+@dataclass(slots=True)
+class DeviceState:
+    """What the worker knows about a device while running."""
+
+    target: DeviceTarget
+    next_due: dict[str, float] = field(default_factory=dict)
+    identity_pending: set[str] = field(default_factory=set)
+    values: dict[str, codec.Decoded] = field(default_factory=dict)
+    attempts: Counter[str] = field(default_factory=Counter)
+    online: bool | None = None  # None until the first answer or the first offline verdict
+    failures: int = 0
+    probe_at: float = 0.0
+    backoff_s: float = PROBE_BACKOFF_S[0]
+    not_before: float = 0.0
+    split_before: set[int] = field(default_factory=set)
+    unreadable: set[str] = field(default_factory=set)
+    missed_deadlines: int = 0
+    fresh: set[str] = field(default_factory=set)  # not polled since (re)start: no lag yet
+    lag_s: float = 0.0
+    lag_reported: bool = False
+
+    @property
+    def profile(self) -> Profile:
+        """The device's register map."""
+        return self.target.profile
+
+    @property
+    def float_order(self) -> codec.WordOrder:
+        """Configured order, else the one the device's format register reports, else CDAB."""
+        if self.target.float_order is not None:
+            return self.target.float_order
+        selector = self.profile.float_order_register
+        if selector is not None:
+            value = self.values.get(selector.point)
+            if isinstance(value, codec.EnumValue) and value.code in selector.orders:
+                return selector.orders[value.code]
+        return self.profile.float_order
+
+    def unit_of(self, point: Point) -> str | None:
+        """The point's unit, looked up in the unit register it names if need be."""
+        if point.unit_from is None:
+            return point.unit
+        selected = self.values.get(point.unit_from)
+        if isinstance(selected, codec.EnumValue):
+            return self.profile.point(point.unit_from).enum_units.get(selected.code)
+        return None
+
+
+@dataclass(slots=True)
+class WriteJob:
+    """A write waiting for its turn on the line."""
+
+    device: str
+    point: str
+    value: object
+    done: asyncio.Future[frames.Response | None]
+
+
+def default_timeout_s(target: DeviceTarget, response_bytes: int, wire_s: float) -> float:
+    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + minimum response time)."""
+    if target.timeout_s is not None:
+        return target.timeout_s
+    t1 = target.profile.timing.processing_time_s + target.min_response_time_s
+    return wire_s * response_bytes + t1 + RESPONSE_MARGIN_S
+
+
+class BusWorker:
+    """Polls the devices of one line for as long as it runs; owns the line exclusively."""
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        line: Line,
+        devices: Sequence[DeviceTarget],
+        sinks: Sequence[Sink] = (),
+        late_answer_window_s: float = LATE_ANSWER_WINDOW_S,
+        reconnect_max_s: float = 30.0,
+        rng: random.Random | None = None,
+    ) -> None:
+        """Prepare the schedule; :meth:`run` does the work."""
+        self.name = name
+        self.line = line
+        self.sinks = list(sinks)
+        self.devices = {d.name: DeviceState(target=d) for d in devices}
+        self.late_answer_window_s = late_answer_window_s
+        self.reconnect_max_s = reconnect_max_s
+        self._writes: list[WriteJob] = []
+        self._wake = asyncio.Event()
+        self._rng = rng or random.Random()  # noqa: S311 - jitter, nothing secret
+        self._costs = {
+            d.name: CostModel.for_device(d.profile, line.format, extra_gap_s=d.extra_gap_s)
+            for d in devices
+        }
+        self.polls = 0
+        self._port_failures_in_a_row = 0
+
+    # --- public -----------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Open the port, poll, and on port failure reopen with capped jittered backoff."""
+        delay = PORT_BACKOFF_FIRST_S
+        while True:
+            try:
+                if not self.line.is_open:
+                    await self.line.open()
+                    if self._port_failures_in_a_row:
+                        _LOGGER.info("%s: port %s is back", self.name, self.line.port)
+                    self._port_failures_in_a_row = 0
+                    delay = PORT_BACKOFF_FIRST_S
+                    self._restart_schedule(time.monotonic())
+                await self._poll_forever()
+            except BusClosedError as exc:
+                await self.line.close()
+                self._port_failures_in_a_row += 1
+                self.line.stats.port_failures += 1
+                log = _LOGGER.warning if self._port_failures_in_a_row == 1 else _LOGGER.debug
+                log("%s: %s; retrying in %.1f s", self.name, exc, delay)
+                await self._all_offline(str(exc))
+                await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
+                delay = min(delay * 2, self.reconnect_max_s)
+
+    def submit_write(
+        self, device: str, point: str, value: object
+    ) -> asyncio.Future[frames.Response | None]:
+        """Queue a write; it runs before pending reads but after any wait the rules require."""
+        if device not in self.devices:
+            raise GatewayError(f"bus {self.name} has no device {device!r}")
+        self.devices[device].profile.point(point)
+        done: asyncio.Future[frames.Response | None] = asyncio.get_running_loop().create_future()
+        self._writes.append(WriteJob(device=device, point=point, value=value, done=done))
+        self._wake.set()
+        return done
+
+    # --- scheduling -------------------------------------------------------------------
+
+    def _restart_schedule(self, now: float) -> None:
+        for state in self.devices.values():
+            self._schedule_device(state, now)
+
+    def _schedule_device(self, state: DeviceState, now: float) -> None:
+        """Everything due now, identity again (start or reconnection)."""
+        state.next_due.clear()
+        state.identity_pending.clear()
+        state.fresh = set(state.target.intervals)
+        profile = state.profile
+        for name, interval in state.target.intervals.items():
+            if interval is None:
+                state.identity_pending.add(name)
+            else:
+                state.next_due[name] = now
+        # Registers other values depend on: units and the float format.
+        for name in state.target.intervals:
+            unit_from = profile.point(name).unit_from
+            if unit_from is not None:
+                state.identity_pending.add(unit_from)
+        if profile.float_order_register is not None and state.target.float_order is None:
+            state.identity_pending.add(profile.float_order_register.point)
+        state.attempts.clear()
+
+    def _due_points(self, state: DeviceState, now: float) -> list[str]:
+        due = [name for name, deadline in state.next_due.items() if deadline <= now]
+        due.extend(state.identity_pending - set(due))
+        return [name for name in due if name not in state.unreadable]
+
+    def _next_deadline(self, state: DeviceState) -> float:
+        if state.online is False:
+            return state.probe_at
+        if state.identity_pending - state.unreadable:
+            return 0.0
+        pending = [t for n, t in state.next_due.items() if n not in state.unreadable]
+        return min(pending, default=math.inf)
+
+    async def _poll_forever(self) -> None:
+        while True:
+            now = time.monotonic()
+            if await self._run_a_write(now):
+                continue
+            ready = [
+                (self._next_deadline(s), s.target.address, s)
+                for s in self.devices.values()
+                if s.not_before <= now
+            ]
+            due = [(deadline, address, s) for deadline, address, s in ready if deadline <= now]
+            if due:
+                _, _, state = min(due, key=lambda item: (item[0], item[1]))
+                if state.online is False:
+                    await self._probe(state, now)
+                else:
+                    await self._poll(state, now)
+                continue
+            await self._sleep_until_next(now)
+
+    async def _sleep_until_next(self, now: float) -> None:
+        wake_at = min(
+            (max(self._next_deadline(s), s.not_before) for s in self.devices.values()),
+            default=now + 1.0,
+        )
+        if self._writes:
+            wake_at = min(wake_at, min(self.devices[w.device].not_before for w in self._writes))
+        self._wake.clear()
+        timeout = max(0.0, wake_at - now)
+        if math.isinf(timeout):
+            timeout = 1.0
+        try:
+            await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        except TimeoutError:
+            pass
+        if not self.line.is_open:
+            raise BusClosedError(f"{self.line.port} went away")
+
+    # --- reads ------------------------------------------------------------------------
+
+    def _timeout_for(self, state: DeviceState, response_bytes: int) -> float:
+        return default_timeout_s(state.target, response_bytes, self.line.format.character_s)
+
+    def _gap_s(self, state: DeviceState) -> float:
+        return self.line.format.frame_gap_s(
+            max(state.profile.timing.min_gap_s, state.target.extra_gap_s)
+        )
+
+    async def _transact(
+        self, state: DeviceState, request: frames.Request, response_bytes: int
+    ) -> frames.Response:
+        exchange = await self.line.transact(
+            request,
+            timeout_s=self._timeout_for(state, response_bytes),
+            gap_s=self._gap_s(state),
+            not_before=state.not_before,
+            exceptions=state.profile.exceptions,
+            byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
+        )
+        assert exchange is not None  # noqa: S101 - unicast requests always have an answer
+        return exchange.response
+
+    def _plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
+        points = [state.profile.point(name) for name in names]
+        return plan_reads(
+            points,
+            state.profile,
+            self._costs[state.target.name],
+            split_before=frozenset(state.split_before),
+        )
+
+    async def _poll(self, state: DeviceState, now: float) -> None:
+        names = self._due_points(state, now)
+        self.polls += 1
+        samples: list[Sample] = []
+        any_answer = False
+        for block in self._plan(state, names):
+            if state.not_before > time.monotonic():
+                break  # a failure below set a quarantine: let other devices go first
+            outcome = await self._read_block(state, block)
+            if outcome is None:
+                continue
+            answered, block_samples = outcome
+            any_answer |= answered
+            samples.extend(block_samples)
+        self._advance(state, [s.point for s in samples], now)
+        if any_answer:
+            await self._mark_online(state, "answered")
+        elif samples:
+            await self._count_failure(state, "no answer")
+        if samples:
+            await self._publish(samples)
+
+    async def _read_block(
+        self, state: DeviceState, block: ReadBlock
+    ) -> tuple[bool, list[Sample]] | None:
+        """Read one block; ``None`` when it will be retried later."""
+        request = frames.read_request(state.target.address, block.address, block.count)
+        try:
+            response = await self._transact(state, request, 5 + 2 * block.count)
+        except DeviceExceptionError as exc:
+            if exc.code == ILLEGAL_ADDRESS and len(block.points) > 1:
+                state.split_before.update(p.address for p in block.points[1:])
+                _LOGGER.info(
+                    "%s/%s: exception 02 for %d registers at %#06x; reading its points apart from now on",
+                    self.name,
+                    state.target.name,
+                    block.count,
+                    block.address,
+                )
+                return None
+            if exc.code == ILLEGAL_ADDRESS:
+                point = block.points[0]
+                state.unreadable.add(point.name)
+                _LOGGER.warning(
+                    "%s/%s: the device does not answer %s (%#06x): exception 02; no longer polled",
+                    self.name,
+                    state.target.name,
+                    point.name,
+                    point.address,
+                )
+            return True, self._failed(state, block, f"exception_{exc.code:02d}")
+        except (BusTimeoutError, FrameError) as exc:
+            if isinstance(exc, BusTimeoutError):
+                state.not_before = time.monotonic() + self.late_answer_window_s
+            if self._retry(state, block):
+                return None
+            _LOGGER.debug("%s/%s: %s", self.name, state.target.name, exc)
+            return False, self._failed(state, block, type(exc).__name__)
+        for point in block.points:
+            state.attempts.pop(point.name, None)
+        return True, self._decode(state, block, response.registers)
+
+    def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
+        names = [p.name for p in block.points]
+        attempts = max(state.attempts[n] for n in names) + 1
+        if attempts > state.target.retries:
+            for name in names:
+                state.attempts.pop(name, None)
+            return False
+        for name in names:
+            state.attempts[name] = attempts
+        self.line.stats.retries[state.target.address] += 1
+        return True
+
+    def _decode(
+        self, state: DeviceState, block: ReadBlock, registers: tuple[int, ...]
+    ) -> list[Sample]:
+        wall = datetime.now(tz=UTC)
+        mono = time.monotonic()
+        order = state.float_order
+        samples = []
+        for point in block.points:
+            offset = point.address - block.address
+            chunk = registers[offset : offset + point.count]
+            try:
+                value = codec.decode(point.format, chunk, float_order=order)
+            except GatewayError as exc:
+                samples.append(
+                    self._sample(
+                        state, point, None, f"decode_error: {exc}", Quality.COMMS_ERROR, mono, wall
+                    )
+                )
+                continue
+            state.values[point.name] = value
+            state.identity_pending.discard(point.name)
+            if isinstance(value, codec.Fault):
+                samples.append(
+                    self._sample(state, point, None, value.name, Quality.FAULT, mono, wall)
+                )
+            else:
+                samples.append(self._sample(state, point, value, None, Quality.GOOD, mono, wall))
+        return samples
+
+    def _failed(self, state: DeviceState, block: ReadBlock, reason: str) -> list[Sample]:
+        wall = datetime.now(tz=UTC)
+        mono = time.monotonic()
+        for point in block.points:
+            state.identity_pending.discard(point.name)
+        return [
+            self._sample(state, p, None, reason, Quality.COMMS_ERROR, mono, wall)
+            for p in block.points
+        ]
+
+    def _sample(
+        self,
+        state: DeviceState,
+        point: Point,
+        value: codec.Value,
+        fault: str | None,
+        quality: Quality,
+        mono: float,
+        wall: datetime,
+    ) -> Sample:
+        return Sample(
+            bus=self.name,
+            device=state.target.name,
+            profile=state.profile.id,
+            point=point.name,
+            value=value,
+            fault=fault,
+            unit=state.unit_of(point),
+            quality=quality,
+            monotonic=mono,
+            time=wall,
+            group=point.group.value,
+        )
+
+    def _advance(self, state: DeviceState, names: Sequence[str], now: float) -> None:
+        """Move the deadlines of the points just handled; count and skip missed ones."""
+        for name in set(names):
+            interval = state.target.intervals.get(name)
+            if interval is None or name not in state.next_due:
+                continue
+            deadline = state.next_due[name]
+            if name in state.fresh:  # the first cycle after a (re)start reads everything
+                state.fresh.discard(name)
+                deadline = now
+            lag = now - deadline
+            nxt = deadline + interval
+            if nxt <= now:
+                skipped = math.floor((now - nxt) / interval) + 1
+                nxt += skipped * interval
+                state.missed_deadlines += skipped
+            state.next_due[name] = nxt
+            state.lag_s = max(0.0, lag)
+            if lag > interval and not state.lag_reported:
+                state.lag_reported = True
+                _LOGGER.warning(
+                    "%s/%s: the line cannot keep up: %s is %.2f s late (interval %.2f s); "
+                    "see the poll lag metric",
+                    self.name,
+                    state.target.name,
+                    name,
+                    lag,
+                    interval,
+                )
+
+    # --- availability -----------------------------------------------------------------
+
+    async def _mark_online(self, state: DeviceState, reason: str) -> None:
+        state.failures = 0
+        state.backoff_s = PROBE_BACKOFF_S[0]
+        if state.online is not True:
+            was_offline = state.online is False
+            state.online = True
+            if was_offline:
+                _LOGGER.info("%s/%s is back online", self.name, state.target.name)
+                self._schedule_device(state, time.monotonic())
+            await self._event(state, online=True, reason=reason)
+
+    async def _count_failure(self, state: DeviceState, reason: str) -> None:
+        state.failures += 1
+        if state.failures >= state.target.offline_after and state.online is not False:
+            state.online = False
+            state.probe_at = time.monotonic() + state.backoff_s
+            _LOGGER.warning(
+                "%s/%s (address %d) is offline after %d failed polls: %s",
+                self.name,
+                state.target.name,
+                state.target.address,
+                state.failures,
+                reason,
+            )
+            await self._event(state, online=False, reason=reason)
+
+    async def _probe(self, state: DeviceState, now: float) -> None:
+        """One small read of an offline device; on success it is polled in full again."""
+        names = list(state.target.intervals) or [state.profile.points[0].name]
+        block = self._plan(state, names[:1])[0]
+        request = frames.read_request(state.target.address, block.address, block.count)
+        try:
+            await self._transact(state, request, 5 + 2 * block.count)
+        except DeviceExceptionError:
+            pass  # an exception is an answer: the device is there
+        except (BusTimeoutError, FrameError):
+            state.backoff_s = min(state.backoff_s * 2, PROBE_BACKOFF_S[1])
+            state.probe_at = now + state.backoff_s * self._rng.uniform(0.8, 1.2)
+            state.not_before = time.monotonic() + self.late_answer_window_s
+            return
+        state.online = None
+        await self._mark_online(state, "answered a probe")
+        self._schedule_device(state, time.monotonic())
+
+    async def _all_offline(self, reason: str) -> None:
+        for state in self.devices.values():
+            if state.online is not False:
+                state.online = False
+                state.probe_at = 0.0
+                await self._event(state, online=False, reason=reason)
+
+    # --- writes -----------------------------------------------------------------------
+
+    async def _run_a_write(self, now: float) -> bool:
+        for job in self._writes:
+            state = self.devices[job.device]
+            if state.not_before <= now:
+                self._writes.remove(job)
+                await self._write(state, job)
+                return True
+        return False
+
+    async def _write(self, state: DeviceState, job: WriteJob) -> None:
+        point = state.profile.point(job.point)
+        try:
+            registers = codec.encode(point.format, job.value, float_order=state.float_order)
+            request = frames.write_request(state.target.address, point.address, registers)
+        except EncodeError as exc:
+            job.done.set_exception(exc)
+            return
+        try:
+            response = await self._transact(state, request, 8)
+        except (DeviceExceptionError, BusTimeoutError, FrameError) as exc:
+            job.done.set_exception(exc)
+            return
+        finally:
+            # H10/H20 6.1.5: the wait follows every write, answered or not.
+            wait = state.profile.post_write_wait(point.address, point.count)
+            state.not_before = max(state.not_before, time.monotonic() + wait)
+        job.done.set_result(response)
+
+    # --- one-shot reads ---------------------------------------------------------------
+
+    async def read_once(self, device: str) -> list[Sample]:
+        """Read every point of a device once, with all timing rules and retries inline.
+
+        The unit and float-format registers other points depend on are read first.
+        """
+        state = self.devices[device]
+        names = list(state.target.intervals)
+        profile = state.profile
+        needed = {u for n in names if (u := profile.point(n).unit_from) is not None}
+        if profile.float_order_register is not None and state.target.float_order is None:
+            needed.add(profile.float_order_register.point)
+        if needed:
+            await self._read_now(state, sorted(needed))
+        return await self._read_now(state, names)
+
+    async def _read_now(self, state: DeviceState, names: Sequence[str]) -> list[Sample]:
+        samples: dict[str, Sample] = {}
+        todo = list(names)
+        while todo:
+            blocks = self._plan(state, todo)
+            todo = []
+            for block in blocks:
+                delay = state.not_before - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                outcome = await self._read_block(state, block)
+                if outcome is None:
+                    todo.extend(p.name for p in block.points)
+                else:
+                    samples.update((s.point, s) for s in outcome[1])
+        return [samples[name] for name in names if name in samples]
+
+    # --- sinks ------------------------------------------------------------------------
+
+    async def _publish(self, samples: list[Sample]) -> None:
+        for sink in self.sinks:
+            await sink.publish(samples)
+
+    async def _event(self, state: DeviceState, *, online: bool, reason: str) -> None:
+        event = DeviceEvent(
+            bus=self.name,
+            device=state.target.name,
+            profile=state.profile.id,
+            online=online,
+            reason=reason,
+            time=datetime.now(tz=UTC),
+        )
+        for sink in self.sinks:
+            await sink.device_event(event)
