@@ -18,7 +18,7 @@ import contextlib
 import logging
 import os
 import time
-from collections import Counter
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
@@ -72,7 +72,7 @@ class LineStats:
     retries: Counter[int] = field(default_factory=Counter)
     tolerated: Counter[tuple[int, str]] = field(default_factory=Counter)
     latency_buckets: Counter[tuple[int, float]] = field(default_factory=Counter)
-    latency_sum_s: Counter[int] = field(default_factory=Counter)
+    latency_sum_s: defaultdict[int, float] = field(default_factory=lambda: defaultdict(float))
     busy_s: float = 0.0  # time the line carried our transactions
     started: float = field(default_factory=time.monotonic)
     port_open: bool = False
@@ -293,6 +293,9 @@ class Line:
             self._live_receiver()
 
 
+_WAIT: Final = object()  # a plausible answer has started: wait for the rest
+
+
 class _Scan:
     """Looks for the answer to one request in the bytes received so far."""
 
@@ -303,6 +306,7 @@ class _Scan:
         self.exceptions = exceptions
         self.byte_count_16bit = byte_count_16bit
         self.consumed = 0
+        self._length = 0
         self.crc_bad = False
         self.other_device: int | None = None
         self.garbage = False
@@ -312,45 +316,47 @@ class _Scan:
         return self.crc_bad or self.other_device is not None
 
     def feed(self, buffer: bytearray) -> frames.Response | None:
+        """The answer if the bytes hold one; ``None`` while more bytes are needed."""
         data = bytes(buffer)
-        request = self.request
-        for offset in range(len(data)):
-            head = data[offset:]
-            if len(head) < 2:  # noqa: PLR2004 - device and function
+        for offset in range(len(data) - 1):
+            verdict = self._try(data[offset:])
+            if verdict is _WAIT:
                 return None
-            try:
-                need = frames.response_length(request, head, byte_count_16bit=self.byte_count_16bit)
-            except MalformedFrameError:
-                self.garbage = True
-                continue
-            if need == 0 or len(head) < need:
-                if head[0] == request.device:
-                    return None  # wait for the rest of a plausible answer
-                continue
-            candidate = head[:need]
-            if not frames.crc_ok(candidate):
-                if head[0] == request.device:
-                    self.crc_bad = True
-                self.garbage = True
-                continue
-            try:
-                response = frames.parse_response(
-                    request,
-                    candidate,
-                    exceptions=self.exceptions,
-                    byte_count_16bit=self.byte_count_16bit,
-                )
-            except UnexpectedDeviceError:
-                self.other_device = head[0]
-                continue
-            except DeviceExceptionError:
-                self.consumed = offset + need
-                raise
-            except MalformedFrameError:
-                self.garbage = True
-                continue
-            self.consumed = offset + need
-            return response
+            if isinstance(verdict, frames.Response):
+                self.consumed = offset + self._length
+                return verdict
+        return None
+
+    def _try(self, head: bytes) -> frames.Response | object | None:
+        """Judge a candidate frame at the start of ``head``: the answer, wait, or skip."""
+        request = self.request
+        try:
+            need = frames.response_length(request, head, byte_count_16bit=self.byte_count_16bit)
+        except MalformedFrameError:
+            self.garbage = True
+            return None
+        if need == 0 or len(head) < need:
+            return _WAIT if head[0] == request.device else None
+        candidate = head[:need]
+        if not frames.crc_ok(candidate):
+            self.crc_bad |= head[0] == request.device
+            self.garbage = True
+            return None
+        self._length = need
+        try:
+            return frames.parse_response(
+                request,
+                candidate,
+                exceptions=self.exceptions,
+                byte_count_16bit=self.byte_count_16bit,
+            )
+        except UnexpectedDeviceError:
+            self.other_device = head[0]
+        except DeviceExceptionError:
+            self.consumed = len(candidate)
+            raise
+        except MalformedFrameError:
+            self.garbage = True
         return None
 
     def failure(self, port: str) -> Exception:

@@ -213,7 +213,8 @@ def plan_reads(
     ``max_registers`` defaults to the profile's ``limits.max_read``. An address of
     ``split_before`` inside a requested point cannot be honoured without splitting the
     point and is ignored: the point alone is then the smallest read of it. Among plans of
-    equal cost the one with fewer reads wins.
+    equal cost (to the nanosecond) the one with fewer reads wins, then the one whose
+    earlier reads take the most registers.
 
     Raises :class:`ConfigError` for a point that is not the profile's own, lies outside
     its readable runs, or (with the points overlapping it) needs more than
@@ -228,9 +229,11 @@ def plan_reads(
         crosses = after < len(splits) and splits[after] <= last
         return last - first + 1 <= limit and last <= run_last and not crosses
 
-    # best[j]: (bus time, reads) of the cheapest plan of units[:j]; start[j]: where the
-    # last block of that plan starts.
-    best: list[tuple[float, int]] = [(0.0, 0)] + [(math.inf, 0)] * len(units)
+    # best[j]: (bus time in ns, reads) of the cheapest plan of units[:j]; start[j]: where
+    # its last block starts. Whole nanoseconds make plans of equal cost tie exactly rather
+    # than by rounding noise: fewer reads win, then the plan whose last read starts latest
+    # (earlier reads take all they can).
+    best: list[tuple[float, int]] = [(0, 0)] + [(math.inf, 0)] * len(units)
     start = [0] * (len(units) + 1)
     for end in range(1, len(units) + 1):
         last = units[end - 1].last
@@ -238,8 +241,9 @@ def plan_reads(
             unit = units[begin]
             if not valid(unit.first, last, unit.run_last):
                 break  # growing the block to the left keeps it invalid
-            before_s, before_reads = best[begin]
-            candidate = (before_s + cost.read_s(last - unit.first + 1), before_reads + 1)
+            before_ns, before_reads = best[begin]
+            read_ns = round(cost.read_s(last - unit.first + 1) * 1e9)
+            candidate = (before_ns + read_ns, before_reads + 1)
             if candidate < best[end]:
                 best[end], start[end] = candidate, begin
 

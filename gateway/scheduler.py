@@ -11,6 +11,7 @@ keeps failing goes offline and is probed on a capped, jittered backoff.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import random
@@ -30,13 +31,13 @@ from gateway.errors import (
     GatewayError,
 )
 from gateway.plan import CostModel, ReadBlock, plan_reads
-from gateway.profiles import Point, Profile
 from gateway.samples import DeviceEvent, Quality, Sample
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
     from gateway.bus import Line
+    from gateway.profiles import Point, Profile
     from gateway.samples import Sink
 
 _LOGGER = logging.getLogger(__name__)
@@ -124,7 +125,7 @@ class WriteJob:
 
 
 def default_timeout_s(target: DeviceTarget, response_bytes: int, wire_s: float) -> float:
-    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + minimum response time)."""
+    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + min. response time)."""
     if target.timeout_s is not None:
         return target.timeout_s
     t1 = target.profile.timing.processing_time_s + target.min_response_time_s
@@ -264,15 +265,13 @@ class BusWorker:
             default=now + 1.0,
         )
         if self._writes:
-            wake_at = min(wake_at, min(self.devices[w.device].not_before for w in self._writes))
+            wake_at = min(wake_at, *(self.devices[w.device].not_before for w in self._writes))
         self._wake.clear()
         timeout = max(0.0, wake_at - now)
         if math.isinf(timeout):
             timeout = 1.0
-        try:
+        with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._wake.wait(), timeout=timeout)
-        except TimeoutError:
-            pass
         if not self.line.is_open:
             raise BusClosedError(f"{self.line.port} went away")
 
@@ -342,7 +341,7 @@ class BusWorker:
             if exc.code == ILLEGAL_ADDRESS and len(block.points) > 1:
                 state.split_before.update(p.address for p in block.points[1:])
                 _LOGGER.info(
-                    "%s/%s: exception 02 for %d registers at %#06x; reading its points apart from now on",
+                    "%s/%s: exception 02 for %d registers at %#06x; reading its points apart",
                     self.name,
                     state.target.name,
                     block.count,
@@ -386,8 +385,7 @@ class BusWorker:
     def _decode(
         self, state: DeviceState, block: ReadBlock, registers: tuple[int, ...]
     ) -> list[Sample]:
-        wall = datetime.now(tz=UTC)
-        mono = time.monotonic()
+        at = (time.monotonic(), datetime.now(tz=UTC))
         order = state.float_order
         samples = []
         for point in block.points:
@@ -396,42 +394,40 @@ class BusWorker:
             try:
                 value = codec.decode(point.format, chunk, float_order=order)
             except GatewayError as exc:
-                samples.append(
-                    self._sample(
-                        state, point, None, f"decode_error: {exc}", Quality.COMMS_ERROR, mono, wall
-                    )
-                )
+                fault = f"decode_error: {exc}"
+                samples.append(self._sample(state, point, fault=fault, comms_error=True, at=at))
                 continue
             state.values[point.name] = value
             state.identity_pending.discard(point.name)
             if isinstance(value, codec.Fault):
-                samples.append(
-                    self._sample(state, point, None, value.name, Quality.FAULT, mono, wall)
-                )
+                samples.append(self._sample(state, point, fault=value.name, at=at))
             else:
-                samples.append(self._sample(state, point, value, None, Quality.GOOD, mono, wall))
+                samples.append(self._sample(state, point, value=value, at=at))
         return samples
 
     def _failed(self, state: DeviceState, block: ReadBlock, reason: str) -> list[Sample]:
-        wall = datetime.now(tz=UTC)
-        mono = time.monotonic()
+        at = (time.monotonic(), datetime.now(tz=UTC))
         for point in block.points:
             state.identity_pending.discard(point.name)
-        return [
-            self._sample(state, p, None, reason, Quality.COMMS_ERROR, mono, wall)
-            for p in block.points
-        ]
+        return [self._sample(state, p, fault=reason, comms_error=True, at=at) for p in block.points]
 
     def _sample(
         self,
         state: DeviceState,
         point: Point,
-        value: codec.Value,
-        fault: str | None,
-        quality: Quality,
-        mono: float,
-        wall: datetime,
+        *,
+        value: codec.Value = None,
+        fault: str | None = None,
+        comms_error: bool = False,
+        at: tuple[float, datetime],
     ) -> Sample:
+        """A good value, a sensor fault, or (``comms_error``) no value at all."""
+        if comms_error:
+            quality = Quality.COMMS_ERROR
+        elif fault is not None:
+            quality = Quality.FAULT
+        else:
+            quality = Quality.GOOD
         return Sample(
             bus=self.name,
             device=state.target.name,
@@ -441,8 +437,8 @@ class BusWorker:
             fault=fault,
             unit=state.unit_of(point),
             quality=quality,
-            monotonic=mono,
-            time=wall,
+            monotonic=at[0],
+            time=at[1],
             group=point.group.value,
         )
 

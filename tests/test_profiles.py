@@ -168,7 +168,7 @@ def test_every_writable_point_round_trips_its_valid_values(
         elif isinstance(decoded, codec.BitfieldValue):
             assert dict(decoded.flags) == value
         elif isinstance(decoded, float):
-            assert struct.pack(">f", decoded) == struct.pack(">f", value), (profile_id, name)  # type: ignore[arg-type]
+            assert struct.pack(">f", decoded) == struct.pack(">f", value), (profile_id, name)
         else:
             assert decoded == value, (profile_id, name)
 
