@@ -279,6 +279,12 @@ class Line:
             result = scan.feed(receiver.buffer)
             if result is not None:
                 del receiver.buffer[: scan.consumed]
+                # What was skipped on the way is counted: a late answer of another
+                # device (stale) and garbage (noise).
+                if scan.other_device is not None:
+                    self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
+                if scan.garbage:
+                    self.stats.errors[request.device, ErrorKind.NOISE] += 1
                 return result, receiver.last_byte_at
             now = time.monotonic()
             # A suspicious frame (bad CRC, other device) is final once the line falls silent.

@@ -56,6 +56,7 @@ if TYPE_CHECKING:
     from gateway.timing import LineFormat
 
 READ_RESPONSE_OVERHEAD: Final = 5  # device, function, byte count, CRC (2); S10 manual 2.4.1
+TIE_S: Final = 1e-9  # plans closer than this cost the same; float noise is far smaller
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -200,6 +201,13 @@ def _unit(group: list[Point], last: int, profile: Profile, limit: int) -> _Unit:
     return _Unit(first=first, last=last, run_last=run[1], points=tuple(group))
 
 
+def _cheaper(candidate: tuple[float, int], incumbent: tuple[float, int]) -> bool:
+    """Whether a (bus time, reads) pair beats another; a tie is broken by fewer reads."""
+    if abs(candidate[0] - incumbent[0]) <= TIE_S:
+        return candidate[1] < incumbent[1]
+    return candidate[0] < incumbent[0]
+
+
 def plan_reads(
     points: Iterable[Point],
     profile: Profile,
@@ -213,8 +221,8 @@ def plan_reads(
     ``max_registers`` defaults to the profile's ``limits.max_read``. An address of
     ``split_before`` inside a requested point cannot be honoured without splitting the
     point and is ignored: the point alone is then the smallest read of it. Among plans of
-    equal cost (to the nanosecond) the one with fewer reads wins, then the one whose
-    earlier reads take the most registers.
+    equal cost (within :data:`TIE_S`) the one with fewer reads wins, then the one whose
+    last read is shortest, and so on backwards: earlier reads take all they can.
 
     Raises :class:`ConfigError` for a point that is not the profile's own, lies outside
     its readable runs, or (with the points overlapping it) needs more than
@@ -229,11 +237,10 @@ def plan_reads(
         crosses = after < len(splits) and splits[after] <= last
         return last - first + 1 <= limit and last <= run_last and not crosses
 
-    # best[j]: (bus time in ns, reads) of the cheapest plan of units[:j]; start[j]: where
-    # its last block starts. Whole nanoseconds make plans of equal cost tie exactly rather
-    # than by rounding noise: fewer reads win, then the plan whose last read starts latest
-    # (earlier reads take all they can).
-    best: list[tuple[float, int]] = [(0, 0)] + [(math.inf, 0)] * len(units)
+    # best[j]: (bus time, reads) of the cheapest plan of units[:j]; start[j]: where its
+    # last block starts. Equal costs (to the nanosecond, not to the rounding noise of
+    # the sums) go to fewer reads, then to the shortest last read, and so on backwards.
+    best: list[tuple[float, int]] = [(0.0, 0)] + [(math.inf, 0)] * len(units)
     start = [0] * (len(units) + 1)
     for end in range(1, len(units) + 1):
         last = units[end - 1].last
@@ -241,10 +248,9 @@ def plan_reads(
             unit = units[begin]
             if not valid(unit.first, last, unit.run_last):
                 break  # growing the block to the left keeps it invalid
-            before_ns, before_reads = best[begin]
-            read_ns = round(cost.read_s(last - unit.first + 1) * 1e9)
-            candidate = (before_ns + read_ns, before_reads + 1)
-            if candidate < best[end]:
+            before_s, before_reads = best[begin]
+            candidate = (before_s + cost.read_s(last - unit.first + 1), before_reads + 1)
+            if _cheaper(candidate, best[end]):
                 best[end], start[end] = candidate, begin
 
     blocks: list[ReadBlock] = []

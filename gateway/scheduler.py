@@ -25,10 +25,13 @@ from gateway import codec, frames
 from gateway.errors import (
     BusClosedError,
     BusTimeoutError,
+    CrcError,
     DeviceExceptionError,
     EncodeError,
     FrameError,
     GatewayError,
+    MalformedFrameError,
+    UnexpectedDeviceError,
 )
 from gateway.plan import CostModel, ReadBlock, plan_reads
 from gateway.samples import DeviceEvent, Quality, Sample
@@ -46,8 +49,16 @@ ILLEGAL_ADDRESS: Final = 2
 RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
 LATE_ANSWER_WINDOW_S: Final = 1.0  # after a timeout, a late answer may still come
 BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
-PROBE_BACKOFF_S: Final = (1.0, 60.0)  # first and largest wait between probes of an offline device
+PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
 PORT_BACKOFF_FIRST_S: Final = 0.5
+
+
+_FAILURE_NAMES: Final[dict[type[Exception], str]] = {
+    BusTimeoutError: "timeout",
+    CrcError: "crc_error",
+    UnexpectedDeviceError: "wrong_address",
+    MalformedFrameError: "malformed_answer",
+}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -64,6 +75,12 @@ class DeviceTarget:
     extra_gap_s: float = 0.0
     retries: int = 2
     offline_after: int = 3
+    probe_max_s: float = PROBE_MAX_S
+
+    @property
+    def poll_interval_s(self) -> float:
+        """The shortest interval of its points: the pace of its probes when offline."""
+        return min((i for i in self.intervals.values() if i), default=1.0)
 
 
 @dataclass(slots=True)
@@ -78,7 +95,7 @@ class DeviceState:
     online: bool | None = None  # None until the first answer or the first offline verdict
     failures: int = 0
     probe_at: float = 0.0
-    backoff_s: float = PROBE_BACKOFF_S[0]
+    backoff_s: float = 0.0
     not_before: float = 0.0
     split_before: set[int] = field(default_factory=set)
     unreadable: set[str] = field(default_factory=set)
@@ -312,32 +329,25 @@ class BusWorker:
         names = self._due_points(state, now)
         self.polls += 1
         samples: list[Sample] = []
-        any_answer = False
         for block in self._plan(state, names):
-            if state.not_before > time.monotonic():
-                break  # a failure below set a quarantine: let other devices go first
-            outcome = await self._read_block(state, block)
-            if outcome is None:
-                continue
-            answered, block_samples = outcome
-            any_answer |= answered
-            samples.extend(block_samples)
+            if state.not_before > time.monotonic() or state.online is False:
+                break  # a failure set a quarantine or took the device offline: others first
+            samples.extend(await self._read_block(state, block) or ())
         self._advance(state, [s.point for s in samples], now)
-        if any_answer:
-            await self._mark_online(state, "answered")
-        elif samples:
-            await self._count_failure(state, "no answer")
         if samples:
             await self._publish(samples)
 
-    async def _read_block(
-        self, state: DeviceState, block: ReadBlock
-    ) -> tuple[bool, list[Sample]] | None:
-        """Read one block; ``None`` when it will be retried later."""
+    async def _read_block(self, state: DeviceState, block: ReadBlock) -> list[Sample] | None:
+        """Read one block; ``None`` when it will be retried later.
+
+        Every failed transaction counts towards taking the device offline; any answer,
+        an exception included, shows it is there.
+        """
         request = frames.read_request(state.target.address, block.address, block.count)
         try:
             response = await self._transact(state, request, 5 + 2 * block.count)
         except DeviceExceptionError as exc:
+            await self._mark_online(state, "answered")
             if exc.code == ILLEGAL_ADDRESS and len(block.points) > 1:
                 state.split_before.update(p.address for p in block.points[1:])
                 _LOGGER.info(
@@ -358,17 +368,19 @@ class BusWorker:
                     point.name,
                     point.address,
                 )
-            return True, self._failed(state, block, f"exception_{exc.code:02d}")
+            return self._failed(state, block, f"exception_{exc.code:02d}")
         except (BusTimeoutError, FrameError) as exc:
             if isinstance(exc, BusTimeoutError):
                 state.not_before = time.monotonic() + self.late_answer_window_s
-            if self._retry(state, block):
+            await self._count_failure(state, str(exc))
+            if state.online is not False and self._retry(state, block):
                 return None
             _LOGGER.debug("%s/%s: %s", self.name, state.target.name, exc)
-            return False, self._failed(state, block, type(exc).__name__)
+            return self._failed(state, block, _FAILURE_NAMES.get(type(exc), "comms_error"))
+        await self._mark_online(state, "answered")
         for point in block.points:
             state.attempts.pop(point.name, None)
-        return True, self._decode(state, block, response.registers)
+        return self._decode(state, block, response.registers)
 
     def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
         names = [p.name for p in block.points]
@@ -476,7 +488,7 @@ class BusWorker:
 
     async def _mark_online(self, state: DeviceState, reason: str) -> None:
         state.failures = 0
-        state.backoff_s = PROBE_BACKOFF_S[0]
+        state.backoff_s = 0.0
         if state.online is not True:
             was_offline = state.online is False
             state.online = True
@@ -486,12 +498,14 @@ class BusWorker:
             await self._event(state, online=True, reason=reason)
 
     async def _count_failure(self, state: DeviceState, reason: str) -> None:
+        """One more failed transaction in a row; enough of them take the device offline."""
         state.failures += 1
         if state.failures >= state.target.offline_after and state.online is not False:
             state.online = False
+            state.backoff_s = state.target.poll_interval_s
             state.probe_at = time.monotonic() + state.backoff_s
             _LOGGER.warning(
-                "%s/%s (address %d) is offline after %d failed polls: %s",
+                "%s/%s (address %d) is offline after %d failed requests: %s",
                 self.name,
                 state.target.name,
                 state.target.address,
@@ -510,7 +524,8 @@ class BusWorker:
         except DeviceExceptionError:
             pass  # an exception is an answer: the device is there
         except (BusTimeoutError, FrameError):
-            state.backoff_s = min(state.backoff_s * 2, PROBE_BACKOFF_S[1])
+            cap = max(state.target.probe_max_s, state.target.poll_interval_s)
+            state.backoff_s = min(max(state.backoff_s, state.target.poll_interval_s) * 2, cap)
             state.probe_at = now + state.backoff_s * self._rng.uniform(0.8, 1.2)
             state.not_before = time.monotonic() + self.late_answer_window_s
             return
@@ -586,7 +601,7 @@ class BusWorker:
                 if outcome is None:
                     todo.extend(p.name for p in block.points)
                 else:
-                    samples.update((s.point, s) for s in outcome[1])
+                    samples.update((s.point, s) for s in outcome)
         return [samples[name] for name in names if name in samples]
 
     # --- sinks ------------------------------------------------------------------------

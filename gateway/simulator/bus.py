@@ -10,7 +10,7 @@ The transports in :mod:`gateway.simulator.transport` move the bytes.
 from __future__ import annotations
 
 import random
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
 
@@ -55,6 +55,18 @@ class Reply:
 
 
 @dataclass(slots=True)
+class FrameRecord:
+    """One frame the bus received, and what became of it: for wire-timed tests."""
+
+    start: float  # first byte, seconds since the bus started
+    device: int
+    function: int
+    address: int
+    outcome: str  # "answered", "broadcast", "ignored:<rule>", "silent", "crc", ...
+    answer_at: float | None = None
+
+
+@dataclass(slots=True)
 class Violation:
     """A request the referee ignored because the master broke a timing rule."""
 
@@ -91,6 +103,7 @@ class SimulatedBus:
     injected: Counter[str] = field(default_factory=Counter)
     exceptions: Counter[int] = field(default_factory=Counter)
     violations: list[Violation] = field(default_factory=list)
+    frame_log: deque[FrameRecord] = field(default_factory=lambda: deque(maxlen=200_000))
     requests_by_device: Counter[int] = field(default_factory=Counter)
     last_frame_end: float = float("-inf")
     answer_until: float = float("-inf")
@@ -149,27 +162,56 @@ class SimulatedBus:
     def on_frame(self, frame: bytes, start: float) -> list[Reply]:
         """Handle one frame whose first byte arrived at ``start``; replies to put on the line."""
         self.counters["frames"] += 1
+        record = FrameRecord(
+            start=start - self.started,
+            device=frame[0] if frame else -1,
+            function=frame[1] if len(frame) > 1 else -1,
+            address=int.from_bytes(frame[2:4], "big") if len(frame) >= 4 else -1,  # noqa: PLR2004
+            outcome="answered",
+        )
+        self.frame_log.append(record)
+        replies = self._on_frame(frame, start, record)
+        answers = [r for r in replies if r.kind in {"response", "late"}]
+        if answers:
+            record.answer_at = answers[-1].at - self.started
+        elif record.outcome == "answered":
+            record.outcome = "dropped"
+        return replies
+
+    def _on_frame(self, frame: bytes, start: float, record: FrameRecord) -> list[Reply]:
         end = start + (self.line.wire_s(len(frame)) if self.pace else 0.0)
+        violations = len(self.violations)
         timing_ok = self._timing_ok(frame, start) if frame else False
         self.last_frame_end = max(self.last_frame_end, end)
         if not timing_ok:
+            record.outcome = (
+                f"ignored:{self.violations[-1].rule}"
+                if len(self.violations) > violations
+                else "ignored"
+            )
             return []
         if not frames.crc_ok(frame) or len(frame) < 4:  # noqa: PLR2004 - address, function, CRC
             self.counters["crc_errors"] += 1
+            record.outcome = "crc"
             return []
         if frame[0] == frames.BROADCAST:
             self._broadcast(frame, end)
+            record.outcome = "broadcast"
             return []
         device = self.devices.get(frame[0])
         if device is None:
             self.counters["other_address"] += 1
+            record.outcome = "other_address"
             return []
         self.requests_by_device[device.address] += 1
         if end < device.silent_until or self._scheduled_silence(device.address, end):
             self.counters["silent"] += 1
+            record.outcome = "silent"
             return []
         device.tick(end)
         answer, wait_s = self._answer(device, frame, end)
+        if answer[1] & 0x80:
+            record.outcome = f"exception_{answer[2]:02d}"
         return self._deliver(device, answer, end, wait_s)
 
     def _scheduled_silence(self, address: int, now: float) -> bool:

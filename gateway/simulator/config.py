@@ -45,6 +45,7 @@ class DeviceSettings(_Model):
     processing_ms: Annotated[float, Field(ge=0, le=1000)] = 5.0
     values: dict[str, Any] = {}
     faults: FaultSettings = FaultSettings()
+    unmapped: list[Annotated[int, Field(ge=0, le=0xFFFF)]] = []  # answer 02 for these
 
 
 class LineSettings(_Model):
@@ -132,6 +133,7 @@ def build_bus(settings: SimulationSettings) -> SimulatedBus:
             processing_s=entry.processing_ms / 1000,
             animate=entry.animate,
             initial={name: _value(value) for name, value in entry.values.items()},
+            unmapped=set(entry.unmapped),
         )
         devices[entry.address] = device
         faults[entry.address] = FaultPlan(**entry.faults.model_dump())

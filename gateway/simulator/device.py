@@ -63,6 +63,7 @@ class SimulatedDevice:
     initial: dict[str, object] = field(default_factory=dict)  # held from start (config)
     held: dict[str, Decoded] = field(default_factory=dict)  # values pinned by tests or config
     write_log: list[WriteRecord] = field(default_factory=list)
+    unmapped: set[int] = field(default_factory=set)  # registers this unit does not implement
     silent_until: float = 0.0
     last_write_end: float = float("-inf")
     last_write_wait_s: float = 0.0
@@ -175,7 +176,9 @@ class SimulatedDevice:
         """Registers as the sensor sends them, or a :class:`SlaveExceptionError`."""
         if not 1 <= count <= min(MAX_READ, self.profile.limits.max_read):
             raise SlaveExceptionError(ILLEGAL_ADDRESS, f"read of {count} registers")
-        if not self._in_readable_runs(address, count):
+        if not self._in_readable_runs(address, count) or self.unmapped.intersection(
+            range(address, address + count)
+        ):
             raise SlaveExceptionError(
                 ILLEGAL_ADDRESS, f"read {address:#06x}+{count} crosses unmapped registers"
             )

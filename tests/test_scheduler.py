@@ -1,0 +1,384 @@
+"""The bus engine against the simulator on a real pseudo-terminal, timed on the wire.
+
+The simulator's referee timestamps every frame: these tests hold the engine to the
+manuals' gaps and post-write waits, to its coalescing and to how it survives faults.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+from gateway.bus import Line
+from gateway.profiles import PollGroup, get_profile
+from gateway.samples import DeviceEvent, Quality, Sample
+from gateway.scheduler import BusWorker, DeviceTarget
+from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from gateway.timing import LineFormat
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator, Sequence
+    from pathlib import Path
+
+
+@dataclass
+class ListSink:
+    samples: list[Sample] = field(default_factory=list)
+    events: list[DeviceEvent] = field(default_factory=list)
+
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        self.samples.extend(samples)
+
+    async def device_event(self, event: DeviceEvent) -> None:
+        self.events.append(event)
+
+    def good(self, device: str, point: str) -> list[Sample]:
+        return [s for s in self.samples if (s.device, s.point) == (device, point) and s.good]
+
+
+def target(
+    name: str,
+    profile_id: str,
+    address: int,
+    *,
+    interval: float = 0.5,
+    groups: Sequence[PollGroup] = (PollGroup.PROCESS, PollGroup.STATUS),
+    **options: Any,
+) -> DeviceTarget:
+    profile = get_profile(profile_id)
+    intervals: dict[str, float | None] = {}
+    for point in profile.points:
+        if point.view:
+            continue
+        if point.group in groups:
+            intervals[point.name] = interval
+        elif point.group is PollGroup.IDENTITY:
+            intervals[point.name] = None
+    return DeviceTarget(name=name, address=address, profile=profile, intervals=intervals, **options)
+
+
+@dataclass
+class Rig:
+    server: SimulatorServer
+    worker: BusWorker
+    sink: ListSink
+    line: Line
+
+    async def run_for(self, seconds: float) -> None:
+        task = asyncio.create_task(self.worker.run())
+        await asyncio.sleep(seconds)
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+    def frames(self) -> list[Any]:
+        return list(self.server.bus.frame_log)
+
+
+@contextlib.asynccontextmanager
+async def rig(
+    tmp_path: Path,
+    devices: list[dict[str, Any]],
+    targets: list[DeviceTarget],
+    *,
+    line: dict[str, Any] | None = None,
+    pace: bool = True,
+    **worker_options: Any,
+) -> AsyncIterator[Rig]:
+    line = line or {"baudrate": 9600, "parity": "E", "stopbits": 1}
+    server = SimulatorServer(
+        build_bus(parse_settings({"devices": devices, "line": line, "pace": pace}))
+    )
+    port = tmp_path / "ttyRS485"
+    server.open_pty(port)
+    sink = ListSink()
+    bus_line = Line(port=str(port), line=LineFormat(**line))
+    worker = BusWorker(name="line1", line=bus_line, devices=targets, sinks=[sink], **worker_options)
+    try:
+        yield Rig(server=server, worker=worker, sink=sink, line=bus_line)
+    finally:
+        await bus_line.close()
+        await server.close()
+
+
+PLANT = [
+    {"profile": "jumo-digiline-odo-s10", "address": 1},
+    {"profile": "jumo-digiline-odo-h10", "address": 2},
+    {"profile": "jumo-digiline-odo-h20", "address": 3},
+    {"profile": "jumo-tecline-cl2", "address": 20},
+    {"profile": "reiss-m0c", "address": 10},
+]
+
+
+def plant_targets(interval: float = 0.5) -> list[DeviceTarget]:
+    return [
+        target("s10", "jumo-digiline-odo-s10", 1, interval=interval),
+        target("h10", "jumo-digiline-odo-h10", 2, interval=interval),
+        target("h20", "jumo-digiline-odo-h20", 3, interval=interval),
+        target("cl2", "jumo-tecline-cl2", 20, interval=interval),
+        target("m0c", "reiss-m0c", 10, interval=interval),
+    ]
+
+
+def gaps_on_the_wire(records: list[Any]) -> list[tuple[float, Any]]:
+    """Silence before each request: from the previous frame's end (its answer or itself)."""
+    gaps = []
+    previous_end = None
+    for record in records:
+        if previous_end is not None:
+            gaps.append((record.start - previous_end, record))
+        previous_end = record.answer_at if record.answer_at is not None else record.start
+    return gaps
+
+
+# --- timing on the wire ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "line",
+    [
+        {"baudrate": 9600, "parity": "E", "stopbits": 1},
+        {"baudrate": 19200, "parity": "N", "stopbits": 1},
+    ],
+    ids=["9600-8E1", "19200-8N1"],
+)
+async def test_mixed_poll_of_every_family_keeps_every_timing_rule(
+    tmp_path: Path, line: dict[str, Any]
+) -> None:
+    async with rig(tmp_path, PLANT, plant_targets(0.5), line=line) as r:
+
+        async def writer() -> None:
+            for n in range(12):
+                await asyncio.sleep(0.4)
+                await r.worker.submit_write("h10", "compensation_temperature", 20.0 + n / 10)
+                await r.worker.submit_write("s10", "compensation_temperature", 21.0 + n / 10)
+
+        poller = asyncio.create_task(r.worker.run())
+        await asyncio.wait_for(writer(), timeout=30)
+        await asyncio.sleep(1.0)
+        poller.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await poller
+        stats = r.server.bus.stats()
+        records = r.frames()
+    assert stats["timing_violations"] == 0, stats["violations"][:3]
+    assert stats["counters"]["writes"] == 24
+    assert stats["counters"]["responses"] > 100
+    fmt = LineFormat(**line)
+    for gap, record in gaps_on_the_wire(records):
+        required = fmt.frame_gap_s(0.002 if record.device in {1, 2, 3} else 0.0)
+        assert gap >= required, (gap, required, record)
+    for device in ("s10", "h10", "h20", "cl2", "m0c"):
+        good = [s for s in r.sink.samples if s.device == device and s.good]
+        assert len(good) > 10, device
+    assert all(s.quality is Quality.GOOD for s in r.sink.samples)
+    # The writes reached the sensors, in order, last value last.
+    writes_log = stats["devices"]["2"]["writes"]
+    assert [w["points"] for w in writes_log] == [["compensation_temperature"]] * 12
+
+
+@pytest.mark.parametrize(
+    ("point", "value", "wait_s"),
+    [
+        ("calibration_mode", "wet", 0.25),
+        ("sensor_constant_f1", 1.5, 0.65),
+        ("sensor_replacement_counter", 4, 0.65),
+    ],
+)
+async def test_post_write_waits_measured_on_the_wire(
+    tmp_path: Path, point: str, value: object, wait_s: float
+) -> None:
+    devices = [
+        {"profile": "jumo-digiline-odo-h10", "address": 2},
+        {"profile": "jumo-tecline-cl2", "address": 20},
+    ]
+    targets = [
+        target("h10", "jumo-digiline-odo-h10", 2, interval=0.1),
+        target("cl2", "jumo-tecline-cl2", 20, interval=0.1),
+    ]
+    async with rig(tmp_path, devices, targets) as r:
+
+        async def write() -> None:
+            await asyncio.sleep(1.0)
+            await r.worker.submit_write("h10", point, value)
+
+        task = asyncio.create_task(write())
+        await r.run_for(2.5)
+        await asyncio.wait_for(task, timeout=1)
+        records = r.frames()
+        stats = r.server.bus.stats()
+    assert stats["timing_violations"] == 0
+    index = next(i for i, rec in enumerate(records) if rec.function in {6, 16})
+    written = records[index]
+    assert written.answer_at is not None
+    following = [rec for rec in records[index + 1 :] if rec.device == 2]
+    assert following, "polling of the device resumed"
+    assert following[0].start - written.answer_at >= wait_s
+    assert following[0].start - written.answer_at < wait_s + 0.1
+    # The other device was polled during the wait: the wait is per device.
+    assert any(rec.device == 20 and rec.start < following[0].start for rec in records[index + 1 :])
+
+
+# --- coalescing ----------------------------------------------------------------------------
+
+
+async def test_exception_02_splits_a_merged_read_and_remembers(tmp_path: Path) -> None:
+    devices = [{"profile": "jumo-digiline-odo-h10", "address": 2, "unmapped": [0x2009, 0x200A]}]
+    profile = get_profile("jumo-digiline-odo-h10")
+    detailed = {p.name: 0.3 for p in profile.points if 0x2001 <= p.address <= 0x200D}  # 6.2.1
+    h10 = DeviceTarget(name="h10", address=2, profile=profile, intervals=detailed)
+    async with rig(tmp_path, devices, [h10]) as r:
+        await r.run_for(2.5)
+        records = [rec for rec in r.frames() if 0x2001 <= rec.address <= 0x200D]
+    exceptions = [rec for rec in records if rec.outcome == "exception_02"]
+    assert len(exceptions) == 2  # the merged block once, then the unreadable point once
+    assert exceptions[1].address == 0x2009
+    late = [rec for rec in records if rec.start > exceptions[1].start]
+    assert late, "polling went on"
+    assert all(rec.outcome == "answered" for rec in late)
+    assert not any(rec.address == 0x2009 for rec in late)
+    raw = [s for s in r.sink.samples if s.point == "raw_reference_amplitude"]
+    assert [s.fault for s in raw] == ["exception_02"]
+    assert len(r.sink.good("h10", "raw_oxygen_amplitude")) >= 3
+
+
+async def test_fewer_frames_than_one_request_per_point(tmp_path: Path) -> None:
+    devices = [{"profile": "jumo-digiline-odo-h10", "address": 2}]
+    h10 = target(
+        "h10",
+        "jumo-digiline-odo-h10",
+        2,
+        interval=0.5,
+        groups=(PollGroup.PROCESS, PollGroup.STATUS, PollGroup.DIAGNOSTICS),
+    )
+    async with rig(tmp_path, devices, [h10]) as r:
+        await r.run_for(3.0)
+    polled = {s.point for s in r.sink.samples if s.good}
+    reads = [rec for rec in r.frames() if rec.function == 3]
+    assert len(polled) > 200  # the logbook included
+    assert len(reads) < len(polled) / 4
+
+
+# --- faults ------------------------------------------------------------------------------
+
+STATIC = [
+    {
+        "profile": "jumo-digiline-odo-s10",
+        "address": 1,
+        "animate": False,
+        "values": {"oxygen": 8.5, "temperature": 20.25},
+    },
+    {
+        "profile": "jumo-tecline-cl2",
+        "address": 20,
+        "animate": False,
+        "values": {"concentration": 0.168, "temperature": 24.5, "cell_current": 3.5},
+    },
+]
+EXPECTED = {
+    ("s10", "oxygen"): 8.5,
+    ("s10", "temperature"): 20.25,
+    ("cl2", "concentration"): 0.168,
+    ("cl2", "temperature"): 24.5,
+    ("cl2", "cell_current"): 3.5,
+}
+
+
+def static_targets() -> list[DeviceTarget]:
+    return [
+        target("s10", "jumo-digiline-odo-s10", 1, interval=0.3),
+        target("cl2", "jumo-tecline-cl2", 20, interval=0.3),
+    ]
+
+
+def assert_no_wrong_value(sink: ListSink) -> None:
+    for sample in sink.samples:
+        expected = EXPECTED.get((sample.device, sample.point))
+        if expected is not None and sample.good:
+            assert sample.value == expected, sample
+
+
+def last_bad(sink: ListSink) -> float:
+    return max((s.monotonic for s in sink.samples if not s.good), default=0.0)
+
+
+@pytest.mark.parametrize(
+    ("fault", "kind"),
+    [
+        ({"crc": 0.3}, "crc"),
+        ({"drop": 0.3}, "timeout"),
+        ({"late": 0.3, "late_s": 0.5}, "stale_frame"),
+        ({"noise": 0.5}, "noise"),
+        ({"wrong_address": 0.3}, "wrong_address"),
+    ],
+)
+async def test_injected_faults_are_counted_and_never_give_a_wrong_value(
+    tmp_path: Path, fault: dict[str, float], kind: str
+) -> None:
+    devices = [{**STATIC[0], "faults": fault}, STATIC[1]]
+    async with rig(tmp_path, devices, static_targets()) as r:
+        task = asyncio.create_task(r.worker.run())
+        await asyncio.sleep(4.0)
+        r.server.bus.faults[1] = type(r.server.bus.faults[1])()  # the fault clears
+        cleared = asyncio.get_running_loop().time()
+        await asyncio.sleep(2.5)
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        injected = dict(r.server.bus.injected)
+        errors = Counter({k: v for (_, k), v in r.line.stats.errors.items()})
+    assert sum(injected.values()) > 0
+    assert errors[kind] > 0, (errors, injected)
+    assert_no_wrong_value(r.sink)
+    # Full polling within one poll interval after the fault clears (plus a late-answer window).
+    recovered = [
+        s for s in r.sink.samples if s.device == "s10" and s.good and s.monotonic > cleared + 1.3
+    ]
+    assert {s.point for s in recovered} >= {"oxygen", "temperature", "status"}
+    assert all(s.good for s in r.sink.samples if s.monotonic > cleared + 1.3)
+
+
+async def test_silent_sensor_goes_offline_and_comes_back(tmp_path: Path) -> None:
+    devices = [{**STATIC[0], "faults": {"silences": [[1.5, 3.0]]}}, STATIC[1]]
+    targets = [
+        target("s10", "jumo-digiline-odo-s10", 1, interval=0.3, probe_max_s=0.6),
+        static_targets()[1],
+    ]
+    async with rig(tmp_path, devices, targets) as r:
+        await r.run_for(7.0)
+    states = [(e.device, e.online) for e in r.sink.events]
+    assert states.count(("s10", False)) == 1
+    assert states[-1] == ("s10", True) or ("s10", True) in states[states.index(("s10", False)) :]
+    assert_no_wrong_value(r.sink)
+    # The other device was polled all along.
+    cl2 = sorted(s.monotonic for s in r.sink.good("cl2", "concentration"))
+    assert max(b - a for a, b in zip(cl2, cl2[1:])) < 1.0
+    back = [e for e in r.sink.events if e.device == "s10" and e.online][-1]
+    assert back.time > [e for e in r.sink.events if not e.online][0].time
+    assert r.line.stats.errors[1, "timeout"] >= 3
+
+
+async def test_unplugged_port_is_reopened_without_a_restart(tmp_path: Path) -> None:
+    async with rig(tmp_path, STATIC, static_targets()) as r:
+        task = asyncio.create_task(r.worker.run())
+        await asyncio.sleep(1.5)
+        r.server.unplug_pty()
+        unplugged = asyncio.get_running_loop().time()
+        await asyncio.sleep(2.0)
+        r.server.replug_pty()
+        back = asyncio.get_running_loop().time()
+        await asyncio.sleep(3.0)
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    assert r.line.stats.port_failures >= 1
+    before = r.sink.good("s10", "oxygen")
+    assert any(s.monotonic < unplugged for s in before)
+    assert any(s.monotonic > back for s in before), "polling resumed after the port came back"
+    assert any(not e.online for e in r.sink.events)
+    assert_no_wrong_value(r.sink)
