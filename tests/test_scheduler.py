@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -357,9 +358,9 @@ async def test_silent_sensor_goes_offline_and_comes_back(tmp_path: Path) -> None
     assert_no_wrong_value(r.sink)
     # The other device was polled all along.
     cl2 = sorted(s.monotonic for s in r.sink.good("cl2", "concentration"))
-    assert max(b - a for a, b in zip(cl2, cl2[1:])) < 1.0
+    assert max(b - a for a, b in itertools.pairwise(cl2)) < 1.0
     back = [e for e in r.sink.events if e.device == "s10" and e.online][-1]
-    assert back.time > [e for e in r.sink.events if not e.online][0].time
+    assert back.time > next(e for e in r.sink.events if not e.online).time
     assert r.line.stats.errors[1, "timeout"] >= 3
 
 
