@@ -14,7 +14,10 @@ from rich.console import Console
 from rich.table import Table
 
 from gateway import __version__, codec
+from gateway.app import configure_logging
+from gateway.app import run as run_gateway
 from gateway.bus import Line
+from gateway.config import load_config
 from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.samples import Quality, Sample, json_value
@@ -27,7 +30,7 @@ from gateway.simulator import (
     parse_device_option,
     parse_settings,
 )
-from gateway.sinks.console import format_sample
+from gateway.sinks.console import ConsoleSink, format_sample
 from gateway.timing import LineFormat
 
 app = typer.Typer(
@@ -379,6 +382,24 @@ def read(
     if failed:
         _err.print(f"[bold red]error:[/] {len(failed)} of {len(samples)} points could not be read")
         raise typer.Exit(code=1)
+
+
+@app.command()
+def run(
+    config: Annotated[
+        Path, typer.Option("--config", "-c", help="The gateway's YAML configuration.")
+    ],
+) -> None:
+    """Poll every configured bus and print each poll cycle (MQTT and Prometheus come later)."""
+    try:
+        settings = load_config(config)
+    except GatewayError as exc:
+        raise _fail(exc) from exc
+    configure_logging(settings.logging)
+    try:
+        asyncio.run(run_gateway(settings, [ConsoleSink()]))
+    except GatewayError as exc:
+        raise _fail(exc) from exc
 
 
 def main() -> None:

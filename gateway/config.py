@@ -20,7 +20,7 @@ Example::
     for bus in config.buses:
         for device in config.devices_on(bus.name):
             device.interval_for("oxygen")  # PointSchedule.every(1.0)
-            device.response_timeout(bus)  # 0.5
+            device.response_timeout(bus)  # None: computed from the profile's timing
 
 Environment variables: ``GATEWAY_`` + key path in capitals with ``__`` between levels
 (``GATEWAY_LOGGING__LEVEL=DEBUG``, ``GATEWAY_PROMETHEUS__PORT=9200``). A top-level key
@@ -236,7 +236,9 @@ class BusConfig(_Model):
     baudrate: Annotated[int, AfterValidator(_standard_baudrate)] = 9600
     parity: Annotated[Parity, BeforeValidator(_upper)] = "N"
     stopbits: Annotated[int, Field(ge=1, le=2)] = 1
-    timeout: ResponseTimeout = 0.5  # default response timeout of the devices on the line
+    # Response timeout of the devices on the line; None: each device's answer time on the
+    # wire plus its manual's processing time t1 (digiLine: 25 ms + minimum response time).
+    timeout: ResponseTimeout | None = None
     retries: Retries = 2  # retries of a failed request
     reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0  # cap of the backoff
 
@@ -355,9 +357,15 @@ class DeviceConfig(_Model):
             case PollGroup.IDENTITY:
                 return PointSchedule.ON_CONNECT
 
-    def response_timeout(self, bus: BusConfig) -> float:
-        """Seconds to wait for an answer: the device's or the bus's timeout + its t1 minimum."""
+    def response_timeout(self, bus: BusConfig) -> float | None:
+        """Seconds to wait for an answer, when set (``None``: computed by the bus engine).
+
+        The device's or the bus's timeout plus the device's minimum response time; without
+        either, the engine takes the answer's wire time + t1 + minimum response time.
+        """
         timeout = self.timeout if self.timeout is not None else bus.timeout
+        if timeout is None:
+            return None
         return timeout + self.min_response_time_ms / 1000
 
     def retries_on(self, bus: BusConfig) -> int:
@@ -954,7 +962,7 @@ def _check_timeout(
     here: _KeyPath, device: DeviceConfig, bus: BusConfig
 ) -> Iterator[tuple[_KeyPath, str]]:
     timeout = device.response_timeout(bus)
-    if timeout <= device.poll_interval:
+    if timeout is None or timeout <= device.poll_interval:
         return
     if device.timeout is not None:
         key, source = "timeout", f"timeout {device.timeout:g} s"

@@ -34,6 +34,7 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.plan import CostModel, ReadBlock, plan_reads
+from gateway.profiles import PollGroup
 from gateway.samples import DeviceEvent, Quality, Sample
 
 if TYPE_CHECKING:
@@ -51,8 +52,10 @@ LATE_ANSWER_WINDOW_S: Final = 1.0  # after a timeout, a late answer may still co
 BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
 PORT_BACKOFF_FIRST_S: Final = 0.5
+SLOW_GROUP_DELAY_S: Final = 2.0
 
 
+_SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
 _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     BusTimeoutError: "timeout",
     CrcError: "crc_error",
@@ -232,6 +235,9 @@ class BusWorker:
         for name, interval in state.target.intervals.items():
             if interval is None:
                 state.identity_pending.add(name)
+            elif profile.point(name).group in _SLOW_GROUPS:
+                # Process values first: slow groups follow once the first values are out.
+                state.next_due[name] = now + min(interval, SLOW_GROUP_DELAY_S)
             else:
                 state.next_due[name] = now
         # Registers other values depend on: units and the float format.

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from gateway.codec import DataType, Format, WordOrder
 from gateway.errors import ConfigError
-from gateway.plan import CostModel, Planner, ReadBlock, plan_reads
+from gateway.plan import TIE_S, CostModel, Planner, ReadBlock, plan_reads
 from gateway.profiles import (
     Access,
     Limits,
@@ -87,7 +87,7 @@ def brute_force(
     ordered = distinct_sorted(points)
     if not ordered:
         return ()
-    best: tuple[float, int, Shape] | None = None
+    plans: list[tuple[float, Shape]] = []
     for cuts in itertools.product((False, True), repeat=len(ordered) - 1):
         groups: list[list[Point]] = [[ordered[0]]]
         for point, cut in zip(ordered[1:], cuts, strict=True):
@@ -98,14 +98,17 @@ def brute_force(
             max(p.last for p in a) < min(p.address for p in b)
             for a, b in itertools.pairwise(groups)
         )
-        if not disjoint or not all(block_ok(g, profile, limit, split_before) for g in groups):
-            continue
-        total = sum(cost.read_s(span(g)) for g in groups)
-        plan = tuple((min(p.address for p in g), span(g), tuple(p.name for p in g)) for g in groups)
-        if best is None or (total, len(groups)) < best[:2]:
-            best = (total, len(groups), plan)
-    assert best is not None, "no valid plan at all"
-    return best[2]
+        if disjoint and all(block_ok(g, profile, limit, split_before) for g in groups):
+            total = sum(cost.read_s(span(g)) for g in groups)
+            plan = tuple(
+                (min(p.address for p in g), span(g), tuple(p.name for p in g)) for g in groups
+            )
+            plans.append((total, plan))
+    assert plans, "no valid plan at all"
+    # Ties: fewer reads, then the latest start of the last read, and so on backwards.
+    cheapest = min(total for total, _ in plans)
+    tied = [plan for total, plan in plans if total <= cheapest + TIE_S]
+    return min(tied, key=lambda plan: (len(plan), [-address for address, _, _ in reversed(plan)]))
 
 
 def set_partitions(items: list[Point]) -> Iterator[list[list[Point]]]:
@@ -393,6 +396,21 @@ def test_max_registers_is_honoured() -> None:
     assert len(plan_reads(points, TECLINE, cost, max_registers=2)) == 3
 
 
+@pytest.mark.parametrize(("limit", "reads"), [(4, 2), (5, 1), (6, 1)])
+def test_max_registers_is_exact(limit: int, reads: int) -> None:
+    profile = two_floats(1)  # one read of 5 registers, or two of 2
+    cost = CostModel.for_device(profile, LINE_9600_8E1)
+    assert len(plan_reads(profile.points, profile, cost, max_registers=limit)) == reads
+
+
+def test_equal_plans_fill_the_first_reads() -> None:
+    # Ten contiguous floats, 8 registers per read: every 3-read plan costs the same.
+    points = [float_point(f"f{i}", 2 * i) for i in range(10)]
+    profile = synthetic(points, ((0, 0x1FF),))
+    blocks = plan_reads(points, profile, cost_of(profile), max_registers=8)
+    assert [(b.address, b.count) for b in blocks] == [(0, 8), (8, 8), (16, 4)]
+
+
 @pytest.mark.parametrize("limit", [0, 126])
 def test_max_registers_outside_the_modbus_range_is_refused(limit: int) -> None:
     with pytest.raises(ConfigError, match="max_registers"):
@@ -538,8 +556,7 @@ def test_small_sets_match_the_brute_force(
     cost = cost_of(profile, line)
     blocks = plan_reads(points, profile, cost, split_before=splits, max_registers=limit)
     assert_valid(blocks, points, profile, limit=limit, split_before=splits)
-    expected = brute_force(points, profile, cost, limit=limit, split_before=splits)
-    assert cost.plan_s(blocks) == pytest.approx(sum(cost.read_s(n) for _, n, _ in expected))
+    assert shape(blocks) == brute_force(points, profile, cost, limit=limit, split_before=splits)
 
 
 @settings(max_examples=100)

@@ -1,0 +1,206 @@
+"""How close the bus engine gets to the fastest polling the manuals allow.
+
+Reference plant: one S10, one H10, two tecLine and one Reiss M0c on one line at 9600 8E1
+(or --baudrate/--parity), simulated in a separate process with wire pacing, so the line
+takes the time a real one would. The gateway polls the process and status points of every
+device as fast as it may (poll interval 1 ms, so the line is always busy) for --seconds.
+
+Printed, and written to bench/results/bus_efficiency.json:
+- frames and bus time per cycle of the plan, against one request per point;
+- sustained transactions and point values per second;
+- efficiency: the theoretical minimum bus time of the measured transactions (gap before
+  each request, request and answer on the wire, the simulated device's answer delay)
+  divided by the bus time measured;
+- the gateway's CPU time per transaction (this process only; the simulator runs apart).
+
+Run: .venv/bin/python bench/bus_efficiency.py [--seconds 20] [--baudrate 9600 --parity E]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from gateway.bus import Line
+from gateway.plan import CostModel, plan_reads
+from gateway.profiles import PollGroup, get_profile
+from gateway.scheduler import BusWorker, DeviceTarget
+from gateway.timing import TYPICAL_PROCESSING_S, LineFormat
+
+PLANT = [
+    ("s10", "jumo-digiline-odo-s10", 1),
+    ("h10", "jumo-digiline-odo-h10", 2),
+    ("cl2", "jumo-tecline-cl2", 20),
+    ("clo2", "jumo-tecline-clo2", 80),
+    ("m0c", "reiss-m0c", 10),
+]
+SIMULATOR_SILENCE_MIN_S = 0.0015  # gateway.simulator.transport.MIN_SILENCE_S
+RESULTS = Path(__file__).parent / "results"
+
+
+class CountingSink:
+    """Counts values per device; keeps nothing else."""
+
+    def __init__(self) -> None:
+        self.values: dict[str, int] = {}
+
+    async def publish(self, samples: object) -> None:
+        for sample in samples:  # type: ignore[attr-defined]
+            self.values[sample.device] = self.values.get(sample.device, 0) + 1
+
+    async def device_event(self, event: object) -> None:
+        pass
+
+
+def targets(interval: float) -> list[DeviceTarget]:
+    result = []
+    for name, profile_id, address in PLANT:
+        profile = get_profile(profile_id)
+        points = [p for p in profile.points_in(PollGroup.PROCESS, PollGroup.STATUS) if not p.view]
+        result.append(
+            DeviceTarget(
+                name=name,
+                address=address,
+                profile=profile,
+                intervals={p.name: interval for p in points},
+            )
+        )
+    return result
+
+
+def transaction_s(line: LineFormat, request_bytes: int, answer_bytes: int, gap_s: float) -> float:
+    """The least bus time of one transaction: gap, request, the device's delay, answer."""
+    device_delay = max(3.5 * line.character_s, SIMULATOR_SILENCE_MIN_S) + TYPICAL_PROCESSING_S
+    return gap_s + line.wire_s(request_bytes) + device_delay + line.wire_s(answer_bytes)
+
+
+def plan_figures(line: LineFormat) -> dict[str, float]:
+    planned_frames = per_point_frames = 0
+    planned_s = per_point_s = 0.0
+    for target in targets(1.0):
+        profile = target.profile
+        gap = line.frame_gap_s(profile.timing.min_gap_s)
+        cost = CostModel.for_device(profile, line)
+        points = [profile.point(n) for n in target.intervals]
+        blocks = plan_reads(points, profile, cost)
+        planned_frames += len(blocks)
+        planned_s += sum(transaction_s(line, 8, 5 + 2 * b.count, gap) for b in blocks)
+        per_point_frames += len(points)
+        per_point_s += sum(transaction_s(line, 8, 5 + 2 * p.count, gap) for p in points)
+    return {
+        "frames_per_cycle": planned_frames,
+        "frames_per_cycle_one_per_point": per_point_frames,
+        "bus_s_per_cycle": planned_s,
+        "bus_s_per_cycle_one_per_point": per_point_s,
+    }
+
+
+def write_simulator_config(path: Path, line: LineFormat) -> None:
+    devices = "".join(f"  - {{profile: {pid}, address: {address}}}\n" for _, pid, address in PLANT)
+    path.write_text(
+        f"line: {{baudrate: {line.baudrate}, parity: {line.parity}, stopbits: {line.stopbits}}}\n"
+        f"pace: true\nseed: 1\ndevices:\n{devices}",
+        encoding="utf-8",
+    )
+
+
+async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[str, float]:
+    sink = CountingSink()
+    line = Line(port=str(port), line=line_format)
+    worker = BusWorker(name="bench", line=line, devices=targets(0.001), sinks=[sink])
+    task = asyncio.create_task(worker.run())
+    await asyncio.sleep(2.0)  # identity reads and warm-up are not measured
+    stats = line.stats
+    requests0, busy0 = sum(stats.requests.values()), stats.busy_s
+    values0 = sum(sink.values.values())
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    await asyncio.sleep(seconds)
+    cpu1, wall1 = time.process_time(), time.monotonic()
+    requests = sum(stats.requests.values()) - requests0
+    values = sum(sink.values.values()) - values0
+    busy = stats.busy_s - busy0
+    errors = sum(stats.errors.values())
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+    await line.close()
+    return {
+        "wall_s": wall1 - wall0,
+        "transactions": requests,
+        "transactions_per_s": requests / (wall1 - wall0),
+        "values_per_s": values / (wall1 - wall0),
+        "busy_s": busy,
+        "cpu_us_per_transaction": 1e6 * (cpu1 - cpu0) / max(requests, 1),
+        "errors": errors,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--baudrate", type=int, default=9600)
+    parser.add_argument("--parity", choices="NEO", default="E")
+    parser.add_argument("--stopbits", type=int, choices=(1, 2), default=1)
+    args = parser.parse_args()
+    line = LineFormat(baudrate=args.baudrate, parity=args.parity, stopbits=args.stopbits)
+    figures = plan_figures(line)
+    with tempfile.TemporaryDirectory() as tmp:
+        config, port, stats = Path(tmp) / "plant.yaml", Path(tmp) / "ttyBENCH", Path(tmp) / "stats.json"
+        write_simulator_config(config, line)
+        simulator = subprocess.Popen(  # noqa: S603 - our own simulator
+            [sys.executable, "-m", "gateway", "simulate", "--config", str(config), "--pty", str(port), "--stats", str(stats)],
+            stdout=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "COLUMNS": "200"},
+        )
+        assert simulator.stdout is not None
+        simulator.stdout.readline()  # ready
+        try:
+            measured = asyncio.run(measure(port, line, args.seconds))
+        finally:
+            simulator.terminate()
+            simulator.wait(timeout=10)
+        referee = json.loads(stats.read_text(encoding="utf-8"))
+    cycles_per_s = measured["transactions_per_s"] / figures["frames_per_cycle"]
+    measured_cycle_s = 1.0 / cycles_per_s
+    efficiency = figures["bus_s_per_cycle"] / measured_cycle_s
+    result = {
+        "line": str(line),
+        "devices": [pid for _, pid, _ in PLANT],
+        **figures,
+        "measured_s_per_cycle": measured_cycle_s,
+        "cycles_per_s": cycles_per_s,
+        **measured,
+        "efficiency": efficiency,
+        "timing_violations": referee["timing_violations"],
+    }
+    RESULTS.mkdir(exist_ok=True)
+    name = f"bus_efficiency_{line.baudrate}_8{line.parity}{line.stopbits}.json"
+    (RESULTS / name).write_text(json.dumps(result, indent=2), encoding="utf-8")
+    rows = [
+        ("line", str(line)),
+        ("frames per cycle (plan / one per point)", f"{figures['frames_per_cycle']} / {figures['frames_per_cycle_one_per_point']}"),
+        ("bus time per cycle, ms (plan / one per point)", f"{1000 * figures['bus_s_per_cycle']:.1f} / {1000 * figures['bus_s_per_cycle_one_per_point']:.1f}"),
+        ("measured time per cycle, ms", f"{1000 * measured_cycle_s:.1f}"),
+        ("efficiency (minimum / measured)", f"{efficiency:.3f}"),
+        ("transactions per second", f"{measured['transactions_per_s']:.1f}"),
+        ("point values per second", f"{measured['values_per_s']:.1f}"),
+        ("gateway CPU per transaction, µs", f"{measured['cpu_us_per_transaction']:.0f}"),
+        ("errors / timing violations", f"{measured['errors']} / {referee['timing_violations']}"),
+    ]
+    width = max(len(label) for label, _ in rows)
+    for label, value in rows:
+        print(f"{label:<{width}}  {value}")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""The running gateway: one task per bus under one supervisor, and the sinks they feed."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import signal
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING
+
+from gateway.bus import Line
+from gateway.config import Cadence
+from gateway.scheduler import BusWorker, DeviceTarget
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from gateway.config import BusConfig, DeviceConfig, GatewayConfig, LoggingConfig
+    from gateway.samples import Sink
+
+_LOGGER = logging.getLogger(__name__)
+SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports
+
+
+def device_target(device: DeviceConfig, bus: BusConfig) -> DeviceTarget:
+    """What the bus engine polls for one configured device."""
+    profile = device.get_profile()
+    intervals: dict[str, float | None] = {}
+    for point in profile.points:
+        if point.view:
+            continue
+        schedule = device.interval_for(point)
+        if schedule.cadence is Cadence.PERIODIC:
+            intervals[point.name] = schedule.interval_s
+        elif schedule.cadence is Cadence.ON_CONNECT:
+            intervals[point.name] = None
+    timeout = device.timeout if device.timeout is not None else bus.timeout
+    return DeviceTarget(
+        name=device.name,
+        address=device.address,
+        profile=profile,
+        intervals=intervals,
+        float_order=device.float_order,
+        timeout_s=None if timeout is None else timeout + device.min_response_time_ms / 1000,
+        min_response_time_s=device.min_response_time_ms / 1000,
+        extra_gap_s=device.inter_frame_gap_ms / 1000,
+        retries=device.retries_on(bus),
+        offline_after=device.offline_after,
+    )
+
+
+def build_workers(config: GatewayConfig, sinks: Sequence[Sink]) -> list[BusWorker]:
+    """One worker per configured bus, with its devices."""
+    workers = []
+    for bus in config.buses:
+        targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
+        workers.append(
+            BusWorker(
+                name=bus.name,
+                line=Line(port=bus.port, line=bus.line),
+                devices=targets,
+                sinks=sinks,
+                reconnect_max_s=bus.reconnect_max_s,
+            )
+        )
+    return workers
+
+
+async def run(config: GatewayConfig, sinks: Sequence[Sink]) -> None:
+    """Poll every bus until SIGINT or SIGTERM, then stop within a bounded time."""
+    workers = build_workers(config, sinks)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    async with contextlib.AsyncExitStack() as stack:
+        for worker in workers:
+            stack.push_async_callback(worker.line.close)
+        tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
+        waiter = asyncio.create_task(stop.wait(), name="gateway.stop")
+        try:
+            done, _ = await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
+            for task in done:
+                if task is not waiter and task.exception() is not None:
+                    raise task.exception()  # type: ignore[misc]
+        finally:
+            for task in [*tasks, waiter]:
+                task.cancel()
+            async with asyncio.timeout(SHUTDOWN_S):
+                await asyncio.gather(*tasks, waiter, return_exceptions=True)
+    _LOGGER.info("stopped")
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line, for journald and container logs."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        """The record as ``{"time", "level", "logger", "message"}`` (and the exception)."""
+        data = {
+            "time": datetime.fromtimestamp(record.created, tz=UTC).isoformat(),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        if record.exc_info:
+            data["exception"] = self.formatException(record.exc_info)
+        return json.dumps(data, ensure_ascii=False)
+
+
+def configure_logging(settings: LoggingConfig) -> None:
+    """Plain text for a terminal, JSON lines for journald and containers."""
+    handler = logging.StreamHandler()
+    if settings.format == "json":
+        handler.setFormatter(JsonFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(settings.level)
