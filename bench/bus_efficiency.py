@@ -28,12 +28,18 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gateway.bus import Line
 from gateway.plan import CostModel, plan_reads
 from gateway.profiles import PollGroup, get_profile
 from gateway.scheduler import BusWorker, DeviceTarget
 from gateway.timing import TYPICAL_PROCESSING_S, LineFormat
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from gateway.samples import DeviceEvent, Sample
 
 PLANT = [
     ("s10", "jumo-digiline-odo-s10", 1),
@@ -42,7 +48,6 @@ PLANT = [
     ("clo2", "jumo-tecline-clo2", 80),
     ("m0c", "reiss-m0c", 10),
 ]
-SIMULATOR_SILENCE_MIN_S = 0.0015  # gateway.simulator.transport.MIN_SILENCE_S
 RESULTS = Path(__file__).parent / "results"
 
 
@@ -52,11 +57,11 @@ class CountingSink:
     def __init__(self) -> None:
         self.values: dict[str, int] = {}
 
-    async def publish(self, samples: object) -> None:
-        for sample in samples:  # type: ignore[attr-defined]
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        for sample in samples:
             self.values[sample.device] = self.values.get(sample.device, 0) + 1
 
-    async def device_event(self, event: object) -> None:
+    async def device_event(self, event: DeviceEvent) -> None:
         pass
 
 
@@ -77,9 +82,12 @@ def targets(interval: float) -> list[DeviceTarget]:
 
 
 def transaction_s(line: LineFormat, request_bytes: int, answer_bytes: int, gap_s: float) -> float:
-    """The least bus time of one transaction: gap, request, the device's delay, answer."""
-    device_delay = max(3.5 * line.character_s, SIMULATOR_SILENCE_MIN_S) + TYPICAL_PROCESSING_S
-    return gap_s + line.wire_s(request_bytes) + device_delay + line.wire_s(answer_bytes)
+    """The least bus time of one transaction: gap, request, the device's t1, answer.
+
+    t1 is the simulated device's processing time, the manuals' typical 5 ms (which already
+    includes the 3.5 characters a slave needs to see the end of the request).
+    """
+    return gap_s + line.wire_s(request_bytes) + TYPICAL_PROCESSING_S + line.wire_s(answer_bytes)
 
 
 def plan_figures(line: LineFormat) -> dict[str, float]:
@@ -144,7 +152,9 @@ async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[s
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--baudrate", type=int, default=9600)
     parser.add_argument("--parity", choices="NEO", default="E")
@@ -153,10 +163,25 @@ def main() -> None:
     line = LineFormat(baudrate=args.baudrate, parity=args.parity, stopbits=args.stopbits)
     figures = plan_figures(line)
     with tempfile.TemporaryDirectory() as tmp:
-        config, port, stats = Path(tmp) / "plant.yaml", Path(tmp) / "ttyBENCH", Path(tmp) / "stats.json"
+        config, port, stats = (
+            Path(tmp) / "plant.yaml",
+            Path(tmp) / "ttyBENCH",
+            Path(tmp) / "stats.json",
+        )
         write_simulator_config(config, line)
         simulator = subprocess.Popen(  # noqa: S603 - our own simulator
-            [sys.executable, "-m", "gateway", "simulate", "--config", str(config), "--pty", str(port), "--stats", str(stats)],
+            [
+                sys.executable,
+                "-m",
+                "gateway",
+                "simulate",
+                "--config",
+                str(config),
+                "--pty",
+                str(port),
+                "--stats",
+                str(stats),
+            ],
             stdout=subprocess.PIPE,
             text=True,
             env={**os.environ, "COLUMNS": "200"},
@@ -187,8 +212,17 @@ def main() -> None:
     (RESULTS / name).write_text(json.dumps(result, indent=2), encoding="utf-8")
     rows = [
         ("line", str(line)),
-        ("frames per cycle (plan / one per point)", f"{figures['frames_per_cycle']} / {figures['frames_per_cycle_one_per_point']}"),
-        ("bus time per cycle, ms (plan / one per point)", f"{1000 * figures['bus_s_per_cycle']:.1f} / {1000 * figures['bus_s_per_cycle_one_per_point']:.1f}"),
+        (
+            "frames per cycle (plan / one per point)",
+            f"{figures['frames_per_cycle']} / {figures['frames_per_cycle_one_per_point']}",
+        ),
+        (
+            "bus time per cycle, ms (plan / one per point)",
+            (
+                f"{1000 * figures['bus_s_per_cycle']:.1f} / "
+                f"{1000 * figures['bus_s_per_cycle_one_per_point']:.1f}"
+            ),
+        ),
         ("measured time per cycle, ms", f"{1000 * measured_cycle_s:.1f}"),
         ("efficiency (minimum / measured)", f"{efficiency:.3f}"),
         ("transactions per second", f"{measured['transactions_per_s']:.1f}"),

@@ -45,6 +45,7 @@ _LOGGER = logging.getLogger(__name__)
 
 SILENCE_CHARACTERS: Final = 3.5  # a frame ends after 3.5 silent characters (all manuals)
 MIN_SILENCE_S: Final = 0.003  # event-loop and USB-adapter latency make shorter waits unreliable
+TIMER_GRANULARITY_S: Final = 0.0012  # epoll waits in whole milliseconds, rounded up
 LATENCY_BUCKETS_S: Final = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
 
 
@@ -204,7 +205,13 @@ class Line:
             delay = ready - time.monotonic()
             if delay <= 0:
                 return
-            await asyncio.sleep(delay)
+            if delay > TIMER_GRANULARITY_S:
+                await asyncio.sleep(delay - TIMER_GRANULARITY_S)
+            else:
+                # The event loop's timers wake up to 1 ms late (epoll counts milliseconds);
+                # the last stretch of a gap is waited out by yielding, so the line is not
+                # left idle for longer than the manuals ask.
+                await asyncio.sleep(0)
 
     async def transact(
         self,
@@ -252,17 +259,18 @@ class Line:
             self.stats.errors[request.device, _kind(exc)] += 1
             self._finish(sent_at)
             raise
-        self._finish(sent_at)
+        self._finish(sent_at, line_quiet_at=received_at)
         self.stats.responses[request.device] += 1
         self.stats.observe_latency(request.device, received_at - sent_at)
         if response.tolerated is not None:
             self.stats.tolerated[request.device, response.tolerated] += 1
         return Exchange(response=response, sent_at=sent_at, received_at=received_at)
 
-    def _finish(self, sent_at: float) -> None:
-        now = time.monotonic()
-        self.last_frame_end = now
-        self.stats.busy_s += now - sent_at
+    def _finish(self, sent_at: float, *, line_quiet_at: float | None = None) -> None:
+        """The line is silent from the answer's last byte (or now, after a failure)."""
+        end = line_quiet_at if line_quiet_at is not None else time.monotonic()
+        self.last_frame_end = end
+        self.stats.busy_s += end - sent_at
 
     async def _receive(
         self,

@@ -33,7 +33,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
-from gateway.plan import CostModel, ReadBlock, plan_reads
+from gateway.plan import CostModel, Planner, ReadBlock
 from gateway.profiles import PollGroup
 from gateway.samples import DeviceEvent, Quality, Sample
 
@@ -176,8 +176,10 @@ class BusWorker:
         self._writes: list[WriteJob] = []
         self._wake = asyncio.Event()
         self._rng = rng or random.Random()  # noqa: S311 - jitter, nothing secret
-        self._costs = {
-            d.name: CostModel.for_device(d.profile, line.format, extra_gap_s=d.extra_gap_s)
+        self._planners = {
+            d.name: Planner(
+                d.profile, CostModel.for_device(d.profile, line.format, extra_gap_s=d.extra_gap_s)
+            )
             for d in devices
         }
         self.polls = 0
@@ -324,12 +326,8 @@ class BusWorker:
 
     def _plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
         points = [state.profile.point(name) for name in names]
-        return plan_reads(
-            points,
-            state.profile,
-            self._costs[state.target.name],
-            split_before=frozenset(state.split_before),
-        )
+        planner = self._planners[state.target.name]
+        return planner.plan(points, split_before=frozenset(state.split_before))
 
     async def _poll(self, state: DeviceState, now: float) -> None:
         names = self._due_points(state, now)

@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 MIN_SILENCE_S: Final = 0.0015  # below this, event-loop timers are not reliable
 STATS_INTERVAL_S: Final = 0.25
+TIMER_GRANULARITY_S: Final = 0.0012  # epoll waits in whole milliseconds, rounded up
 
 
 class SimulatorError(GatewayError):
@@ -87,7 +88,15 @@ class SimulatorServer:
     def handle(self, frame: bytes, start: float, send: Callable[[bytes], None]) -> None:
         """Give a received frame to the bus and schedule its replies on the line."""
         for reply in self.bus.on_frame(frame, start):
-            self.loop.call_at(reply.at, self._emit, reply, send)
+            # Timers fire up to 1 ms late; wake a little early and finish the wait by
+            # yielding, so the simulated device answers when its timing says.
+            self.loop.call_at(reply.at - TIMER_GRANULARITY_S, self._emit_on_time, reply, send)
+
+    def _emit_on_time(self, reply: Reply, send: Callable[[bytes], None]) -> None:
+        if self.loop.time() < reply.at:
+            self.loop.call_soon(self._emit_on_time, reply, send)
+            return
+        self._emit(reply, send)
 
     def _emit(self, reply: Reply, send: Callable[[bytes], None]) -> None:
         try:
