@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
 
 from tests.test_profiles import PROFILE_IDS
 
@@ -17,6 +23,7 @@ def gateway(*args: str) -> subprocess.CompletedProcess[str]:
         check=False,
         timeout=60,
         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"},
+        cwd=Path(__file__).parent,
     )
 
 
@@ -70,3 +77,184 @@ def test_version_and_module_entry_point() -> None:
     result = gateway("--version")
     assert result.returncode == 0
     assert result.stdout.strip() == "0.1.0"
+
+
+# --- gateway read and gateway run against a simulated line ------------------------------
+
+
+@pytest.fixture
+def simulated_line(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
+    port, stats = tmp_path / "ttySIM", tmp_path / "stats.json"
+    config = tmp_path / "sim.yaml"
+    config.write_text(
+        "line: {baudrate: 19200, parity: E, stopbits: 1}\n"
+        "devices:\n"
+        "  - {profile: jumo-digiline-odo-s10, address: 1, animate: false,"
+        " values: {temperature: 20.25, oxygen: {fault: overrange}}}\n"
+        "  - {profile: reiss-m0c, address: 10, animate: false, values: {concentration: 0.168}}\n",
+        encoding="utf-8",
+    )
+    with subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gateway",
+            "simulate",
+            "--config",
+            str(config),
+            "--pty",
+            str(port),
+            "--stats",
+            str(stats),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    ) as simulator:
+        assert simulator.stdout is not None
+        assert simulator.stdout.readline().startswith("simulating")
+        yield port, stats
+        simulator.send_signal(signal.SIGINT)
+        simulator.communicate(timeout=10)
+
+
+def frames_received(stats: Path) -> int:
+    time.sleep(0.35)  # one stats interval
+    data = json.loads(stats.read_text(encoding="utf-8"))
+    return int(data["counters"].get("frames", 0))
+
+
+def test_read_prints_values_and_faults_as_json(simulated_line: tuple[Path, Path]) -> None:
+    port, stats = simulated_line
+    result = gateway(
+        "read",
+        "--port",
+        str(port),
+        "--baudrate",
+        "19200",
+        "--parity",
+        "E",
+        "--address",
+        "1",
+        "--profile",
+        "jumo-digiline-odo-s10",
+        "temperature",
+        "oxygen",
+        "status",
+        "--json",
+    )
+    assert result.returncode == 0, result.stderr
+    data = json.loads(result.stdout)
+    assert data["temperature"] == {"value": 20.25, "unit": "°C"}
+    assert data["oxygen"] == {"fault": "overrange", "unit": "ppm"}  # never 2e37
+    assert data["status"]["value"]["cap_missing"] is False
+    assert frames_received(stats) >= 2
+    reiss = gateway(
+        "read",
+        "--port",
+        str(port),
+        "--baudrate",
+        "19200",
+        "--parity",
+        "E",
+        "--address",
+        "10",
+        "--profile",
+        "reiss-m0c",
+        "concentration",
+        "sensor_type",
+    )
+    assert reiss.returncode == 0, reiss.stderr
+    assert "0.168" in reiss.stdout
+    assert "CP4.0N-M0" in reiss.stdout
+
+
+def test_read_of_a_silent_address_fails_clearly(simulated_line: tuple[Path, Path]) -> None:
+    port, _ = simulated_line
+    result = gateway(
+        "read",
+        "--port",
+        str(port),
+        "--baudrate",
+        "19200",
+        "--parity",
+        "E",
+        "--address",
+        "7",
+        "--profile",
+        "reiss-m0c",
+        "concentration",
+        "--json",
+    )
+    assert result.returncode == 1
+    assert json.loads(result.stdout)["concentration"]["comms_error"] == "timeout"
+    assert "1 of 1 points could not be read" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--profile", "reiss-m9c", "concentration"], "unknown profile 'reiss-m9c'"),
+        (["--profile", "reiss-m0c", "concentrationn"], "has no point 'concentrationn'"),
+        (["--profile", "reiss-m0c", "--parity", "X"], "--parity must be N, E or O"),
+        (["--profile", "reiss-m0c", "--float-order", "ACBD"], "--float-order 'ACBD'"),
+    ],
+)
+def test_read_bad_input_sends_nothing(
+    simulated_line: tuple[Path, Path], args: list[str], message: str
+) -> None:
+    port, stats = simulated_line
+    result = gateway("read", "--port", str(port), "--address", "10", *args)
+    assert result.returncode == 2
+    assert message in result.stderr
+    assert frames_received(stats) == 0
+
+
+def test_read_of_a_port_that_does_not_exist(tmp_path: Path) -> None:
+    result = gateway(
+        "read", "--port", str(tmp_path / "ttyUSB9"), "--address", "1", "--profile", "reiss-m0c"
+    )
+    assert result.returncode == 2
+    assert "cannot open" in result.stderr
+
+
+def test_run_polls_until_ctrl_c(simulated_line: tuple[Path, Path], tmp_path: Path) -> None:
+    port, stats = simulated_line
+    config = tmp_path / "gateway.yaml"
+    config.write_text(
+        f"buses:\n  - {{name: line1, port: {port}, baudrate: 19200, parity: E}}\n"
+        "devices:\n"
+        "  - {name: basin_oxygen, bus: line1, address: 1, profile: jumo-digiline-odo-s10, poll_interval: 0.5}\n"
+        "  - {name: basin_chlorine, bus: line1, address: 10, profile: reiss-m0c, poll_interval: 0.5}\n",
+        encoding="utf-8",
+    )
+    with subprocess.Popen(
+        [sys.executable, "-m", "gateway", "run", "--config", str(config)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    ) as process:
+        time.sleep(3.0)
+        process.send_signal(signal.SIGINT)
+        out, err = process.communicate(timeout=10)
+    assert process.returncode == 0, err
+    assert "line1/basin_oxygen online" in out
+    assert "temperature=20.25 °C" in out
+    assert "oxygen=!overrange" in out
+    assert "concentration=0.168 ppm" in out
+    assert json.loads(stats.read_text(encoding="utf-8"))["timing_violations"] == 0
+
+
+def test_run_refuses_a_broken_config(tmp_path: Path) -> None:
+    config = tmp_path / "broken.yaml"
+    config.write_text(
+        "buses:\n  - {name: line1, port: /dev/ttyUSB0}\n"
+        "devices:\n"
+        "  - {name: a, bus: line1, address: 1, profile: reiss-m0c}\n"
+        "  - {name: b, bus: line1, address: 1, profile: jumo-tecline-xx}\n",
+        encoding="utf-8",
+    )
+    result = gateway("run", "--config", str(config))
+    assert result.returncode == 2
+    assert "devices[1].address (line 5)" in result.stderr
+    assert "devices[1].profile (line 5)" in result.stderr
