@@ -224,8 +224,10 @@ def test_run_polls_until_ctrl_c(simulated_line: tuple[Path, Path], tmp_path: Pat
     config.write_text(
         f"buses:\n  - {{name: line1, port: {port}, baudrate: 19200, parity: E}}\n"
         "devices:\n"
-        "  - {name: basin_oxygen, bus: line1, address: 1, profile: jumo-digiline-odo-s10, poll_interval: 0.5}\n"
-        "  - {name: basin_chlorine, bus: line1, address: 10, profile: reiss-m0c, poll_interval: 0.5}\n",
+        "  - {name: basin_oxygen, bus: line1, address: 1, profile: jumo-digiline-odo-s10,"
+        " poll_interval: 0.5}\n"
+        "  - {name: basin_chlorine, bus: line1, address: 10, profile: reiss-m0c,"
+        " poll_interval: 0.5}\n",
         encoding="utf-8",
     )
     with subprocess.Popen(
