@@ -251,42 +251,68 @@ class BusWorker:
             state.identity_pending.add(profile.float_order_register.point)
         state.attempts.clear()
 
-    def _due_points(self, state: DeviceState, now: float) -> list[str]:
+    def _is_slow(self, state: DeviceState, name: str) -> bool:
+        return (
+            name not in state.identity_pending and state.profile.point(name).group in _SLOW_GROUPS
+        )
+
+    def _due_points(self, state: DeviceState, now: float, *, slow: bool) -> list[str]:
         due = [name for name, deadline in state.next_due.items() if deadline <= now]
         due.extend(state.identity_pending - set(due))
-        return [name for name in due if name not in state.unreadable]
+        return [n for n in due if n not in state.unreadable and self._is_slow(state, n) == slow]
 
-    def _next_deadline(self, state: DeviceState) -> float:
+    def _next_deadline(self, state: DeviceState, *, slow: bool) -> float:
+        """When the device next has work of the class: values (fast) or diagnostics (slow)."""
         if state.online is False:
-            return state.probe_at
-        if state.identity_pending - state.unreadable:
+            return state.probe_at if not slow else math.inf
+        if not slow and state.identity_pending - state.unreadable:
             return 0.0
-        pending = [t for n, t in state.next_due.items() if n not in state.unreadable]
+        pending = [
+            t
+            for n, t in state.next_due.items()
+            if n not in state.unreadable and self._is_slow(state, n) == slow
+        ]
         return min(pending, default=math.inf)
 
+    def _pick(self, now: float, *, slow: bool) -> DeviceState | None:
+        """The device with the earliest due work of the class (ties: lower address)."""
+        due = [
+            (deadline, s.target.address, s)
+            for s in self.devices.values()
+            if s.not_before <= now and (deadline := self._next_deadline(s, slow=slow)) <= now
+        ]
+        return min(due, key=lambda item: (item[0], item[1]))[2] if due else None
+
     async def _poll_forever(self) -> None:
+        """Writes first, then due values (earliest deadline first), then diagnostics.
+
+        Diagnostics and configuration only fill the time values leave free, one read at a
+        time, so a long logbook read never delays a measured value.
+        """
         while True:
             now = time.monotonic()
             if await self._run_a_write(now):
                 continue
-            ready = [
-                (self._next_deadline(s), s.target.address, s)
-                for s in self.devices.values()
-                if s.not_before <= now
-            ]
-            due = [(deadline, address, s) for deadline, address, s in ready if deadline <= now]
-            if due:
-                _, _, state = min(due, key=lambda item: (item[0], item[1]))
+            if (state := self._pick(now, slow=False)) is not None:
                 if state.online is False:
                     await self._probe(state, now)
                 else:
-                    await self._poll(state, now)
+                    await self._poll(state, now, slow=False)
+                continue
+            if (state := self._pick(now, slow=True)) is not None:
+                await self._poll(state, now, slow=True)
                 continue
             await self._sleep_until_next(now)
 
     async def _sleep_until_next(self, now: float) -> None:
         wake_at = min(
-            (max(self._next_deadline(s), s.not_before) for s in self.devices.values()),
+            (
+                max(
+                    min(self._next_deadline(s, slow=False), self._next_deadline(s, slow=True)),
+                    s.not_before,
+                )
+                for s in self.devices.values()
+            ),
             default=now + 1.0,
         )
         if self._writes:
@@ -329,17 +355,26 @@ class BusWorker:
         planner = self._planners[state.target.name]
         return planner.plan(points, split_before=frozenset(state.split_before))
 
-    async def _poll(self, state: DeviceState, now: float) -> None:
-        names = self._due_points(state, now)
+    async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
+        names = self._due_points(state, now, slow=slow)
         self.polls += 1
         samples: list[Sample] = []
-        for block in self._plan(state, names):
+        # Oldest deadlines first, so a read cut short by due values resumes where it left.
+        blocks = sorted(self._plan(state, names), key=lambda b: self._block_deadline(state, b))
+        for block in blocks:
             if state.not_before > time.monotonic() or state.online is False:
                 break  # a failure set a quarantine or took the device offline: others first
+            if samples and slow and self._pick(time.monotonic(), slow=False) is not None:
+                break  # values are due somewhere: the rest of the diagnostics waits
             samples.extend(await self._read_block(state, block) or ())
         self._advance(state, [s.point for s in samples], now)
         if samples:
             await self._publish(samples)
+
+    @staticmethod
+    def _block_deadline(state: DeviceState, block: ReadBlock) -> float:
+        """The earliest deadline of a block's points (identity reads come first)."""
+        return min(state.next_due.get(p.name, 0.0) for p in block.points)
 
     async def _read_block(self, state: DeviceState, block: ReadBlock) -> list[Sample] | None:
         """Read one block; ``None`` when it will be retried later.
@@ -476,7 +511,8 @@ class BusWorker:
                 state.missed_deadlines += skipped
             state.next_due[name] = nxt
             state.lag_s = max(0.0, lag)
-            if lag > interval and not state.lag_reported:
+            starting = any(s.identity_pending for s in self.devices.values())
+            if lag > interval and not state.lag_reported and not starting:
                 state.lag_reported = True
                 _LOGGER.warning(
                     "%s/%s: the line cannot keep up: %s is %.2f s late (interval %.2f s); "

@@ -250,19 +250,21 @@ async def test_exception_02_splits_a_merged_read_and_remembers(tmp_path: Path) -
 
 async def test_fewer_frames_than_one_request_per_point(tmp_path: Path) -> None:
     devices = [{"profile": "jumo-digiline-odo-h10", "address": 2}]
-    h10 = target(
-        "h10",
-        "jumo-digiline-odo-h10",
-        2,
-        interval=0.5,
-        groups=(PollGroup.PROCESS, PollGroup.STATUS, PollGroup.DIAGNOSTICS),
-    )
+    profile = get_profile("jumo-digiline-odo-h10")
+    slow = {PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION}
+    intervals: dict[str, float | None] = {
+        p.name: None if p.group is PollGroup.IDENTITY else 3.0 if p.group in slow else 0.5
+        for p in profile.points
+        if not p.view
+    }
+    h10 = DeviceTarget(name="h10", address=2, profile=profile, intervals=intervals)
     async with rig(tmp_path, devices, [h10]) as r:
-        await r.run_for(3.0)
+        await r.run_for(6.0)
     polled = {s.point for s in r.sink.samples if s.good}
     reads = [rec for rec in r.frames() if rec.function == 3]
-    assert len(polled) > 200  # the logbook included
-    assert len(reads) < len(polled) / 4
+    assert len(polled) == len(intervals) == 289  # the logbook included
+    per_point = sum(1 for s in r.sink.samples if s.good)
+    assert len(reads) < per_point / 4  # one request per point: a frame per value
 
 
 # --- faults ------------------------------------------------------------------------------
