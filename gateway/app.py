@@ -68,13 +68,16 @@ def build_workers(config: GatewayConfig, sinks: Sequence[Sink]) -> list[BusWorke
     return workers
 
 
-async def run(config: GatewayConfig, sinks: Sequence[Sink]) -> None:
-    """Poll every bus until SIGINT or SIGTERM, then stop within a bounded time."""
+async def run(
+    config: GatewayConfig, sinks: Sequence[Sink], *, stop: asyncio.Event | None = None
+) -> None:
+    """Poll every bus until ``stop`` is set (default: SIGINT or SIGTERM), within bounds."""
     workers = build_workers(config, sinks)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(signum, stop.set)
+    if stop is None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(signum, stop.set)
     async with contextlib.AsyncExitStack() as stack:
         for worker in workers:
             stack.push_async_callback(worker.line.close)

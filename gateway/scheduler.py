@@ -174,6 +174,7 @@ class BusWorker:
         self.late_answer_window_s = late_answer_window_s
         self.reconnect_max_s = reconnect_max_s
         self._writes: list[WriteJob] = []
+        self._broadcasts: list[tuple[frames.Request, asyncio.Future[None]]] = []
         self._wake = asyncio.Event()
         self._rng = rng or random.Random()  # noqa: S311 - jitter, nothing secret
         self._planners = {
@@ -221,6 +222,40 @@ class BusWorker:
         self._writes.append(WriteJob(device=device, point=point, value=value, done=done))
         self._wake.set()
         return done
+
+    def submit_broadcast(self, address: int, registers: Sequence[int]) -> asyncio.Future[None]:
+        """Queue a write to every device (Modbus address 0); no device answers it.
+
+        After it, every device waits the turnaround delay, or its profile's post-write
+        wait for that register if longer, before the next request.
+        """
+        request = frames.write_request(frames.BROADCAST, address, registers)
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._broadcasts.append((request, done))
+        self._wake.set()
+        return done
+
+    async def _run_a_broadcast(self, now: float) -> bool:
+        if not self._broadcasts or any(s.not_before > now for s in self.devices.values()):
+            return False
+        request, done = self._broadcasts.pop(0)
+        gap = max(
+            (self._gap_s(s) for s in self.devices.values()), default=self.line.format.frame_gap_s()
+        )
+        try:
+            await self.line.transact(request, timeout_s=0.0, gap_s=gap)
+        except BusClosedError as exc:
+            done.set_exception(exc)
+            raise
+        sent = time.monotonic()
+        for state in self.devices.values():
+            wait = max(
+                BROADCAST_TURNAROUND_S,
+                state.profile.post_write_wait(request.address, request.count),
+            )
+            state.not_before = max(state.not_before, sent + wait)
+        done.set_result(None)
+        return True
 
     # --- scheduling -------------------------------------------------------------------
 
@@ -291,7 +326,7 @@ class BusWorker:
         """
         while True:
             now = time.monotonic()
-            if await self._run_a_write(now):
+            if await self._run_a_write(now) or await self._run_a_broadcast(now):
                 continue
             if (state := self._pick(now, slow=False)) is not None:
                 if state.online is False:
@@ -317,6 +352,8 @@ class BusWorker:
         )
         if self._writes:
             wake_at = min(wake_at, *(self.devices[w.device].not_before for w in self._writes))
+        if self._broadcasts:
+            wake_at = min(wake_at, max((s.not_before for s in self.devices.values()), default=now))
         self._wake.clear()
         timeout = max(0.0, wake_at - now)
         if math.isinf(timeout):

@@ -385,3 +385,34 @@ async def test_unplugged_port_is_reopened_without_a_restart(tmp_path: Path) -> N
     assert any(s.monotonic > back for s in before), "polling resumed after the port came back"
     assert any(not e.online for e in r.sink.events)
     assert_no_wrong_value(r.sink)
+
+
+async def test_broadcast_write_has_no_answer_then_the_turnaround(tmp_path: Path) -> None:
+    devices = [
+        {"profile": "jumo-digiline-odo-h10", "address": 2},
+        {"profile": "jumo-digiline-odo-s10", "address": 1},
+    ]
+    targets = [
+        target("h10", "jumo-digiline-odo-h10", 2, interval=0.05),
+        target("s10", "jumo-digiline-odo-s10", 1, interval=0.05),
+    ]
+    async with rig(tmp_path, devices, targets) as r:
+        poller = asyncio.create_task(r.worker.run())
+        await asyncio.sleep(1.0)
+        await asyncio.wait_for(r.worker.submit_broadcast(0x0305, [0]), timeout=2)
+        await asyncio.sleep(1.0)
+        poller.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await poller
+        records = r.frames()
+        stats = r.server.bus.stats()
+    assert stats["timing_violations"] == 0
+    index = next(i for i, rec in enumerate(records) if rec.device == 0)
+    broadcast = records[index]
+    assert broadcast.outcome == "broadcast"
+    assert broadcast.answer_at is None
+    after = records[index + 1 :]
+    first_h10 = next(rec for rec in after if rec.device == 2)
+    first_s10 = next(rec for rec in after if rec.device == 1)
+    assert first_h10.start - broadcast.start >= 0.25  # H10/H20 6.1.5 after every write
+    assert first_s10.start - broadcast.start >= 0.1  # the broadcast turnaround delay
