@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 from gateway.bus import Line
 from gateway.config import Cadence
 from gateway.scheduler import BusWorker, DeviceTarget
+from gateway.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -51,28 +52,45 @@ def device_target(device: DeviceConfig, bus: BusConfig) -> DeviceTarget:
     )
 
 
-def build_workers(config: GatewayConfig, sinks: Sequence[Sink]) -> list[BusWorker]:
-    """One worker per configured bus, with its devices."""
+def build_workers(
+    config: GatewayConfig, sinks: Sequence[Sink], state: GatewayState | None = None
+) -> list[BusWorker]:
+    """One worker per configured bus, with its devices; registered in ``state`` if given."""
     workers = []
     for bus in config.buses:
         targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
-        workers.append(
-            BusWorker(
-                name=bus.name,
-                line=Line(port=bus.port, line=bus.line),
-                devices=targets,
-                sinks=sinks,
-                reconnect_max_s=bus.reconnect_max_s,
-            )
+        worker = BusWorker(
+            name=bus.name,
+            line=Line(port=bus.port, line=bus.line),
+            devices=targets,
+            sinks=[StateSink(state), *sinks] if state is not None else sinks,
+            reconnect_max_s=bus.reconnect_max_s,
         )
+        if state is not None:
+            state.add_line(bus.name, worker.line.stats, worker.health)
+            for target in targets:
+                state.add_device(
+                    DeviceInfo(
+                        bus=bus.name,
+                        name=target.name,
+                        profile=target.profile.id,
+                        address=target.address,
+                        intervals=dict(target.intervals),
+                    )
+                )
+        workers.append(worker)
     return workers
 
 
 async def run(
-    config: GatewayConfig, sinks: Sequence[Sink], *, stop: asyncio.Event | None = None
+    config: GatewayConfig,
+    sinks: Sequence[Sink],
+    *,
+    stop: asyncio.Event | None = None,
+    state: GatewayState | None = None,
 ) -> None:
     """Poll every bus until ``stop`` is set (default: SIGINT or SIGTERM), within bounds."""
-    workers = build_workers(config, sinks)
+    workers = build_workers(config, sinks, state)
     if stop is None:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()

@@ -38,6 +38,7 @@ import types
 from contextvars import ContextVar
 from dataclasses import dataclass
 from enum import StrEnum
+from pathlib import Path  # noqa: TC003 - pydantic resolves annotations at run time
 from typing import (
     TYPE_CHECKING,
     Annotated,
@@ -79,7 +80,6 @@ from gateway.timing import LineFormat, Parity
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Iterator, Mapping, Sequence
-    from pathlib import Path
 
     from pydantic_core import ErrorDetails
 
@@ -248,15 +248,37 @@ class BusConfig(_Model):
         return LineFormat(baudrate=self.baudrate, parity=self.parity, stopbits=self.stopbits)
 
 
+class PublishMode(StrEnum):
+    """When a value is published to MQTT."""
+
+    EVERY_POLL = "every_poll"  # each value read
+    ON_CHANGE = "on_change"  # when it differs from the last published one (or heartbeat)
+    DEADBAND = "deadband"  # when it moved by more than ``deadband`` (or heartbeat)
+
+
+class PublishSettings(_Model):
+    """How often values go to MQTT: every poll, on change, or beyond a deadband.
+
+    In the change modes a value is published anyway after ``heartbeat_s`` of silence, so a
+    subscriber can tell a steady value from a dead gateway.
+    """
+
+    mode: PublishMode = PublishMode.EVERY_POLL
+    deadband: Annotated[float, Field(ge=0)] = 0.0  # absolute, in the point's unit
+    heartbeat_s: Annotated[float, Field(gt=0, le=86_400)] = 300.0
+
+
 class PointSettings(_Model):
     """Per-point settings of one device: its own interval, or never polled.
 
     ``enabled: false`` wins over an ``interval`` given next to it, so that a point can
-    be switched off and on again without losing its interval.
+    be switched off and on again without losing its interval. ``publish`` overrides the
+    device's publish settings for this point.
     """
 
     interval: Seconds | None = None
     enabled: bool = True
+    publish: PublishSettings | None = None
 
 
 class Cadence(StrEnum):
@@ -327,6 +349,7 @@ class DeviceConfig(_Model):
     inter_frame_gap_ms: Annotated[float, Field(ge=0, le=1000)] = 0.0
     retries: Retries | None = None  # None: the bus retries
     offline_after: Annotated[int, Field(ge=1, le=1000)] = 3
+    publish: PublishSettings = PublishSettings()
 
     def get_profile(self) -> Profile:
         """The device's register map (a :class:`ConfigError` for an unknown profile id)."""
@@ -373,20 +396,45 @@ class DeviceConfig(_Model):
         return self.retries if self.retries is not None else bus.retries
 
 
-class MqttConfig(_Model):
-    """The broker connection (used by the publishing release)."""
+class TlsConfig(_Model):
+    """TLS to the broker: a CA to trust and, for client authentication, a certificate."""
 
+    ca: Path | None = None  # CA certificate (PEM); None: the system's trust store
+    cert: Path | None = None  # client certificate (PEM)
+    key: Path | None = None  # its private key (PEM)
+
+
+class DiscoveryConfig(_Model):
+    """Home Assistant MQTT discovery (opt-in)."""
+
+    enabled: bool = False
+    prefix: Annotated[str, AfterValidator(_mqtt_topic)] = "homeassistant"
+
+
+class MqttConfig(_Model):
+    """The broker connection, topics, quality of service and the store-and-forward queue."""
+
+    enabled: bool = True
     host: Annotated[str, Field(min_length=1)] = "localhost"
     port: TcpPort = 1883
     base_topic: Annotated[str, AfterValidator(_mqtt_topic)] = "gateway"
-    client_id: str | None = None
+    client_id: str | None = None  # None: gateway-<host name>
     username: str | None = None
     password: SecretStr | None = None  # meant to come from GATEWAY_MQTT__PASSWORD
+    qos: Annotated[int, Field(ge=0, le=1)] = 1  # state, status bits, availability, results
+    value_qos: Annotated[int, Field(ge=0, le=1)] = 1  # the plain value topics
+    tls: TlsConfig | None = None
+    clean_session: bool = True  # False: a persistent session on the broker
+    keepalive: Annotated[int, Field(ge=5, le=3600)] = 60
+    reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
+    queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
+    discovery: DiscoveryConfig = DiscoveryConfig()
 
 
 class PrometheusConfig(_Model):
     """Where ``/metrics`` and ``/healthz`` are served."""
 
+    enabled: bool = True
     port: TcpPort = 9108
     host: Annotated[str, Field(min_length=1)] = "0.0.0.0"  # noqa: S104 - the documented default
 
@@ -433,6 +481,9 @@ class GatewayConfig(BaseSettings):
     mqtt: MqttConfig = MqttConfig()
     prometheus: PrometheusConfig = PrometheusConfig()
     logging: LoggingConfig = LoggingConfig()
+    # Where the gateway keeps what must survive a restart (the MQTT queue, write counters);
+    # None: $STATE_DIRECTORY (systemd), else ./state.
+    state_dir: Path | None = None
 
     @classmethod
     def settings_customise_sources(

@@ -36,6 +36,7 @@ from gateway.errors import (
 from gateway.plan import CostModel, Planner, ReadBlock
 from gateway.profiles import PollGroup
 from gateway.samples import DeviceEvent, Quality, Sample
+from gateway.state import DeviceHealth
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
@@ -256,6 +257,22 @@ class BusWorker:
             state.not_before = max(state.not_before, sent + wait)
         done.set_result(None)
         return True
+
+    def health(self) -> list[DeviceHealth]:
+        """Each device's availability, lag and missed deadlines (read by the metrics)."""
+        return [
+            DeviceHealth(
+                bus=self.name,
+                device=name,
+                address=state.target.address,
+                online=state.online,
+                failures_in_a_row=state.failures,
+                lag_s=state.lag_s,
+                missed_deadlines=state.missed_deadlines,
+                unreadable_points=len(state.unreadable),
+            )
+            for name, state in self.devices.items()
+        ]
 
     # --- scheduling -------------------------------------------------------------------
 

@@ -1,0 +1,158 @@
+"""The gateway's latest view of every value and device, shared by the sinks.
+
+The bus tasks write it through :class:`StateSink` (the first sink of every bus); the
+Prometheus endpoint, which runs in its own thread so a scrape never blocks a bus task,
+reads consistent snapshots of it; ``/healthz`` and the MQTT state documents use it too.
+One lock guards it; every critical section is a few dictionary operations.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
+
+from gateway.samples import Quality
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Mapping, Sequence
+
+    from gateway.bus import LineStats
+    from gateway.samples import DeviceEvent, Sample
+
+STALE_FACTOR = 2.0  # a value is stale when older than two intervals (plus a timeout)
+STALE_MARGIN_S = 1.0
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceInfo:
+    """What sinks need to know about a configured device."""
+
+    bus: str
+    name: str
+    profile: str
+    address: int
+    intervals: Mapping[str, float | None]  # point -> seconds; None: identity, read once
+    online: bool | None = None  # None: not heard of yet
+    reason: str = ""
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceHealth:
+    """A device as its bus task sees it: availability, poll lag, missed deadlines."""
+
+    bus: str
+    device: str
+    address: int
+    online: bool | None
+    failures_in_a_row: int
+    lag_s: float
+    missed_deadlines: int
+    unreadable_points: int
+
+
+@dataclass(slots=True)
+class MqttStatus:
+    """The MQTT sink's state, for ``/healthz`` and the metrics."""
+
+    enabled: bool = False
+    connected: bool = False
+    queue_depth: int = 0
+    queue_max: int = 0
+    dropped: int = 0
+    published: int = 0
+    last_error: str | None = None
+
+    @property
+    def healthy(self) -> bool:
+        """Connected, or buffering within the queue's bound."""
+        return not self.enabled or self.connected or self.queue_depth < self.queue_max
+
+
+@dataclass(slots=True)
+class GatewayState:
+    """Latest samples, device availability, line statistics and the MQTT status."""
+
+    devices: dict[tuple[str, str], DeviceInfo] = field(default_factory=dict)
+    latest: dict[tuple[str, str, str], Sample] = field(default_factory=dict)
+    last_good: dict[tuple[str, str, str], Sample] = field(default_factory=dict)
+    lines: dict[str, LineStats] = field(default_factory=dict)
+    health_sources: dict[str, Callable[[], list[DeviceHealth]]] = field(default_factory=dict)
+    mqtt: MqttStatus = field(default_factory=MqttStatus)
+    started: float = field(default_factory=time.monotonic)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def add_device(self, info: DeviceInfo) -> None:
+        """Register a configured device before polling starts."""
+        with self._lock:
+            self.devices[info.bus, info.name] = info
+
+    def add_line(
+        self, bus: str, stats: LineStats, health: Callable[[], list[DeviceHealth]]
+    ) -> None:
+        """Register a bus's line statistics and its device health (read at scrape time)."""
+        with self._lock:
+            self.lines[bus] = stats
+            self.health_sources[bus] = health
+
+    def health(self) -> list[DeviceHealth]:
+        """Every device's health, asked of its bus task (plain attribute reads)."""
+        with self._lock:
+            sources = list(self.health_sources.values())
+        return [entry for source in sources for entry in source()]
+
+    def record(self, samples: Sequence[Sample]) -> None:
+        """Keep the newest sample of every point, and the newest good one apart."""
+        with self._lock:
+            for sample in samples:
+                key = (sample.bus, sample.device, sample.point)
+                self.latest[key] = sample
+                if sample.quality is Quality.GOOD:
+                    self.last_good[key] = sample
+
+    def record_event(self, event: DeviceEvent) -> None:
+        """Keep a device's availability."""
+        with self._lock:
+            key = (event.bus, event.device)
+            info = self.devices.get(key)
+            if info is not None:
+                self.devices[key] = replace(info, online=event.online, reason=event.reason)
+
+    def snapshot(self) -> GatewayState:
+        """A consistent copy to read without the lock (line stats are shared, read-only)."""
+        with self._lock:
+            return GatewayState(
+                devices=dict(self.devices),
+                latest=dict(self.latest),
+                last_good=dict(self.last_good),
+                lines=dict(self.lines),
+                health_sources=dict(self.health_sources),
+                mqtt=replace(self.mqtt),
+                started=self.started,
+            )
+
+    def is_stale(self, sample: Sample, now: float | None = None) -> bool:
+        """Whether a good value is older than its interval allows."""
+        info = self.devices.get((sample.bus, sample.device))
+        interval = info.intervals.get(sample.point) if info else None
+        if interval is None:
+            return False  # identity: read once, never stale
+        age = (now if now is not None else time.monotonic()) - sample.monotonic
+        return age > STALE_FACTOR * interval + STALE_MARGIN_S
+
+
+class StateSink:
+    """Feeds :class:`GatewayState` from the bus tasks."""
+
+    def __init__(self, state: GatewayState) -> None:
+        """Write into ``state``."""
+        self.state = state
+
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        """Record the samples of one poll cycle."""
+        self.state.record(samples)
+
+    async def device_event(self, event: DeviceEvent) -> None:
+        """Record a change of availability."""
+        self.state.record_event(event)
