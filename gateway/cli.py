@@ -386,18 +386,21 @@ def read(
 
 @app.command()
 def run(
-    config: Annotated[
-        Path, typer.Option("--config", "-c", help="The gateway's YAML configuration.")
-    ],
+    config: Annotated[Path, typer.Option("--config", "-c", help="The gateway's YAML config.")],
+    show: Annotated[
+        bool | None,
+        typer.Option("--print/--no-print", help="Print each poll cycle (default: on a terminal)."),
+    ] = None,
 ) -> None:
-    """Poll every configured bus and print each poll cycle (MQTT and Prometheus come later)."""
+    """Poll every configured bus and publish to MQTT and Prometheus until Ctrl-C or SIGTERM."""
     try:
         settings = load_config(config)
     except GatewayError as exc:
         raise _fail(exc) from exc
     configure_logging(settings.logging)
+    console = show if show is not None else sys.stdout.isatty()
     try:
-        asyncio.run(run_gateway(settings, [ConsoleSink()]))
+        asyncio.run(run_gateway(settings, [ConsoleSink()] if console else []))
     except GatewayError as exc:
         raise _fail(exc) from exc
 

@@ -57,7 +57,9 @@ async def test_two_buses_poll_in_parallel_one_over_tcp(tmp_path: Path) -> None:
         f"  - {{name: aeration, port: 'socket://127.0.0.1:{tcp_port}', baudrate: 19200}}\n"
         "devices:\n"
         "  - {name: basin_chlorine, bus: basin, address: 10, profile: reiss-m0c, poll_interval: 0.3}\n"
-        "  - {name: aeration_oxygen, bus: aeration, address: 1, profile: jumo-digiline-odo-s10, poll_interval: 0.3}\n",
+        "  - {name: aeration_oxygen, bus: aeration, address: 1, profile: jumo-digiline-odo-s10, poll_interval: 0.3}\n"
+        "mqtt: {enabled: false}\n"
+        "prometheus: {enabled: false}\n",
         environ={},
     )
     sink = ListSink()

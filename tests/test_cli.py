@@ -227,11 +227,13 @@ def test_run_polls_until_ctrl_c(simulated_line: tuple[Path, Path], tmp_path: Pat
         "  - {name: basin_oxygen, bus: line1, address: 1, profile: jumo-digiline-odo-s10,"
         " poll_interval: 0.5}\n"
         "  - {name: basin_chlorine, bus: line1, address: 10, profile: reiss-m0c,"
-        " poll_interval: 0.5}\n",
+        " poll_interval: 0.5}\n"
+        "mqtt: {enabled: false}\n"
+        "prometheus: {enabled: false}\n",
         encoding="utf-8",
     )
     with subprocess.Popen(
-        [sys.executable, "-m", "gateway", "run", "--config", str(config)],
+        [sys.executable, "-m", "gateway", "run", "--config", str(config), "--print"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

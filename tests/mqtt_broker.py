@@ -1,0 +1,139 @@
+"""A real mosquitto broker for tests, and a subscriber that records everything."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import getpass
+import shutil
+import socket
+import subprocess
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import aiomqtt
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator
+    from pathlib import Path
+
+MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+MOSQUITTO_PASSWD = shutil.which("mosquitto_passwd") or "/usr/bin/mosquitto_passwd"
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@dataclass
+class Broker:
+    """mosquitto on a free loopback port; can be stopped and started again."""
+
+    directory: Path
+    port: int = field(default_factory=free_port)
+    users: dict[str, str] = field(default_factory=dict)
+    process: subprocess.Popen[bytes] | None = None
+
+    def start(self) -> None:
+        assert shutil.which(MOSQUITTO), "mosquitto is missing: .ci/run installs it"
+        config = self.directory / "mosquitto.conf"
+        # Persistence keeps the recorder's session (and what is queued for it) across a
+        # broker restart, so the outage test sees every message whatever reconnects first.
+        lines = [
+            # Run as the test's user: as root, mosquitto would switch to its own user, which
+            # cannot read the test's temporary files.
+            f"user {getpass.getuser()}",
+            f"listener {self.port} 127.0.0.1",
+            "persistence true",
+            f"persistence_location {self.directory}/",
+            "max_queued_messages 1000000",
+        ]
+        if self.users:
+            passwords = self.directory / "passwords"
+            passwords.write_text("", encoding="utf-8")
+            for user, password in self.users.items():
+                subprocess.run([MOSQUITTO_PASSWD, "-b", str(passwords), user, password], check=True)
+            lines += ["allow_anonymous false", f"password_file {passwords}"]
+        else:
+            lines.append("allow_anonymous true")
+        config.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        self.process = subprocess.Popen(
+            [MOSQUITTO, "-c", str(config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            with (
+                contextlib.suppress(OSError),
+                socket.create_connection(("127.0.0.1", self.port), 0.2),
+            ):
+                return
+            time.sleep(0.05)
+        raise RuntimeError("mosquitto did not start")
+
+    def stop(self) -> None:
+        if self.process is not None:
+            self.process.terminate()
+            self.process.wait(timeout=10)
+            self.process = None
+
+
+@dataclass
+class Received:
+    topic: str
+    payload: str
+    retain: bool
+
+
+@dataclass
+class Recorder:
+    """Subscribes to a topic filter and keeps every message in arrival order."""
+
+    messages: list[Received] = field(default_factory=list)
+
+    def on(self, topic: str) -> list[str]:
+        return [m.payload for m in self.messages if m.topic == topic]
+
+    async def wait_for(
+        self, topic: str, payload: str | None = None, within_s: float = 10.0, *, skip: int = 0
+    ) -> None:
+        """Wait for a message on ``topic`` (with ``payload``), ignoring its first ``skip``."""
+        deadline = asyncio.get_running_loop().time() + within_s
+        while asyncio.get_running_loop().time() < deadline:
+            if any(payload is None or p == payload for p in self.on(topic)[skip:]):
+                return
+            await asyncio.sleep(0.05)
+        raise AssertionError(f"no {payload!r} on {topic}; got {self.on(topic)[-5:]}")
+
+
+@contextlib.asynccontextmanager
+async def recording(port: int, topic_filter: str) -> AsyncIterator[Recorder]:
+    recorder = Recorder()
+    ready = asyncio.Event()
+
+    async def listen() -> None:
+        while True:
+            try:
+                client = aiomqtt.Client(
+                    "127.0.0.1", port, identifier="test-recorder", clean_session=False
+                )
+                async with client:
+                    await client.subscribe(topic_filter, qos=1)
+                    ready.set()
+                    async for message in client.messages:
+                        payload = message.payload
+                        text = payload.decode() if isinstance(payload, bytes) else str(payload)
+                        recorder.messages.append(Received(str(message.topic), text, message.retain))
+            except aiomqtt.MqttError:
+                await asyncio.sleep(0.2)
+
+    task = asyncio.create_task(listen())
+    await asyncio.wait_for(ready.wait(), timeout=10)
+    try:
+        yield recorder
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task

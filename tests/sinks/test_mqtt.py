@@ -1,0 +1,262 @@
+"""MQTT with a real mosquitto broker and the simulator: the topic contract, availability,
+the last will, store-and-forward across an outage and a restart, and bad settings.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import signal
+import subprocess
+import sys
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+from gateway.app import run
+from gateway.config import parse_config
+from gateway.errors import PublishError
+from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from gateway.state import GatewayState
+from tests.mqtt_broker import Broker, recording
+from tests.test_scheduler import ListSink
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator, Iterator, Sequence
+    from pathlib import Path
+
+    from gateway.samples import Sample
+
+SENSORS = [
+    {
+        "profile": "jumo-digiline-odo-s10",
+        "address": 1,
+        "animate": False,
+        "values": {
+            "temperature": 20.25,
+            "oxygen": {"fault": "overrange"},
+            "status": {"cap_missing": True},
+        },
+    },
+    {"profile": "reiss-m0c", "address": 10, "animate": False, "values": {"concentration": 0.168}},
+]
+
+
+@pytest.fixture
+def broker(tmp_path: Path) -> Iterator[Broker]:
+    directory = tmp_path / "broker"
+    directory.mkdir()
+    running = Broker(directory)
+    running.start()
+    yield running
+    running.stop()
+
+
+@contextlib.asynccontextmanager
+async def simulated(
+    tmp_path: Path, devices: list[dict[str, Any]] = SENSORS, **faults: Any
+) -> AsyncIterator[SimulatorServer]:
+    server = SimulatorServer(build_bus(parse_settings({"devices": devices, **faults})))
+    server.open_pty(tmp_path / "ttySIM")
+    try:
+        yield server
+    finally:
+        await server.close()
+
+
+def gateway_yaml(
+    tmp_path: Path, broker_port: int, *, mqtt: str = "", extra_device: str = ""
+) -> str:
+    return (
+        f"buses:\n  - {{name: line1, port: {tmp_path / 'ttySIM'}}}\n"
+        "devices:\n"
+        "  - {name: aeration, bus: line1, address: 1, profile: jumo-digiline-odo-s10, poll_interval: 0.3,"
+        " offline_after: 2}\n"
+        "  - {name: basin, bus: line1, address: 10, profile: reiss-m0c, poll_interval: 0.3}\n"
+        f"{extra_device}"
+        f"mqtt: {{host: 127.0.0.1, port: {broker_port}, base_topic: gw, reconnect_max_s: 1{mqtt}}}\n"
+        "prometheus: {enabled: false}\n"
+        f"state_dir: {tmp_path / 'state'}\n"
+    )
+
+
+@contextlib.asynccontextmanager
+async def gateway(config_text: str, sinks: list[Any] | None = None) -> AsyncIterator[GatewayState]:
+    config = parse_config(config_text, environ={})
+    state = GatewayState()
+    stop = asyncio.Event()
+    task = asyncio.create_task(run(config, sinks or [], stop=stop, state=state))
+    try:
+        yield state
+    finally:
+        stop.set()
+        await asyncio.wait_for(task, timeout=15)
+
+
+async def test_every_topic_of_the_contract(tmp_path: Path, broker: Broker) -> None:
+    async with simulated(tmp_path), recording(broker.port, "gw/#") as seen:
+        async with gateway(gateway_yaml(tmp_path, broker.port)):
+            await seen.wait_for("gw/aeration/state")
+            await seen.wait_for("gw/basin/concentration", "0.168")
+            await seen.wait_for("gw/aeration/temperature", "20.25")
+            await seen.wait_for("gw/aeration/status/cap_missing", "true")
+            await seen.wait_for("gw/aeration/availability", "online")
+            await seen.wait_for("gw/status", "online")
+        await seen.wait_for(
+            "gw/status", "offline", skip=len(seen.on("gw/status")) - 1
+        )  # a clean stop
+    # A fault float is a fault: its value topic is cleared, never a number.
+    assert set(seen.on("gw/aeration/oxygen")) == {""}
+    state = json.loads(seen.on("gw/aeration/state")[-1])
+    assert state["faults"]["oxygen"] == "overrange"
+    assert state["quality"]["oxygen"] == "fault"
+    assert "oxygen" not in state["values"]
+    assert state["values"]["temperature"] == 20.25
+    assert state["units"]["temperature"] == "°C"
+    assert state["quality"]["temperature"] == "good"
+    for message in seen.messages:
+        assert "e+37" not in message.payload.lower()
+    retained = {m.topic for m in seen.messages if m.retain}
+    assert "gw/aeration/state" not in retained
+
+
+async def test_status_bits_flip_and_availability_follows_the_sensor(
+    tmp_path: Path, broker: Broker
+) -> None:
+    async with (
+        simulated(tmp_path) as server,
+        recording(broker.port, "gw/#") as seen,
+        gateway(gateway_yaml(tmp_path, broker.port)),
+    ):
+        await seen.wait_for("gw/aeration/status/cap_missing", "true")
+        server.bus.devices[1].set_flags("status", cap_missing=False)
+        await seen.wait_for("gw/aeration/status/cap_missing", "false")
+        server.bus.silence(1, 4.0, asyncio.get_running_loop().time())
+        before = len(seen.on("gw/aeration/availability"))
+        await seen.wait_for("gw/aeration/availability", "offline", within_s=8, skip=before)
+        after = len(seen.on("gw/aeration/availability"))
+        await seen.wait_for("gw/aeration/availability", "online", within_s=12, skip=after)
+    assert seen.on("gw/aeration/availability")[-2:] == ["offline", "online"]
+    assert seen.on("gw/basin/availability") == ["online"]
+
+
+async def test_the_last_will_fires_when_the_gateway_is_killed(
+    tmp_path: Path, broker: Broker
+) -> None:
+    config = tmp_path / "gateway.yaml"
+    config.write_text(gateway_yaml(tmp_path, broker.port), encoding="utf-8")
+    async with simulated(tmp_path), recording(broker.port, "gw/status") as seen:
+        process = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "gateway",
+            "run",
+            "--config",
+            str(config),
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.DEVNULL,
+        )
+        await seen.wait_for("gw/status", "online", within_s=15)
+        process.send_signal(signal.SIGKILL)
+        await process.wait()
+        await seen.wait_for(
+            "gw/status", "offline", within_s=15
+        )  # keepalive 60 s: the broker sees the socket close
+
+
+class CycleSink(ListSink):
+    """Also remembers each poll cycle of the device ``basin``: the state documents to expect."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.cycles: list[str] = []
+
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        await super().publish(samples)
+        if samples and samples[0].device == "basin":
+            self.cycles.append(samples[0].time.isoformat())
+
+
+async def test_outage_and_restart_lose_nothing_and_repeat_nothing(
+    tmp_path: Path, broker: Broker
+) -> None:
+    cycles = CycleSink()
+    async with simulated(tmp_path), recording(broker.port, "gw/basin/state") as seen:
+        async with gateway(gateway_yaml(tmp_path, broker.port), [cycles]):
+            await seen.wait_for("gw/basin/state")
+            broker.stop()
+            outage_starts = len(cycles.cycles)
+            await asyncio.sleep(2.0)
+        # The gateway is restarted during the outage: the queue is on disk.
+        async with gateway(gateway_yaml(tmp_path, broker.port), [cycles]) as state:
+            await asyncio.sleep(2.0)
+            assert state.mqtt.connected is False
+            assert state.mqtt.queue_depth > 10
+            outage_ends = len(cycles.cycles)
+            broker.start()
+            deadline = asyncio.get_running_loop().time() + 20
+            while state.mqtt.queue_depth and asyncio.get_running_loop().time() < deadline:  # noqa: ASYNC110 - another task drains it
+                await asyncio.sleep(0.1)
+            assert state.mqtt.queue_depth == 0
+            assert state.mqtt.connected
+            await asyncio.sleep(1.0)
+    received = [json.loads(p)["time"] for p in seen.on("gw/basin/state")]
+    during = cycles.cycles[outage_starts:outage_ends]
+    assert len(during) > 5, "cycles were produced during the outage"
+    for cycle in during:
+        assert received.count(cycle) == 1, cycle  # every one arrived, exactly once
+    positions = [received.index(cycle) for cycle in during]
+    assert positions == sorted(positions)  # in order
+    assert cycles.cycles[-1] in received  # and live data after the backlog
+
+
+async def test_refused_credentials_are_reported_and_polling_goes_on(tmp_path: Path) -> None:
+    directory = tmp_path / "broker"
+    directory.mkdir()
+    secured = Broker(directory, users={"plant": "right"})
+    secured.start()
+    try:
+        async with simulated(tmp_path):
+            text = gateway_yaml(tmp_path, secured.port, mqtt=", username: plant, password: wrong")
+            cycles = ListSink()
+            async with gateway(text, [cycles]) as state:
+                await asyncio.sleep(2.0)
+                assert state.mqtt.connected is False
+                assert state.mqtt.last_error is not None
+                assert "refused the credentials of plant" in state.mqtt.last_error
+        assert any(s.good for s in cycles.samples)
+    finally:
+        secured.stop()
+
+
+async def test_missing_tls_file_is_an_error_at_start(tmp_path: Path) -> None:
+    text = gateway_yaml(tmp_path, 1883, mqtt=f", tls: {{ca: {tmp_path / 'missing-ca.pem'}}}")
+    with pytest.raises(PublishError, match=r"mqtt\.tls\.ca: .*missing-ca\.pem does not exist"):
+        await run(parse_config(text, environ={}), stop=asyncio.Event())
+
+
+async def test_unwritable_state_directory_is_an_error_at_start(tmp_path: Path) -> None:
+    blocker = tmp_path / "state"
+    blocker.write_text("a file, not a directory", encoding="utf-8")
+    with pytest.raises(PublishError, match="cannot be written"):
+        await run(parse_config(gateway_yaml(tmp_path, 1883), environ={}), stop=asyncio.Event())
+
+
+def test_cli_reports_start_errors_clearly(tmp_path: Path) -> None:
+    config = tmp_path / "gateway.yaml"
+    config.write_text(
+        gateway_yaml(tmp_path, 1883, mqtt=f", tls: {{cert: {tmp_path / 'no.pem'}}}"),
+        encoding="utf-8",
+    )
+    result = subprocess.run(
+        [sys.executable, "-m", "gateway", "run", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=30,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    assert result.returncode == 2
+    assert "mqtt.tls.cert" in result.stderr
