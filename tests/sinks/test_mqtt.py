@@ -260,3 +260,41 @@ def test_cli_reports_start_errors_clearly(tmp_path: Path) -> None:
     )
     assert result.returncode == 2
     assert "mqtt.tls.cert" in result.stderr
+
+
+async def test_publish_modes_on_change_and_deadband_with_heartbeat(
+    tmp_path: Path, broker: Broker
+) -> None:
+    moving = [
+        {"profile": "jumo-digiline-odo-s10", "address": 1},  # values move a little every read
+        {
+            "profile": "reiss-m0c",
+            "address": 10,
+            "animate": False,
+            "values": {"concentration": 0.168},
+        },
+    ]
+    text = (
+        gateway_yaml(tmp_path, broker.port)
+        .replace(
+            "poll_interval: 0.3, offline_after: 2}",
+            "poll_interval: 0.3, offline_after: 2, publish: {mode: deadband, deadband: 100, heartbeat_s: 1.5}}",
+        )
+        .replace(
+            "profile: reiss-m0c, poll_interval: 0.3}",
+            "profile: reiss-m0c, poll_interval: 0.3, publish: {mode: on_change, heartbeat_s: 1.0},"
+            " points: {temperature: {publish: {mode: every_poll}}}}",
+        )
+    )
+    async with (
+        simulated(tmp_path, moving),
+        recording(broker.port, "gw/#") as seen,
+        gateway(text),
+    ):
+        await asyncio.sleep(3.2)
+    states = len(seen.on("gw/basin/state"))
+    assert states >= 8  # the state document goes out every poll cycle
+    assert 2 <= len(seen.on("gw/basin/concentration")) <= 4  # first value, then heartbeats
+    assert len(seen.on("gw/basin/temperature")) >= states - 1  # its own mode: every poll
+    oxygen = seen.on("gw/aeration/oxygen")
+    assert 1 <= len(oxygen) <= 3  # it moves, but never by 100: heartbeats only
