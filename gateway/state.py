@@ -82,6 +82,7 @@ class GatewayState:
     mqtt: MqttStatus = field(default_factory=MqttStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
 
     def add_device(self, info: DeviceInfo) -> None:
         """Register a configured device before polling starts."""
@@ -108,6 +109,7 @@ class GatewayState:
             for sample in samples:
                 key = (sample.bus, sample.device, sample.point)
                 self.latest[key] = sample
+                self._by_device.setdefault((sample.bus, sample.device), {})[sample.point] = sample
                 if sample.quality is Quality.GOOD:
                     self.last_good[key] = sample
 
@@ -118,6 +120,11 @@ class GatewayState:
             info = self.devices.get(key)
             if info is not None:
                 self.devices[key] = replace(info, online=event.online, reason=event.reason)
+
+    def device_samples(self, bus: str, device: str) -> dict[str, Sample]:
+        """The latest sample of each point of one device (cheap: no full snapshot)."""
+        with self._lock:
+            return dict(self._by_device.get((bus, device), {}))
 
     def snapshot(self) -> GatewayState:
         """A consistent copy to read without the lock (line stats are shared, read-only)."""

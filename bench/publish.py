@@ -1,0 +1,260 @@
+"""What the publishing side costs: MQTT and Prometheus throughput, latency, memory at scale.
+
+1. Sink throughput: synthetic poll cycles of 256 devices (16 buses x 16 devices, 6 values
+   each) through the MQTT sink to a local mosquitto until every message is acknowledged, and
+   the time a Prometheus scrape takes to build its families from the latest samples.
+2. Latency: a simulated line polled by the gateway with MQTT on; a subscriber takes the time
+   each state document arrives minus the time of the poll cycle it describes (response
+   received -> delivered through the broker: an upper bound of "publish acknowledged").
+3. Memory: 16 buses x 16 devices, each bus a `gateway simulate` process on its own
+   pseudo-terminal, polled at 1 s with MQTT and Prometheus on; resident memory after the run.
+
+Printed, and written to bench/results/publish.json.
+Run: .venv/bin/python bench/publish.py [--seconds 20] [--buses 16] [--devices 16]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import getpass
+import json
+import os
+import shutil
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import aiomqtt
+from prometheus_client import CollectorRegistry, generate_latest
+
+from gateway.app import run
+from gateway.config import MqttConfig, parse_config
+from gateway.profiles import get_profile
+from gateway.samples import Quality, Sample
+from gateway.sinks.mqtt import MqttSink
+from gateway.sinks.prometheus import GatewayCollector
+from gateway.state import DeviceInfo, GatewayState, StateSink
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator, Iterator
+
+RESULTS = Path(__file__).parent / "results"
+MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+POINTS = ("oxygen", "temperature", "status", "concentration", "cell_current", "pressure")
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@contextlib.contextmanager
+def mosquitto(directory: Path) -> Iterator[int]:
+    port = free_port()
+    config = directory / "mosquitto.conf"
+    config.write_text(
+        f"user {getpass.getuser()}\nlistener {port} 127.0.0.1\nallow_anonymous true\n"
+        "max_queued_messages 10000000\nmax_inflight_messages 1000\n",
+        encoding="utf-8",
+    )
+    process = subprocess.Popen([MOSQUITTO, "-c", str(config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # noqa: S603
+    for _ in range(100):
+        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
+            break
+        time.sleep(0.05)
+    try:
+        yield port
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def rss_mib() -> float:
+    for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def synthetic_state(buses: int, devices: int) -> tuple[GatewayState, list[list[Sample]]]:
+    """A state with every device registered, and one poll cycle of samples per device."""
+    state = GatewayState()
+    cycles = []
+    now = time.monotonic()
+    wall = datetime.now(tz=UTC)
+    for b in range(buses):
+        for d in range(devices):
+            bus, device = f"bus{b}", f"dev{b}_{d}"
+            state.add_device(
+                DeviceInfo(bus=bus, name=device, profile="jumo-digiline-odo-s10", address=d + 1,
+                           intervals=dict.fromkeys(POINTS, 1.0))
+            )
+            cycle = [
+                Sample(bus=bus, device=device, profile="jumo-digiline-odo-s10", point=p, value=20.0 + i,
+                       fault=None, unit="°C", quality=Quality.GOOD, monotonic=now, time=wall,
+                       group="process")
+                for i, p in enumerate(POINTS)
+            ]
+            cycles.append(cycle)
+    return state, cycles
+
+
+async def sink_throughput(port: int, directory: Path, buses: int, devices: int, rounds: int) -> dict[str, float]:
+    state, cycles = synthetic_state(buses, devices)
+    settings = MqttConfig(host="127.0.0.1", port=port, base_topic="bench", queue_max=10_000_000)
+    sink = MqttSink(settings, state, state_dir=directory / "state")
+    recorder = StateSink(state)
+    task = asyncio.create_task(sink.run())
+    while not state.mqtt.connected:
+        await asyncio.sleep(0.01)
+    start = time.perf_counter()
+    for _ in range(rounds):
+        for cycle in cycles:
+            await recorder.publish(cycle)
+            await sink.publish(cycle)
+    queued = time.perf_counter() - start
+    total = rounds * len(cycles) * (len(POINTS) + 1)
+    while state.mqtt.published < total:
+        await asyncio.sleep(0.01)
+    acked = time.perf_counter() - start
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+    samples = rounds * len(cycles) * len(POINTS)
+    registry = CollectorRegistry()
+    registry.register(GatewayCollector(state))
+    generate_latest(registry)  # the first scrape builds the naming tables once
+    scrape_start = time.perf_counter()
+    exposition = generate_latest(registry)
+    scrape = time.perf_counter() - scrape_start
+    return {
+        "samples": samples,
+        "mqtt_messages": total,
+        "mqtt_samples_per_s_handed_over": samples / queued,
+        "mqtt_samples_per_s_acknowledged": samples / acked,
+        "prometheus_values_in_scrape": len(state.latest),
+        "prometheus_scrape_ms": 1000 * scrape,
+        "prometheus_exposition_bytes": len(exposition),
+    }
+
+
+@contextlib.asynccontextmanager
+async def simulators(directory: Path, buses: int, devices: int) -> AsyncIterator[list[Path]]:
+    processes, ports = [], []
+    profiles = ["jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c", "jumo-digiline-odo-h10"]
+    for b in range(buses):
+        port = directory / f"ttyBUS{b}"
+        args = [sys.executable, "-m", "gateway", "simulate", "--pty", str(port), "--baudrate", "115200"]
+        for d in range(devices):
+            args += ["-d", f"{profiles[d % len(profiles)]}:{d + 1}"]
+        processes.append(await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE))
+        ports.append(port)
+    for process in processes:
+        assert process.stdout is not None
+        await process.stdout.readline()
+    try:
+        yield ports
+    finally:
+        for process in processes:
+            process.terminate()
+            await process.wait()
+
+
+def plant_config(ports: list[Path], devices: int, broker: int, directory: Path) -> str:
+    profiles = ["jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c", "jumo-digiline-odo-h10"]
+    lines = ["buses:"]
+    lines += [f"  - {{name: bus{b}, port: {p}, baudrate: 115200}}" for b, p in enumerate(ports)]
+    lines.append("devices:")
+    for b in range(len(ports)):
+        for d in range(devices):
+            lines.append(
+                f"  - {{name: dev{b}_{d}, bus: bus{b}, address: {d + 1}, "
+                f"profile: {profiles[d % len(profiles)]}, poll_interval: 1.0}}"
+            )
+    lines.append(f"mqtt: {{host: 127.0.0.1, port: {broker}, base_topic: bench}}")
+    lines.append(f"prometheus: {{host: 127.0.0.1, port: {free_port()}}}")
+    lines.append(f"state_dir: {directory / 'plant-state'}")
+    return "\n".join(lines) + "\n"
+
+
+async def plant(broker: int, directory: Path, buses: int, devices: int, seconds: float) -> dict[str, float]:
+    latencies: list[float] = []
+
+    async def subscribe() -> None:
+        async with aiomqtt.Client("127.0.0.1", broker) as client:
+            await client.subscribe("bench/+/state", qos=1)
+            async for message in client.messages:
+                payload = message.payload
+                if isinstance(payload, bytes):
+                    sent = datetime.fromisoformat(json.loads(payload)["time"])
+                    latencies.append((datetime.now(tz=UTC) - sent).total_seconds())
+
+    async with simulators(directory, buses, devices) as ports:
+        config = parse_config(plant_config(ports, devices, broker, directory), environ={})
+        state = GatewayState()
+        stop = asyncio.Event()
+        listener = asyncio.create_task(subscribe())
+        gateway = asyncio.create_task(run(config, stop=stop, state=state))
+        await asyncio.sleep(5.0)  # identity reads, warm-up
+        first = len(latencies)
+        cpu0 = time.process_time()
+        await asyncio.sleep(seconds)
+        cpu = time.process_time() - cpu0
+        rss = rss_mib()
+        measured = latencies[first:]
+        stop.set()
+        await asyncio.wait_for(gateway, timeout=30)
+        listener.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await listener
+    ordered = sorted(measured)
+    return {
+        "buses": buses,
+        "devices": buses * devices,
+        "state_documents_per_s": len(measured) / seconds,
+        "latency_p50_ms": 1000 * statistics.median(ordered) if ordered else float("nan"),
+        "latency_p99_ms": 1000 * ordered[int(0.99 * (len(ordered) - 1))] if ordered else float("nan"),
+        "gateway_rss_mib": rss,
+        "gateway_cpu_share": cpu / seconds,
+        "mqtt_dropped": state.mqtt.dropped,
+    }
+
+
+async def main_async(args: argparse.Namespace) -> dict[str, object]:
+    with tempfile.TemporaryDirectory() as tmp:
+        directory = Path(tmp)
+        with mosquitto(directory) as broker:
+            throughput = await sink_throughput(broker, directory, args.buses, args.devices, args.rounds)
+            scale = await plant(broker, directory, args.buses, args.devices, args.seconds)
+    return {"throughput": throughput, "plant": scale, "profile_checked": get_profile("reiss-m0c").id}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--buses", type=int, default=16)
+    parser.add_argument("--devices", type=int, default=16)
+    parser.add_argument("--rounds", type=int, default=20)
+    args = parser.parse_args()
+    os.environ.setdefault("COLUMNS", "200")
+    result = asyncio.run(main_async(args))
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "publish.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
+    for section in ("throughput", "plant"):
+        print(section)
+        for key, value in result[section].items():  # type: ignore[attr-defined]
+            print(f"  {key:<36} {value:,.2f}" if isinstance(value, float) else f"  {key:<36} {value}")
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
