@@ -66,7 +66,9 @@ def mosquitto(directory: Path) -> Iterator[int]:
         "max_queued_messages 10000000\nmax_inflight_messages 1000\n",
         encoding="utf-8",
     )
-    process = subprocess.Popen([MOSQUITTO, "-c", str(config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # noqa: S603
+    process = subprocess.Popen(  # noqa: S603 - our own broker configuration
+        [MOSQUITTO, "-c", str(config)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
     for _ in range(100):
         with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
             break
@@ -95,26 +97,43 @@ def synthetic_state(buses: int, devices: int) -> tuple[GatewayState, list[list[S
         for d in range(devices):
             bus, device = f"bus{b}", f"dev{b}_{d}"
             state.add_device(
-                DeviceInfo(bus=bus, name=device, profile="jumo-digiline-odo-s10", address=d + 1,
-                           intervals=dict.fromkeys(POINTS, 1.0))
+                DeviceInfo(
+                    bus=bus,
+                    name=device,
+                    profile="jumo-digiline-odo-s10",
+                    address=d + 1,
+                    intervals=dict.fromkeys(POINTS, 1.0),
+                )
             )
             cycle = [
-                Sample(bus=bus, device=device, profile="jumo-digiline-odo-s10", point=p, value=20.0 + i,
-                       fault=None, unit="°C", quality=Quality.GOOD, monotonic=now, time=wall,
-                       group="process")
+                Sample(
+                    bus=bus,
+                    device=device,
+                    profile="jumo-digiline-odo-s10",
+                    point=p,
+                    value=20.0 + i,
+                    fault=None,
+                    unit="°C",
+                    quality=Quality.GOOD,
+                    monotonic=now,
+                    time=wall,
+                    group="process",
+                )
                 for i, p in enumerate(POINTS)
             ]
             cycles.append(cycle)
     return state, cycles
 
 
-async def sink_throughput(port: int, directory: Path, buses: int, devices: int, rounds: int) -> dict[str, float]:
+async def sink_throughput(
+    port: int, directory: Path, buses: int, devices: int, rounds: int
+) -> dict[str, float]:
     state, cycles = synthetic_state(buses, devices)
     settings = MqttConfig(host="127.0.0.1", port=port, base_topic="bench", queue_max=10_000_000)
     sink = MqttSink(settings, state, state_dir=directory / "state")
     recorder = StateSink(state)
     task = asyncio.create_task(sink.run())
-    while not state.mqtt.connected:
+    while not state.mqtt.connected:  # noqa: ASYNC110 - the sink's task sets it
         await asyncio.sleep(0.01)
     start = time.perf_counter()
     for _ in range(rounds):
@@ -123,7 +142,7 @@ async def sink_throughput(port: int, directory: Path, buses: int, devices: int, 
             await sink.publish(cycle)
     queued = time.perf_counter() - start
     total = rounds * len(cycles) * (len(POINTS) + 1)
-    while state.mqtt.published < total:
+    while state.mqtt.published < total:  # noqa: ASYNC110 - the sink's task counts
         await asyncio.sleep(0.01)
     acked = time.perf_counter() - start
     task.cancel()
@@ -153,10 +172,21 @@ async def simulators(directory: Path, buses: int, devices: int) -> AsyncIterator
     profiles = ["jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c", "jumo-digiline-odo-h10"]
     for b in range(buses):
         port = directory / f"ttyBUS{b}"
-        args = [sys.executable, "-m", "gateway", "simulate", "--pty", str(port), "--baudrate", "115200"]
+        args = [
+            sys.executable,
+            "-m",
+            "gateway",
+            "simulate",
+            "--pty",
+            str(port),
+            "--baudrate",
+            "115200",
+        ]
         for d in range(devices):
             args += ["-d", f"{profiles[d % len(profiles)]}:{d + 1}"]
-        processes.append(await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE))
+        processes.append(
+            await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE)
+        )
         ports.append(port)
     for process in processes:
         assert process.stdout is not None
@@ -186,7 +216,9 @@ def plant_config(ports: list[Path], devices: int, broker: int, directory: Path) 
     return "\n".join(lines) + "\n"
 
 
-async def plant(broker: int, directory: Path, buses: int, devices: int, seconds: float) -> dict[str, float]:
+async def plant(
+    broker: int, directory: Path, buses: int, devices: int, seconds: float
+) -> dict[str, float]:
     latencies: list[float] = []
 
     async def subscribe() -> None:
@@ -222,7 +254,9 @@ async def plant(broker: int, directory: Path, buses: int, devices: int, seconds:
         "devices": buses * devices,
         "state_documents_per_s": len(measured) / seconds,
         "latency_p50_ms": 1000 * statistics.median(ordered) if ordered else float("nan"),
-        "latency_p99_ms": 1000 * ordered[int(0.99 * (len(ordered) - 1))] if ordered else float("nan"),
+        "latency_p99_ms": 1000 * ordered[int(0.99 * (len(ordered) - 1))]
+        if ordered
+        else float("nan"),
         "gateway_rss_mib": rss,
         "gateway_cpu_share": cpu / seconds,
         "mqtt_dropped": state.mqtt.dropped,
@@ -233,13 +267,21 @@ async def main_async(args: argparse.Namespace) -> dict[str, object]:
     with tempfile.TemporaryDirectory() as tmp:
         directory = Path(tmp)
         with mosquitto(directory) as broker:
-            throughput = await sink_throughput(broker, directory, args.buses, args.devices, args.rounds)
+            throughput = await sink_throughput(
+                broker, directory, args.buses, args.devices, args.rounds
+            )
             scale = await plant(broker, directory, args.buses, args.devices, args.seconds)
-    return {"throughput": throughput, "plant": scale, "profile_checked": get_profile("reiss-m0c").id}
+    return {
+        "throughput": throughput,
+        "plant": scale,
+        "profile_checked": get_profile("reiss-m0c").id,
+    }
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--buses", type=int, default=16)
     parser.add_argument("--devices", type=int, default=16)
@@ -252,7 +294,9 @@ def main() -> None:
     for section in ("throughput", "plant"):
         print(section)
         for key, value in result[section].items():  # type: ignore[attr-defined]
-            print(f"  {key:<36} {value:,.2f}" if isinstance(value, float) else f"  {key:<36} {value}")
+            print(
+                f"  {key:<36} {value:,.2f}" if isinstance(value, float) else f"  {key:<36} {value}"
+            )
     print(json.dumps(result))
 
 

@@ -6,19 +6,29 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 import signal
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gateway.bus import Line
 from gateway.config import Cadence
 from gateway.scheduler import BusWorker, DeviceTarget
+from gateway.sinks.mqtt import MqttSink
+from gateway.sinks.prometheus import MetricsServer
 from gateway.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from gateway.config import BusConfig, DeviceConfig, GatewayConfig, LoggingConfig
+    from gateway.config import (
+        BusConfig,
+        DeviceConfig,
+        GatewayConfig,
+        LoggingConfig,
+        PublishSettings,
+    )
     from gateway.samples import Sink
 
 _LOGGER = logging.getLogger(__name__)
@@ -82,35 +92,83 @@ def build_workers(
     return workers
 
 
+def _stop_on_signals() -> asyncio.Event:
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(signum, stop.set)
+    return stop
+
+
+def state_directory(config: GatewayConfig) -> Path:
+    """Where state that must survive a restart lives: config, systemd's, or ./state."""
+    if config.state_dir is not None:
+        return config.state_dir
+    if systemd := os.environ.get("STATE_DIRECTORY"):
+        return Path(systemd.split(":")[0])
+    return Path("state")
+
+
+def publish_settings(config: GatewayConfig) -> dict[tuple[str, str], PublishSettings]:
+    """The publish mode of every polled point: the point's own, else its device's."""
+    result = {}
+    for device in config.devices:
+        for point in device.get_profile().points:
+            own = device.points.get(point.name)
+            result[device.name, point.name] = (
+                own.publish if own is not None and own.publish is not None else device.publish
+            )
+    return result
+
+
 async def run(
     config: GatewayConfig,
-    sinks: Sequence[Sink],
+    sinks: Sequence[Sink] = (),
     *,
     stop: asyncio.Event | None = None,
     state: GatewayState | None = None,
 ) -> None:
-    """Poll every bus until ``stop`` is set (default: SIGINT or SIGTERM), within bounds."""
-    workers = build_workers(config, sinks, state)
-    if stop is None:
-        stop = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(signum, stop.set)
+    """Poll every bus and publish until ``stop`` is set (default: SIGINT or SIGTERM).
+
+    MQTT and Prometheus are started from the config (each can be disabled); ``sinks``
+    are added to them (the console, tests).
+    """
+    state = state or GatewayState()
+    stop = stop or _stop_on_signals()
+    all_sinks: list[Sink] = list(sinks)
+    mqtt: MqttSink | None = None
+    if config.mqtt.enabled:
+        mqtt = MqttSink(
+            config.mqtt, state, state_dir=state_directory(config), publish=publish_settings(config)
+        )
+        all_sinks.append(mqtt)
+    metrics: MetricsServer | None = None
+    if config.prometheus.enabled:
+        metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
+        metrics.start()
+    workers = build_workers(config, all_sinks, state)
     async with contextlib.AsyncExitStack() as stack:
+        if metrics is not None:
+            stack.callback(metrics.stop)
         for worker in workers:
             stack.push_async_callback(worker.line.close)
-        tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
+        bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
+        sink_tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
         waiter = asyncio.create_task(stop.wait(), name="gateway.stop")
         try:
-            done, _ = await asyncio.wait([waiter, *tasks], return_when=asyncio.FIRST_COMPLETED)
+            done, _ = await asyncio.wait(
+                [waiter, *bus_tasks, *sink_tasks], return_when=asyncio.FIRST_COMPLETED
+            )
             for task in done:
                 if task is not waiter and task.exception() is not None:
                     raise task.exception()  # type: ignore[misc]
         finally:
-            for task in [*tasks, waiter]:
-                task.cancel()
-            async with asyncio.timeout(SHUTDOWN_S):
-                await asyncio.gather(*tasks, waiter, return_exceptions=True)
+            # The buses stop first, so their last samples still reach the sinks.
+            for group in (bus_tasks, [*sink_tasks, waiter]):
+                for task in group:
+                    task.cancel()
+                async with asyncio.timeout(SHUTDOWN_S):
+                    await asyncio.gather(*group, return_exceptions=True)
     _LOGGER.info("stopped")
 
 
