@@ -166,37 +166,44 @@ async def sink_throughput(
     }
 
 
+SIMULATORS = """
+import asyncio, sys
+from pathlib import Path
+from gateway.simulator import SimulatorServer, build_bus, parse_settings
+PROFILES = ["jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c", "jumo-digiline-odo-h10"]
+async def main(directory, buses, devices):
+    servers = []
+    for b in range(buses):
+        devs = [{"profile": PROFILES[d % len(PROFILES)], "address": d + 1} for d in range(devices)]
+        settings = parse_settings({"line": {"baudrate": 115200}, "devices": devs})
+        server = SimulatorServer(build_bus(settings))
+        server.open_pty(Path(directory) / f"ttyBUS{b}")
+        servers.append(server)
+    print("ready", flush=True)
+    await asyncio.Event().wait()
+asyncio.run(main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3])))
+"""
+
+
 @contextlib.asynccontextmanager
 async def simulators(directory: Path, buses: int, devices: int) -> AsyncIterator[list[Path]]:
-    processes, ports = [], []
-    profiles = ["jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c", "jumo-digiline-odo-h10"]
-    for b in range(buses):
-        port = directory / f"ttyBUS{b}"
-        args = [
-            sys.executable,
-            "-m",
-            "gateway",
-            "simulate",
-            "--pty",
-            str(port),
-            "--baudrate",
-            "115200",
-        ]
-        for d in range(devices):
-            args += ["-d", f"{profiles[d % len(profiles)]}:{d + 1}"]
-        processes.append(
-            await asyncio.create_subprocess_exec(*args, stdout=asyncio.subprocess.PIPE)
-        )
-        ports.append(port)
-    for process in processes:
-        assert process.stdout is not None
-        await process.stdout.readline()
+    """All simulated buses in one process apart from the gateway, so they share one core."""
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-c",
+        SIMULATORS,
+        str(directory),
+        str(buses),
+        str(devices),
+        stdout=asyncio.subprocess.PIPE,
+    )
+    assert process.stdout is not None
+    await process.stdout.readline()
     try:
-        yield ports
+        yield [directory / f"ttyBUS{b}" for b in range(buses)]
     finally:
-        for process in processes:
-            process.terminate()
-            await process.wait()
+        process.terminate()
+        await process.wait()
 
 
 def plant_config(ports: list[Path], devices: int, broker: int, directory: Path) -> str:
