@@ -165,11 +165,22 @@ async def run(
         finally:
             # The buses stop first, so their last samples still reach the sinks.
             for group in (bus_tasks, [*sink_tasks, waiter]):
-                for task in group:
-                    task.cancel()
-                async with asyncio.timeout(SHUTDOWN_S):
-                    await asyncio.gather(*group, return_exceptions=True)
+                await _stop_tasks(group)
     _LOGGER.info("stopped")
+
+
+async def _stop_tasks(tasks: Sequence[asyncio.Task[object]]) -> None:
+    """Cancel and wait, but never for longer than ``SHUTDOWN_S``: stopping must not hang."""
+    if not tasks:
+        return
+    for task in tasks:
+        task.cancel()
+    done, pending = await asyncio.wait(tasks, timeout=SHUTDOWN_S)
+    for task in pending:
+        _LOGGER.warning("%s did not stop within %.0f s; leaving it", task.get_name(), SHUTDOWN_S)
+    for task in done:
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            _LOGGER.debug("%s ended with %r", task.get_name(), exc)
 
 
 class JsonFormatter(logging.Formatter):

@@ -28,6 +28,79 @@ def free_port() -> int:
         return int(probe.getsockname()[1])
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """A test CA, a server certificate for 127.0.0.1 and a client certificate, made by openssl."""
+
+    ca: Path
+    server_cert: Path
+    server_key: Path
+    client_cert: Path
+    client_key: Path
+
+    @classmethod
+    def make(cls, directory: Path) -> TlsFiles:
+        openssl = shutil.which("openssl")
+        assert openssl, "openssl is missing: .ci/run installs it"
+
+        def run(*args: str) -> None:
+            subprocess.run([openssl, *args], cwd=directory, check=True, capture_output=True)
+
+        run(
+            "req",
+            "-x509",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-keyout",
+            "ca.key",
+            "-out",
+            "ca.pem",
+            "-days",
+            "1",
+            "-subj",
+            "/CN=gateway-test-ca",
+        )
+        (directory / "san.ext").write_text("subjectAltName=IP:127.0.0.1\n", encoding="utf-8")
+        for name, subject in (("server", "/CN=127.0.0.1"), ("client", "/CN=gateway")):
+            run(
+                "req",
+                "-newkey",
+                "rsa:2048",
+                "-nodes",
+                "-keyout",
+                f"{name}.key",
+                "-out",
+                f"{name}.csr",
+                "-subj",
+                subject,
+            )
+            run(
+                "x509",
+                "-req",
+                "-in",
+                f"{name}.csr",
+                "-CA",
+                "ca.pem",
+                "-CAkey",
+                "ca.key",
+                "-CAcreateserial",
+                "-out",
+                f"{name}.pem",
+                "-days",
+                "1",
+                "-extfile",
+                "san.ext",
+            )
+        return cls(
+            ca=directory / "ca.pem",
+            server_cert=directory / "server.pem",
+            server_key=directory / "server.key",
+            client_cert=directory / "client.pem",
+            client_key=directory / "client.key",
+        )
+
+
 @dataclass
 class Broker:
     """mosquitto on a free loopback port; can be stopped and started again."""
@@ -35,6 +108,7 @@ class Broker:
     directory: Path
     port: int = field(default_factory=free_port)
     users: dict[str, str] = field(default_factory=dict)
+    tls: TlsFiles | None = None  # a TLS listener that requires a client certificate
     process: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
@@ -51,6 +125,13 @@ class Broker:
             f"persistence_location {self.directory}/",
             "max_queued_messages 1000000",
         ]
+        if self.tls is not None:
+            lines += [
+                f"cafile {self.tls.ca}",
+                f"certfile {self.tls.server_cert}",
+                f"keyfile {self.tls.server_key}",
+                "require_certificate true",
+            ]
         if self.users:
             passwords = self.directory / "passwords"
             passwords.write_text("", encoding="utf-8")
@@ -109,7 +190,9 @@ class Recorder:
 
 
 @contextlib.asynccontextmanager
-async def recording(port: int, topic_filter: str) -> AsyncIterator[Recorder]:
+async def recording(
+    port: int, topic_filter: str, tls: TlsFiles | None = None, *, name: str = "test-recorder"
+) -> AsyncIterator[Recorder]:
     recorder = Recorder()
     ready = asyncio.Event()
 
@@ -117,7 +200,17 @@ async def recording(port: int, topic_filter: str) -> AsyncIterator[Recorder]:
         while True:
             try:
                 client = aiomqtt.Client(
-                    "127.0.0.1", port, identifier="test-recorder", clean_session=False
+                    "127.0.0.1",
+                    port,
+                    identifier=name,
+                    clean_session=False,
+                    tls_params=aiomqtt.TLSParameters(
+                        ca_certs=str(tls.ca),
+                        certfile=str(tls.client_cert),
+                        keyfile=str(tls.client_key),
+                    )
+                    if tls
+                    else None,
                 )
                 async with client:
                     await client.subscribe(topic_filter, qos=1)

@@ -50,6 +50,7 @@ _LOGGER = logging.getLogger(__name__)
 
 BATCH: Final = 100  # messages read from disk at a time while a backlog drains
 BACKOFF_FIRST_S: Final = 0.5
+CLIENT_TIMEOUT_S: Final = 4.0  # connect, PUBACK and disconnect: within the app's stop bound
 NOT_AUTHORISED: Final = frozenset({4, 5, 134, 135})  # CONNACK: MQTT 3.1.1 4, 5; MQTT 5 134, 135
 
 
@@ -266,7 +267,7 @@ class MqttSink:
             clean_session=settings.clean_session,
             keepalive=settings.keepalive,
             tls_params=tls,
-            timeout=10,
+            timeout=CLIENT_TIMEOUT_S,
             # Small packets at once: without it Nagle's algorithm and delayed ACKs hold
             # publishes back by tens of milliseconds.
             socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],

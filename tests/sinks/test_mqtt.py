@@ -20,7 +20,7 @@ from gateway.config import parse_config
 from gateway.errors import PublishError
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.state import GatewayState
-from tests.mqtt_broker import Broker, recording
+from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.test_scheduler import ListSink
 
 if TYPE_CHECKING:
@@ -118,8 +118,15 @@ async def test_every_topic_of_the_contract(tmp_path: Path, broker: Broker) -> No
     assert state["quality"]["temperature"] == "good"
     for message in seen.messages:
         assert "e+37" not in message.payload.lower()
-    retained = {m.topic for m in seen.messages if m.retain}
-    assert "gw/aeration/state" not in retained
+    # What a subscriber arriving now gets: the retained topics, and no state document.
+    async with recording(broker.port, "gw/#", name="late-subscriber") as late:
+        await late.wait_for("gw/aeration/temperature", "20.25")
+        await asyncio.sleep(0.3)
+    retained = {m.topic for m in late.messages if m.retain}
+    assert {"gw/status", "gw/aeration/availability", "gw/aeration/status/cap_missing"} <= retained
+    assert "gw/basin/concentration" in retained
+    assert not any(topic.endswith("/state") for topic in retained)
+    assert "gw/aeration/oxygen" not in retained  # cleared: no stale number for newcomers
 
 
 async def test_status_bits_flip_and_availability_follows_the_sensor(
@@ -298,3 +305,40 @@ async def test_publish_modes_on_change_and_deadband_with_heartbeat(
     assert len(seen.on("gw/basin/temperature")) >= states - 1  # its own mode: every poll
     oxygen = seen.on("gw/aeration/oxygen")
     assert 1 <= len(oxygen) <= 3  # it moves, but never by 100: heartbeats only
+
+
+async def test_tls_with_a_client_certificate(tmp_path: Path) -> None:
+    directory = tmp_path / "broker"
+    directory.mkdir()
+    tls = TlsFiles.make(directory)
+    secured = Broker(directory, tls=tls)
+    secured.start()
+    try:
+        settings = f", tls: {{ca: {tls.ca}, cert: {tls.client_cert}, key: {tls.client_key}}}"
+        async with (
+            simulated(tmp_path),
+            recording(secured.port, "gw/#", tls) as seen,
+            gateway(gateway_yaml(tmp_path, secured.port, mqtt=settings)) as state,
+        ):
+            await seen.wait_for("gw/aeration/temperature", "20.25")
+            assert state.mqtt.connected
+    finally:
+        secured.stop()
+
+
+async def test_home_assistant_discovery(tmp_path: Path, broker: Broker) -> None:
+    settings = ", client_id: plant-gw, discovery: {enabled: true, prefix: ha}"
+    async with (
+        simulated(tmp_path),
+        recording(broker.port, "ha/#") as seen,
+        gateway(gateway_yaml(tmp_path, broker.port, mqtt=settings)),
+    ):
+        topic = "ha/sensor/plant-gw_aeration/temperature/config"
+        await seen.wait_for(topic)
+        await seen.wait_for("ha/binary_sensor/plant-gw_aeration/status_cap_missing/config")
+    config = json.loads(seen.on(topic)[-1])
+    assert config["state_topic"] == "gw/aeration/temperature"
+    assert config["unit_of_measurement"] == "°C"
+    assert config["device_class"] == "temperature"
+    assert config["device"]["model"] == "JUMO digiLine O-DO S10"
+    assert {a["topic"] for a in config["availability"]} == {"gw/status", "gw/aeration/availability"}
