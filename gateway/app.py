@@ -97,7 +97,14 @@ def _stop_on_signals() -> asyncio.Event:
     loop = asyncio.get_running_loop()
     for signum in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(signum, stop.set)
+    loop.add_signal_handler(signal.SIGHUP, _sighup)
     return stop
+
+
+def _sighup() -> None:
+    # Reloading is not supported: a restart applies a new config in a few seconds and
+    # keeps the state (queue, counters) on disk. SIGHUP must not kill the service.
+    _LOGGER.warning("SIGHUP: the config is not reloaded; restart the service to apply changes")
 
 
 def state_directory(config: GatewayConfig) -> Path:
@@ -163,7 +170,11 @@ async def run(
                 if task is not waiter and task.exception() is not None:
                     raise task.exception()  # type: ignore[misc]
         finally:
-            # The buses stop first, so their last samples still reach the sinks.
+            # The buses stop first, after the frame in flight, so their last samples still
+            # reach the sinks; then the sinks (MQTT says offline, the queue stays on disk).
+            for worker in workers:
+                worker.request_stop()
+            await asyncio.wait(bus_tasks, timeout=SHUTDOWN_S)
             for group in (bus_tasks, [*sink_tasks, waiter]):
                 await _stop_tasks(group)
     _LOGGER.info("stopped")

@@ -17,7 +17,7 @@ from gateway import __version__, codec
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
 from gateway.bus import Line
-from gateway.config import load_config
+from gateway.config import check_config, load_config
 from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.samples import Quality, Sample, json_value
@@ -382,6 +382,21 @@ def read(
     if failed:
         _err.print(f"[bold red]error:[/] {len(failed)} of {len(samples)} points could not be read")
         raise typer.Exit(code=1)
+
+
+@app.command("check-config")
+def check_config_command(
+    config: Annotated[Path, typer.Argument(metavar="FILE", help="The gateway's YAML config.")],
+) -> None:
+    """Check a config and report every problem at once, with its key path and line."""
+    problems = check_config(config)
+    if not problems:
+        _out.print(f"{config}: OK")
+        return
+    for problem in problems:
+        _err.print(f"{config}: {problem}", markup=False)
+    _err.print(f"[bold red]{len(problems)} problem{'s' if len(problems) > 1 else ''}[/]")
+    raise typer.Exit(code=2)
 
 
 @app.command()

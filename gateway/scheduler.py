@@ -186,13 +186,14 @@ class BusWorker:
         }
         self.polls = 0
         self._port_failures_in_a_row = 0
+        self._stopping = False
 
     # --- public -----------------------------------------------------------------------
 
     async def run(self) -> None:
         """Open the port, poll, and on port failure reopen with capped jittered backoff."""
         delay = PORT_BACKOFF_FIRST_S
-        while True:
+        while not self._stopping:
             try:
                 if not self.line.is_open:
                     await self.line.open()
@@ -257,6 +258,11 @@ class BusWorker:
             state.not_before = max(state.not_before, sent + wait)
         done.set_result(None)
         return True
+
+    def request_stop(self) -> None:
+        """Finish the transaction in flight, then leave :meth:`run` (SIGTERM, SIGINT)."""
+        self._stopping = True
+        self._wake.set()
 
     def health(self) -> list[DeviceHealth]:
         """Each device's availability, lag and missed deadlines (read by the metrics)."""
@@ -341,7 +347,7 @@ class BusWorker:
         Diagnostics and configuration only fill the time values leave free, one read at a
         time, so a long logbook read never delays a measured value.
         """
-        while True:
+        while not self._stopping:
             now = time.monotonic()
             if await self._run_a_write(now) or await self._run_a_broadcast(now):
                 continue

@@ -262,3 +262,66 @@ def test_run_refuses_a_broken_config(tmp_path: Path) -> None:
     assert result.returncode == 2
     assert "devices[1].address (line 5)" in result.stderr
     assert "devices[1].profile (line 5)" in result.stderr
+
+
+def test_check_config_reports_every_problem_with_key_and_line(tmp_path: Path) -> None:
+    config = tmp_path / "broken.yaml"
+    config.write_text(
+        "buses:\n"
+        "  - {name: line1, port: /dev/ttyUSB0}\n"
+        "devices:\n"
+        "  - {name: tank, bus: line1, address: 1, profile: reiss-m0c, poll_interval: 0.2, timeout: 0.5}\n"
+        "  - {name: tank, bus: line1, address: 1, profile: reiss-m0x}\n"
+        "  - {name: pool, bus: line2, address: 3, profile: jumo-tecline-cl2,"
+        " points: {concentrationn: {interval: 5}}}\n",
+        encoding="utf-8",
+    )
+    result = gateway("check-config", str(config))
+    assert result.returncode == 2
+    err = result.stderr
+    assert "devices[0].timeout (line 4)" in err  # longer than the poll interval
+    assert "devices[1].name (line 5)" in err  # two devices with one name
+    assert "devices[1].address (line 5)" in err  # duplicate address on the bus
+    assert "devices[1].profile (line 5)" in err  # unknown profile
+    assert "devices[2].bus (line 6)" in err  # unknown bus
+    assert "devices[2].points.concentrationn (line 6)" in err  # unknown point
+    assert "problems" in err
+
+
+def test_check_config_accepts_the_examples() -> None:
+    examples = Path(__file__).parents[1] / "config"
+    for example in ["plant.yaml", "jumo-tecline.yaml", "reiss-m0c-m3c.yaml"]:
+        result = gateway("check-config", str(examples / example))
+        assert result.returncode == 0, result.stderr
+        assert "OK" in result.stdout
+
+
+def test_sigterm_stops_cleanly_and_sighup_does_not_kill(
+    simulated_line: tuple[Path, Path], tmp_path: Path
+) -> None:
+    port, stats = simulated_line
+    config = tmp_path / "gateway.yaml"
+    config.write_text(
+        f"buses:\n  - {{name: line1, port: {port}, baudrate: 19200, parity: E}}\n"
+        "devices:\n  - {name: basin, bus: line1, address: 10, profile: reiss-m0c, poll_interval: 0.2}\n"
+        "mqtt: {enabled: false}\nprometheus: {enabled: false}\n",
+        encoding="utf-8",
+    )
+    with subprocess.Popen(
+        [sys.executable, "-m", "gateway", "run", "--config", str(config), "--print"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    ) as process:
+        time.sleep(1.5)
+        process.send_signal(signal.SIGHUP)
+        time.sleep(0.5)
+        assert process.poll() is None, "SIGHUP must not stop the service"
+        started = time.monotonic()
+        process.send_signal(signal.SIGTERM)
+        out, err = process.communicate(timeout=10)
+    assert process.returncode == 0, err
+    assert time.monotonic() - started < 5
+    assert "config is not reloaded" in err
+    assert "basin concentration=0.168 ppm" in out
+    assert json.loads(stats.read_text(encoding="utf-8"))["timing_violations"] == 0
