@@ -18,6 +18,7 @@ from gateway.app import configure_logging
 from gateway.app import run as run_gateway
 from gateway.bus import Line
 from gateway.config import check_config, load_config
+from gateway.demo import run_demo
 from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.samples import Quality, Sample, json_value
@@ -382,6 +383,23 @@ def read(
     if failed:
         _err.print(f"[bold red]error:[/] {len(failed)} of {len(samples)} points could not be read")
         raise typer.Exit(code=1)
+
+
+@app.command()
+def demo(
+    mqtt_port: Annotated[
+        int, typer.Option(help="MQTT port: a broker there, else an embedded one.")
+    ] = 1883,
+    metrics_port: Annotated[int, typer.Option(help="Port of /metrics and /healthz.")] = 9108,
+    live: Annotated[
+        bool, typer.Option("--live/--no-live", help="The live table (on a terminal).")
+    ] = True,
+) -> None:
+    """Try it all with no hardware: simulated sensors, MQTT, metrics and a live table."""
+    try:
+        asyncio.run(run_demo(mqtt_port=mqtt_port, metrics_port=metrics_port, live=live))
+    except GatewayError as exc:
+        raise _fail(exc) from exc
 
 
 @app.command("check-config")
