@@ -58,7 +58,6 @@ class ErrorKind:
     STALE: Final = "stale_frame"
     NOISE: Final = "noise"
     MALFORMED: Final = "malformed"
-    PORT: Final = "port"
 
 
 @dataclass(slots=True)

@@ -184,7 +184,6 @@ class BusWorker:
             )
             for d in devices
         }
-        self.polls = 0
         self._port_failures_in_a_row = 0
         self._stopping = False
 
@@ -417,7 +416,6 @@ class BusWorker:
 
     async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
         names = self._due_points(state, now, slow=slow)
-        self.polls += 1
         samples: list[Sample] = []
         # Oldest deadlines first, so a read cut short by due values resumes where it left.
         blocks = sorted(self._plan(state, names), key=lambda b: self._block_deadline(state, b))
