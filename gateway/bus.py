@@ -169,7 +169,10 @@ class Line:
         transport, self._transport, self._receiver = self._transport, None, None
         self.stats.port_open = False
         if transport is not None:
-            transport.close()
+            # abort(), not close(): close() drains the output first (tcdrain in a thread),
+            # which can wait for ever on a line nobody reads, and a thread stuck there
+            # keeps the process from exiting. Nothing still queued matters after a stop.
+            transport.abort()
             await asyncio.sleep(0)
 
     def _live_receiver(self) -> _Receiver:
