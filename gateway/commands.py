@@ -26,6 +26,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TYPE_CHECKING
 
 from gateway.codec import (
     BITFIELD_TYPES,
@@ -37,7 +38,9 @@ from gateway.codec import (
     encode,
 )
 from gateway.errors import CommandRejectedError, EncodeError
-from gateway.profiles.model import Point, Profile
+
+if TYPE_CHECKING:
+    from gateway.profiles.model import Point, Profile
 
 WRITE_SINGLE_REGISTER = 0x06  # Modbus Application Protocol V1.1b3, 6.6
 WRITE_MULTIPLE_REGISTERS = 0x10  # Modbus Application Protocol V1.1b3, 6.12
@@ -85,9 +88,7 @@ def parse_set_payload(payload: bytes) -> SetCommand:
         raise CommandRejectedError('the JSON object needs a "value"')
     unknown = sorted(set(data) - _JSON_KEYS)
     if unknown:
-        raise CommandRejectedError(
-            f"unknown keys {unknown} in the JSON object; allowed: value, id"
-        )
+        raise CommandRejectedError(f"unknown keys {unknown} in the JSON object; allowed: value, id")
     return SetCommand(value=data["value"], id=_command_id(data.get("id")))
 
 
