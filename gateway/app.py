@@ -47,14 +47,13 @@ def device_target(device: DeviceConfig, bus: BusConfig) -> DeviceTarget:
             intervals[point.name] = schedule.interval_s
         elif schedule.cadence is Cadence.ON_CONNECT:
             intervals[point.name] = None
-    timeout = device.timeout if device.timeout is not None else bus.timeout
     return DeviceTarget(
         name=device.name,
         address=device.address,
         profile=profile,
         intervals=intervals,
         float_order=device.float_order,
-        timeout_s=None if timeout is None else timeout + device.min_response_time_ms / 1000,
+        timeout_s=device.response_timeout(bus),
         min_response_time_s=device.min_response_time_ms / 1000,
         extra_gap_s=device.inter_frame_gap_ms / 1000,
         retries=device.retries_on(bus),

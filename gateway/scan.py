@@ -72,7 +72,6 @@ PROBE_MARGIN_S: Final = 0.010  # event-loop timers and USB adapters add a few ms
 IDENTIFY_MARGIN_S: Final = 0.050  # as the bus engine's: reads of a device known to be there
 IDENTIFY_ATTEMPTS: Final = 2  # a found device gets one retry per identification read
 PROBE_REGISTERS: Final = 2
-ILLEGAL_ADDRESS: Final = 2  # exception 02 in all four manuals
 
 DIGILINE: Final = "digiline"
 TECLINE: Final = "tecline"
@@ -395,7 +394,7 @@ class Scanner:
             return await self._digiline(address, first, digiline.registers)
         if not digiline.present and not digiline.garbled:
             return None  # silent: nothing is there
-        if digiline.exception not in {None, ILLEGAL_ADDRESS}:
+        if digiline.exception not in {None, frames.ILLEGAL_ADDRESS}:
             _LOGGER.debug(
                 "address %d: exception %s to the digiLine probe", address, digiline.exception
             )

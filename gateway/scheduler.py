@@ -47,7 +47,6 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-ILLEGAL_ADDRESS: Final = 2
 RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
 LATE_ANSWER_WINDOW_S: Final = 1.0  # after a timeout, a late answer may still come
 BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
@@ -80,6 +79,15 @@ class DeviceTarget:
     retries: int = 2
     offline_after: int = 3
     probe_max_s: float = PROBE_MAX_S
+
+    # Points of the diagnostics and configuration groups, polled in free line time; resolved
+    # once here, not looked up on every scheduling step.
+    slow_points: frozenset[str] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        """Resolve the slow points from the profile."""
+        slow = frozenset(n for n in self.intervals if self.profile.point(n).group in _SLOW_GROUPS)
+        object.__setattr__(self, "slow_points", slow)
 
     @property
     def poll_interval_s(self) -> float:
@@ -308,10 +316,9 @@ class BusWorker:
             state.identity_pending.add(profile.float_order_register.point)
         state.attempts.clear()
 
-    def _is_slow(self, state: DeviceState, name: str) -> bool:
-        return (
-            name not in state.identity_pending and state.profile.point(name).group in _SLOW_GROUPS
-        )
+    @staticmethod
+    def _is_slow(state: DeviceState, name: str) -> bool:
+        return name in state.target.slow_points and name not in state.identity_pending
 
     def _due_points(self, state: DeviceState, now: float, *, slow: bool) -> list[str]:
         due = [name for name, deadline in state.next_due.items() if deadline <= now]
@@ -445,7 +452,7 @@ class BusWorker:
             response = await self._transact(state, request, 5 + 2 * block.count)
         except DeviceExceptionError as exc:
             await self._mark_online(state, "answered")
-            if exc.code == ILLEGAL_ADDRESS and len(block.points) > 1:
+            if exc.code == frames.ILLEGAL_ADDRESS and len(block.points) > 1:
                 state.split_before.update(p.address for p in block.points[1:])
                 _LOGGER.info(
                     "%s/%s: exception 02 for %d registers at %#06x; reading its points apart",
@@ -455,7 +462,7 @@ class BusWorker:
                     block.address,
                 )
                 return None
-            if exc.code == ILLEGAL_ADDRESS:
+            if exc.code == frames.ILLEGAL_ADDRESS:
                 point = block.points[0]
                 state.unreadable.add(point.name)
                 _LOGGER.warning(

@@ -292,7 +292,7 @@ def _enum_table(
     return labels, units
 
 
-def _build_point(raw: dict[str, Any], profile: _RawProfile) -> Point:
+def _build_point(raw: dict[str, Any], profile: _RawProfile, timing: Timing) -> Point:
     source = str(raw.get(_SOURCE, "?"))
     name = str(raw.get("name", "?"))
     fields = {k: v for k, v in raw.items() if k != _SOURCE}
@@ -346,7 +346,7 @@ def _build_point(raw: dict[str, Any], profile: _RawProfile) -> Point:
     )
     wait = rp.post_write_wait_s
     if wait is None:
-        wait = _wait_for(profile, rp.address, count) if rp.access is Access.READ_WRITE else 0.0
+        wait = timing.wait_after_write(rp.address, count) if rp.access is Access.READ_WRITE else 0.0
     return Point(
         name=rp.name,
         address=rp.address,
@@ -410,13 +410,16 @@ def _check_unit_and_access(rp: _RawPoint, source: str) -> None:
         )
 
 
-def _wait_for(profile: _RawProfile, address: int, count: int) -> float:
-    last = address + count - 1
-    wait = profile.timing.post_write_wait_s
-    for rule in profile.timing.post_write_waits:
-        if address <= rule.last and rule.first <= last:
-            wait = max(wait, rule.wait_s)
-    return wait
+def _timing(raw: _RawTiming) -> Timing:
+    return Timing(
+        min_gap_s=raw.min_gap_s,
+        processing_time_s=raw.processing_time_s,
+        min_response_time_point=raw.min_response_time_point,
+        post_write_wait_s=raw.post_write_wait_s,
+        post_write_waits=tuple(
+            WaitRule(first=r.first, last=r.last, wait_s=r.wait_s) for r in raw.post_write_waits
+        ),
+    )
 
 
 def _checked_runs(raw: _RawProfile, source: str) -> list[tuple[int, int]]:
@@ -509,12 +512,13 @@ def _build_profile(merged: dict[str, Any], source: str) -> Profile:
         raise ProfileError(
             f"variant {merged.get('id')!r}: {_describe(exc)}", source=source
         ) from exc
+    timing = _timing(raw.timing)
     points = sorted(
-        (_build_point(p, raw) for p in merged.get("points", [])), key=lambda p: (p.address, p.view)
+        (_build_point(p, raw, timing) for p in merged.get("points", [])),
+        key=lambda p: (p.address, p.view),
     )
     origins = {str(p.get("name")): str(p.get(_SOURCE, source)) for p in merged.get("points", [])}
     runs = _check_map(points, raw, source, origins)
-    timing = raw.timing
     return Profile(
         id=raw.id,
         family=raw.family,
@@ -533,16 +537,7 @@ def _build_profile(merged: dict[str, Any], source: str) -> Profile:
         ),
         float_faults=raw.float_faults,
         limits=Limits(max_read=raw.limits.max_read, max_write=raw.limits.max_write),
-        timing=Timing(
-            min_gap_s=timing.min_gap_s,
-            processing_time_s=timing.processing_time_s,
-            min_response_time_point=timing.min_response_time_point,
-            post_write_wait_s=timing.post_write_wait_s,
-            post_write_waits=tuple(
-                WaitRule(first=r.first, last=r.last, wait_s=r.wait_s)
-                for r in timing.post_write_waits
-            ),
-        ),
+        timing=timing,
         quirks=Quirks(string_byte_count_16bit=raw.quirks.string_byte_count_16bit),
         exceptions=dict(raw.exceptions),
         serial=SerialSettings(**raw.serial.model_dump()) if raw.serial else None,

@@ -131,6 +131,15 @@ class Timing:
     post_write_wait_s: float = 0.0  # wait after every write before the next request
     post_write_waits: tuple[WaitRule, ...] = ()
 
+    def wait_after_write(self, address: int, count: int) -> float:
+        """Wait after writing ``count`` registers from ``address`` before the next request."""
+        last = address + count - 1
+        wait = self.post_write_wait_s
+        for rule in self.post_write_waits:
+            if address <= rule.last and rule.first <= last:
+                wait = max(wait, rule.wait_s)
+        return wait
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SerialSettings:
@@ -217,12 +226,7 @@ class Profile:
 
     def post_write_wait(self, address: int, count: int) -> float:
         """Wait after writing ``count`` registers from ``address`` before the next request."""
-        last = address + count - 1
-        wait = self.timing.post_write_wait_s
-        for rule in self.timing.post_write_waits:
-            if address <= rule.last and rule.first <= last:
-                wait = max(wait, rule.wait_s)
-        return wait
+        return self.timing.wait_after_write(address, count)
 
     def readable_run(self, address: int) -> tuple[int, int] | None:
         """The readable run containing ``address``, if any; gaps outside runs are unread."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 import random
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Final
+from typing import TYPE_CHECKING, Any
 
 from gateway import frames
 from gateway.codec import DataType
@@ -21,8 +21,6 @@ from gateway.simulator.device import SimulatedDevice, SlaveExceptionError
 
 if TYPE_CHECKING:
     from gateway.timing import LineFormat
-
-ILLEGAL_FUNCTION: Final = 1
 
 
 @dataclass(slots=True, kw_only=True)
@@ -245,8 +243,10 @@ class SimulatedBus:
         try:
             request = frames.parse_request(frame)
         except FrameError:
-            self.exceptions[ILLEGAL_FUNCTION] += 1
-            return frames.exception_response(device.address, frame[1] & 0x7F, ILLEGAL_FUNCTION), 0.0
+            self.exceptions[frames.ILLEGAL_FUNCTION] += 1
+            return frames.exception_response(
+                device.address, frame[1] & 0x7F, frames.ILLEGAL_FUNCTION
+            ), 0.0
         try:
             if request.function in frames.READ_FUNCTIONS:
                 registers = device.read(request.address, request.count)

@@ -11,7 +11,7 @@ import struct
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
-from gateway import codec
+from gateway import codec, frames
 from gateway.codec import DataType, Decoded, WordOrder
 from gateway.errors import CodecError
 
@@ -21,7 +21,6 @@ if TYPE_CHECKING:
     from gateway.profiles import Point, Profile
     from gateway.simulator.behaviour import Behaviour
 
-ILLEGAL_ADDRESS: Final = 2  # all four manuals: invalid address or too many words
 ILLEGAL_VALUE: Final = 3  # digiLine: value out of range; tecLine/Reiss: data format
 WRITE_PROTECTED: Final = 8  # digiLine only
 MAX_READ: Final = 125
@@ -175,12 +174,12 @@ class SimulatedDevice:
     def read(self, address: int, count: int) -> tuple[int, ...]:
         """Registers as the sensor sends them, or a :class:`SlaveExceptionError`."""
         if not 1 <= count <= min(MAX_READ, self.profile.limits.max_read):
-            raise SlaveExceptionError(ILLEGAL_ADDRESS, f"read of {count} registers")
+            raise SlaveExceptionError(frames.ILLEGAL_ADDRESS, f"read of {count} registers")
         if not self._in_readable_runs(address, count) or self.unmapped.intersection(
             range(address, address + count)
         ):
             raise SlaveExceptionError(
-                ILLEGAL_ADDRESS, f"read {address:#06x}+{count} crosses unmapped registers"
+                frames.ILLEGAL_ADDRESS, f"read {address:#06x}+{count} crosses unmapped registers"
             )
         image = {
             a: self.registers[a]
@@ -212,11 +211,11 @@ class SimulatedDevice:
                     code = (
                         WRITE_PROTECTED
                         if WRITE_PROTECTED in self.profile.exceptions
-                        else ILLEGAL_ADDRESS
+                        else frames.ILLEGAL_ADDRESS
                     )
                     raise SlaveExceptionError(code, f"{owner.name} is read-only")
                 raise SlaveExceptionError(
-                    ILLEGAL_ADDRESS, f"no writable point starts at {position:#06x}"
+                    frames.ILLEGAL_ADDRESS, f"no writable point starts at {position:#06x}"
                 )
             position += targets[-1][1]
         return targets
@@ -227,7 +226,7 @@ class SimulatedDevice:
         """Apply a write as the sensor would: checked whole, then applied, then acted on."""
         max_write = self.profile.limits.max_write
         if not 1 <= len(values) <= max_write:
-            raise SlaveExceptionError(ILLEGAL_ADDRESS, f"write of {len(values)} registers")
+            raise SlaveExceptionError(frames.ILLEGAL_ADDRESS, f"write of {len(values)} registers")
         try:
             targets = self._write_targets(address, len(values))
         except SlaveExceptionError as exc:
