@@ -64,6 +64,7 @@ from pydantic import (
     Field,
     SecretStr,
     ValidationError,
+    model_validator,
 )
 from pydantic_settings import (
     BaseSettings,
@@ -73,9 +74,11 @@ from pydantic_settings import (
     SettingsError,
 )
 
-from gateway.codec import WordOrder  # noqa: TC001 - pydantic resolves it at run time
+from gateway.codec import NUMERIC_TYPES, WordOrder
 from gateway.errors import ConfigError
+from gateway.flash import FlashPolicy
 from gateway.profiles import Point, PollGroup, Profile, builtin_profiles, get_profile
+from gateway.profiles.model import Storage
 from gateway.timing import LineFormat, Parity
 
 if TYPE_CHECKING:
@@ -90,6 +93,7 @@ ENV_NESTED_DELIMITER: Final = "__"
 BAUDRATES: Final = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 MAX_RESPONSE_TIMEOUT_S: Final = 5.0
 MAX_MIN_RESPONSE_TIME_MS: Final = 500  # digiLine register 0x0305: 0 to 500 ms (S10 manual 4)
+DEFAULT_FLASH_WRITE_BUDGET: Final = 4  # flash writes per point and UTC day
 MAX_INTERVAL_S: Final = 86_400.0  # a day; longer is a typo, not a polling plan
 # URL handlers of pyserial's serial_for_url (serial/urlhandler/protocol_*.py).
 SERIAL_URL_SCHEMES: Final = frozenset(
@@ -205,6 +209,12 @@ def _standard_baudrate(value: int) -> int:
 
 def _upper(value: object) -> object:
     return value.upper() if isinstance(value, str) else value
+
+
+def _feed_topic(value: str) -> str:
+    if not value or {"+", "#"} & set(value):
+        raise ValueError(f"{value!r} is not a topic to read a value from: no wildcards (+, #)")
+    return value
 
 
 def _mqtt_topic(value: str) -> str:
@@ -350,6 +360,10 @@ class DeviceConfig(_Model):
     retries: Retries | None = None  # None: the bus retries
     offline_after: Annotated[int, Field(ge=1, le=1000)] = 3
     publish: PublishSettings = PublishSettings()
+    # Flash-backed points that commands may write, by name; every other flash-backed point
+    # is refused (RAM and volatile points need no permission).
+    flash_writes: list[str] = []
+    flash_write_budget: Annotated[int, Field(ge=0, le=1000)] = DEFAULT_FLASH_WRITE_BUDGET
 
     def get_profile(self) -> Profile:
         """The device's register map (a :class:`ConfigError` for an unknown profile id)."""
@@ -394,6 +408,68 @@ class DeviceConfig(_Model):
     def retries_on(self, bus: BusConfig) -> int:
         """Retries of a failed request: the device's override, else the bus's."""
         return self.retries if self.retries is not None else bus.retries
+
+    def flash_policy(self) -> FlashPolicy:
+        """Which flash-backed points commands may write, and how often per day."""
+        return FlashPolicy(
+            allowed=frozenset(self.flash_writes), daily_budget=self.flash_write_budget
+        )
+
+
+class CommandsConfig(_Model):
+    """Writes over MQTT: ``{base}/{device}/{point}/set`` and ``{base}/{device}/command/{name}``."""
+
+    enabled: bool = True  # False: the gateway only reads; set and command topics are ignored
+
+
+class FeedSource(_Model):
+    """Where a feed's value comes from: a polled point of any device, or an MQTT topic.
+
+    An MQTT payload is a plain number or JSON: a number, or an object whose ``value``
+    (or the configured ``key``) is one.
+    """
+
+    device: str | None = None
+    point: str | None = None
+    topic: Annotated[str, AfterValidator(_feed_topic)] | None = None
+    key: Annotated[str, Field(min_length=1)] = "value"
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> FeedSource:
+        by_point = self.device is not None or self.point is not None
+        if by_point and self.topic is not None:
+            raise ValueError("give either device and point, or topic, not both")
+        if not by_point and self.topic is None:
+            raise ValueError("give device and point of a polled value, or an MQTT topic")
+        if by_point and (self.device is None or self.point is None):
+            raise ValueError("a point source needs both device and point")
+        return self
+
+    def describe(self) -> str:
+        """The source as text for logs and metrics: ``device/point`` or ``mqtt:topic``."""
+        return f"mqtt:{self.topic}" if self.topic is not None else f"{self.device}/{self.point}"
+
+
+class FeedConfig(_Model):
+    """Keep a compensation value of a sensor current from another instrument.
+
+    Written every ``interval`` seconds while the source is fresh, and at once when the
+    source moves by more than ``deadband`` since the last write. A source older than
+    ``max_age`` is not written (the log and the metrics say so). Feeds only write RAM or
+    volatile registers; a flash-backed target is a config error.
+    """
+
+    device: str
+    point: str
+    source: FeedSource
+    interval: Seconds = 60.0
+    deadband: Annotated[float, Field(ge=0)] | None = None
+    max_age: Seconds = 300.0
+
+    @property
+    def name(self) -> str:
+        """The feed as ``device/point``, its label in logs and metrics."""
+        return f"{self.device}/{self.point}"
 
 
 class TlsConfig(_Model):
@@ -481,6 +557,8 @@ class GatewayConfig(BaseSettings):
     mqtt: MqttConfig = MqttConfig()
     prometheus: PrometheusConfig = PrometheusConfig()
     logging: LoggingConfig = LoggingConfig()
+    commands: CommandsConfig = CommandsConfig()
+    feeds: list[FeedConfig] = []
     # Where the gateway keeps what must survive a restart (the MQTT queue, write counters);
     # None: $STATE_DIRECTORY (systemd), else ./state.
     state_dir: Path | None = None
@@ -937,6 +1015,7 @@ def _cross_check(data: Mapping[str, Any]) -> Iterator[tuple[_KeyPath, str]]:
         profile_id = device.text("profile")
         if profile_id is not None:
             yield from _check_profile(here, profile_id, device.raw.get("points"))
+            yield from _check_flash_writes(here, profile_id, device.raw.get("flash_writes"))
         model = device.model
         if model is None:
             continue
@@ -952,6 +1031,111 @@ def _cross_check(data: Mapping[str, Any]) -> Iterator[tuple[_KeyPath, str]]:
         bus = bus_models.get(model.bus)
         if bus is not None:
             yield from _check_timeout(here, model, bus)
+    yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices)
+
+
+def _check_flash_writes(
+    here: _KeyPath, profile_id: str, names: object
+) -> Iterator[tuple[_KeyPath, str]]:
+    profile = builtin_profiles().get(profile_id)
+    if profile is None or not isinstance(names, list):
+        return
+    for index, name in enumerate(names):
+        if not isinstance(name, str):
+            continue
+        where: _KeyPath = (*here, "flash_writes", index)
+        if not profile.has_point(name):
+            yield where, f"profile {profile_id} has no point {name!r}"
+            continue
+        point = profile.point(name)
+        if not point.writable:
+            yield where, f"{name} is read-only; it cannot be written at all"
+        elif point.storage is not Storage.FLASH:
+            yield (
+                where,
+                f"{name} is a {point.storage} register, not flash-backed: it needs no permission",
+            )
+
+
+def _check_feeds(
+    feeds: Sequence[_Entry[FeedConfig]], devices: Sequence[_Entry[DeviceConfig]]
+) -> Iterator[tuple[_KeyPath, str]]:
+    """A feed writes a RAM or volatile point of a known device, from a polled source."""
+    by_name = {d.model.name: d.model for d in devices if d.model is not None}
+    targets: dict[tuple[str, str], int] = {}
+    for feed in feeds:
+        model = feed.model
+        if model is None:
+            continue
+        here: _KeyPath = ("feeds", feed.index)
+        device = by_name.get(model.device)
+        if device is None:
+            yield (*here, "device"), f"unknown device {model.device!r}; devices: {_names(by_name)}"
+        else:
+            yield from _check_feed_target(here, model, device)
+        first = targets.setdefault((model.device, model.point), feed.index)
+        if first != feed.index:
+            yield (*here, "point"), f"{model.name} is already fed by feeds[{first}]"
+        source = model.source
+        if source.device is None or source.point is None:
+            continue
+        origin = by_name.get(source.device)
+        if origin is None:
+            yield (
+                (*here, "source", "device"),
+                f"unknown device {source.device!r}; devices: {_names(by_name)}",
+            )
+            continue
+        profile = _profile_or_none(origin.profile)
+        if profile is None:
+            continue
+        if not profile.has_point(source.point):
+            yield (
+                (*here, "source", "point"),
+                f"profile {origin.profile} has no point {source.point!r}",
+            )
+        elif not origin.interval_for(source.point).periodic:
+            yield (
+                (*here, "source", "point"),
+                (
+                    f"{source.device}/{source.point} is not polled periodically, so it would "
+                    "never feed anything; give it an interval under the device's points"
+                ),
+            )
+
+
+def _check_feed_target(
+    here: _KeyPath, feed: FeedConfig, device: DeviceConfig
+) -> Iterator[tuple[_KeyPath, str]]:
+    profile = _profile_or_none(device.profile)
+    if profile is None:
+        return
+    if not profile.has_point(feed.point):
+        yield (*here, "point"), f"profile {device.profile} has no point {feed.point!r}"
+        return
+    point = profile.point(feed.point)
+    if not point.writable:
+        yield (*here, "point"), f"{feed.point} is read-only"
+    elif point.storage is Storage.FLASH:
+        free = [p.name for p in profile.points if p.writable and p.storage is not Storage.FLASH]
+        hint = f"; RAM or volatile points of {device.profile}: {', '.join(free)}" if free else ""
+        yield (
+            (*here, "point"),
+            (
+                f"a feed never writes to flash, and {feed.point} is flash-backed "
+                f"(its cells wear out when written cyclically){hint}"
+            ),
+        )
+    elif point.format.dtype not in NUMERIC_TYPES:
+        yield (*here, "point"), f"{feed.point} is a {point.format.dtype}, not a number to feed"
+
+
+def _profile_or_none(profile_id: str) -> Profile | None:
+    return builtin_profiles().get(profile_id)
+
+
+def _names(models: Mapping[str, object]) -> str:
+    return ", ".join(models) or "none"
 
 
 def _unique_names(section: str, entries: Sequence[_Entry[Any]]) -> Iterator[tuple[_KeyPath, str]]:

@@ -19,7 +19,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Final, TypeAlias
 
 from gateway import codec, frames
 from gateway.errors import (
@@ -145,12 +145,25 @@ class DeviceState:
 
 @dataclass(slots=True)
 class WriteJob:
-    """A write waiting for its turn on the line."""
+    """A write waiting for its turn on the line: a value to encode, or registers encoded."""
 
     device: str
     point: str
     value: object
     done: asyncio.Future[frames.Response | None]
+    registers: tuple[int, ...] | None = None
+
+
+@dataclass(slots=True)
+class ReadJob:
+    """An on-demand read (a command's check or read-back) waiting for its turn."""
+
+    device: str
+    points: tuple[str, ...]
+    done: asyncio.Future[list[Sample]]
+
+
+LineJob: TypeAlias = WriteJob | ReadJob
 
 
 def default_timeout_s(target: DeviceTarget, response_bytes: int, wire_s: float) -> float:
@@ -182,7 +195,8 @@ class BusWorker:
         self.devices = {d.name: DeviceState(target=d) for d in devices}
         self.late_answer_window_s = late_answer_window_s
         self.reconnect_max_s = reconnect_max_s
-        self._writes: list[WriteJob] = []
+        self._jobs: list[LineJob] = []  # writes and on-demand reads, in submission order
+        self._running = False
         self._broadcasts: list[tuple[frames.Request, asyncio.Future[None]]] = []
         self._wake = asyncio.Event()
         self._rng = rng or random.Random()  # noqa: S311 - jitter, nothing secret
@@ -200,6 +214,14 @@ class BusWorker:
     async def run(self) -> None:
         """Open the port, poll, and on port failure reopen with capped jittered backoff."""
         delay = PORT_BACKOFF_FIRST_S
+        self._running = True
+        try:
+            await self._run(delay)
+        finally:
+            self._running = False
+            self._fail_jobs(BusClosedError(f"bus {self.name} stopped"))
+
+    async def _run(self, delay: float) -> None:
         while not self._stopping:
             try:
                 if not self.line.is_open:
@@ -214,23 +236,111 @@ class BusWorker:
                 await self.line.close()
                 self._port_failures_in_a_row += 1
                 self.line.stats.port_failures += 1
+                self._fail_jobs(exc)  # a command waits for no reconnection: it says why now
                 log = _LOGGER.warning if self._port_failures_in_a_row == 1 else _LOGGER.debug
                 log("%s: %s; retrying in %.1f s", self.name, exc, delay)
                 await self._all_offline(str(exc))
                 await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
                 delay = min(delay * 2, self.reconnect_max_s)
 
+    @property
+    def running(self) -> bool:
+        """Whether :meth:`run` owns the line now (jobs queue) or not (they run inline)."""
+        return self._running
+
+    def device_profile(self, device: str) -> Profile:
+        """The register map of a device of this line."""
+        return self._state(device).profile
+
+    def device_address(self, device: str) -> int:
+        """The Modbus address of a device of this line."""
+        return self._state(device).target.address
+
+    def float_order(self, device: str) -> codec.WordOrder:
+        """The float word order a device uses now (config, its format register, or CDAB)."""
+        return self._state(device).float_order
+
+    def needs_float_order(self, device: str) -> bool:
+        """Whether the device's format register must be read before floats are encoded."""
+        state = self._state(device)
+        selector = state.profile.float_order_register
+        return (
+            selector is not None
+            and state.target.float_order is None
+            and selector.point not in state.values
+        )
+
+    def last_value(self, device: str, point: str) -> codec.Decoded:
+        """The value last decoded for a point (a :class:`codec.Fault` included), or ``None``."""
+        return self._state(device).values.get(point)
+
+    def _state(self, device: str) -> DeviceState:
+        if device not in self.devices:
+            raise GatewayError(f"bus {self.name} has no device {device!r}")
+        return self.devices[device]
+
     def submit_write(
         self, device: str, point: str, value: object
     ) -> asyncio.Future[frames.Response | None]:
         """Queue a write; it runs before pending reads but after any wait the rules require."""
-        if device not in self.devices:
-            raise GatewayError(f"bus {self.name} has no device {device!r}")
-        self.devices[device].profile.point(point)
+        self._state(device).profile.point(point)
         done: asyncio.Future[frames.Response | None] = asyncio.get_running_loop().create_future()
-        self._writes.append(WriteJob(device=device, point=point, value=value, done=done))
-        self._wake.set()
+        self._enqueue(WriteJob(device=device, point=point, value=value, done=done))
         return done
+
+    async def write_registers(
+        self, device: str, point: str, registers: tuple[int, ...]
+    ) -> frames.Response | None:
+        """Write registers already encoded and validated to a point, then keep its wait.
+
+        While :meth:`run` polls, the write queues ahead of due reads; otherwise (the command
+        line) it runs at once, after any wait still pending. Failures raise as the bus
+        reports them (:class:`DeviceExceptionError`, :class:`BusTimeoutError`, ...).
+        """
+        self._state(device).profile.point(point)
+        done: asyncio.Future[frames.Response | None] = asyncio.get_running_loop().create_future()
+        job = WriteJob(device=device, point=point, value=None, done=done, registers=registers)
+        if self._running:
+            self._enqueue(job)
+        else:
+            await self._wait_for_turn(self.devices[device])
+            with contextlib.suppress(BusClosedError):  # set on the future, raised below
+                await self._write(self.devices[device], job)
+        return await done
+
+    async def read_points(self, device: str, points: Sequence[str]) -> list[Sample]:
+        """Read points of a device now (a command's check or read-back), with retries.
+
+        Queued ahead of due reads while :meth:`run` polls, else run at once. A point that
+        could not be read comes back with quality ``comms_error``; the samples are not
+        published.
+        """
+        state = self._state(device)
+        names = tuple(state.profile.point(p).name for p in points)
+        if not self._running:
+            return await self._read_now(state, names)
+        done: asyncio.Future[list[Sample]] = asyncio.get_running_loop().create_future()
+        self._enqueue(ReadJob(device=device, points=names, done=done))
+        return await done
+
+    def _enqueue(self, job: LineJob) -> None:
+        if self._stopping:
+            job.done.set_exception(BusClosedError(f"bus {self.name} is stopping"))
+            return
+        self._jobs.append(job)
+        self._wake.set()
+
+    def _fail_jobs(self, exc: Exception) -> None:
+        for job in self._jobs:
+            if not job.done.done():
+                job.done.set_exception(exc)
+        self._jobs.clear()
+
+    @staticmethod
+    async def _wait_for_turn(state: DeviceState) -> None:
+        delay = state.not_before - time.monotonic()
+        if delay > 0:
+            await asyncio.sleep(delay)
 
     def submit_broadcast(self, address: int, registers: Sequence[int]) -> asyncio.Future[None]:
         """Queue a write to every device (Modbus address 0); no device answers it.
@@ -355,7 +465,7 @@ class BusWorker:
         """
         while not self._stopping:
             now = time.monotonic()
-            if await self._run_a_write(now) or await self._run_a_broadcast(now):
+            if await self._run_a_job(now) or await self._run_a_broadcast(now):
                 continue
             if (state := self._pick(now, slow=False)) is not None:
                 if state.online is False:
@@ -379,8 +489,8 @@ class BusWorker:
             ),
             default=now + 1.0,
         )
-        if self._writes:
-            wake_at = min(wake_at, *(self.devices[w.device].not_before for w in self._writes))
+        if self._jobs:
+            wake_at = min(wake_at, *(self.devices[j.device].not_before for j in self._jobs))
         if self._broadcasts:
             wake_at = min(wake_at, max((s.not_before for s in self.devices.values()), default=now))
         self._wake.clear()
@@ -647,19 +757,31 @@ class BusWorker:
 
     # --- writes -----------------------------------------------------------------------
 
-    async def _run_a_write(self, now: float) -> bool:
-        for job in self._writes:
+    async def _run_a_job(self, now: float) -> bool:
+        """Run the oldest job whose device is free; a device's jobs keep their order."""
+        for job in self._jobs:
             state = self.devices[job.device]
             if state.not_before <= now:
-                self._writes.remove(job)
-                await self._write(state, job)
+                self._jobs.remove(job)
+                if job.done.cancelled():
+                    return True  # the caller gave up waiting: nothing to do
+                if isinstance(job, ReadJob):
+                    try:
+                        job.done.set_result(await self._read_now(state, job.points))
+                    except BusClosedError as exc:
+                        job.done.set_exception(exc)
+                        raise
+                else:
+                    await self._write(state, job)
                 return True
         return False
 
     async def _write(self, state: DeviceState, job: WriteJob) -> None:
         point = state.profile.point(job.point)
         try:
-            registers = codec.encode(point.format, job.value, float_order=state.float_order)
+            registers = job.registers
+            if registers is None:
+                registers = codec.encode(point.format, job.value, float_order=state.float_order)
             request = frames.write_request(state.target.address, point.address, registers)
         except EncodeError as exc:
             job.done.set_exception(exc)
@@ -669,6 +791,9 @@ class BusWorker:
         except (DeviceExceptionError, BusTimeoutError, FrameError) as exc:
             job.done.set_exception(exc)
             return
+        except BusClosedError as exc:
+            job.done.set_exception(exc)
+            raise
         finally:
             # H10/H20 6.1.5: the wait follows every write, answered or not.
             wait = state.profile.post_write_wait(point.address, point.count)

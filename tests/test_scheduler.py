@@ -10,120 +10,18 @@ import asyncio
 import contextlib
 import itertools
 from collections import Counter
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.bus import Line
 from gateway.profiles import PollGroup, get_profile
-from gateway.samples import DeviceEvent, Quality, Sample
-from gateway.scheduler import BusWorker, DeviceTarget
-from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from gateway.samples import Quality
+from gateway.scheduler import DeviceTarget
 from gateway.timing import LineFormat
+from tests.rigs import PLANT, ListSink, plant_targets, rig, target
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Sequence
     from pathlib import Path
-
-
-@dataclass
-class ListSink:
-    samples: list[Sample] = field(default_factory=list)
-    events: list[DeviceEvent] = field(default_factory=list)
-
-    async def publish(self, samples: Sequence[Sample]) -> None:
-        self.samples.extend(samples)
-
-    async def device_event(self, event: DeviceEvent) -> None:
-        self.events.append(event)
-
-    def good(self, device: str, point: str) -> list[Sample]:
-        return [s for s in self.samples if (s.device, s.point) == (device, point) and s.good]
-
-
-def target(
-    name: str,
-    profile_id: str,
-    address: int,
-    *,
-    interval: float = 0.5,
-    groups: Sequence[PollGroup] = (PollGroup.PROCESS, PollGroup.STATUS),
-    **options: Any,
-) -> DeviceTarget:
-    profile = get_profile(profile_id)
-    intervals: dict[str, float | None] = {}
-    for point in profile.points:
-        if point.view:
-            continue
-        if point.group in groups:
-            intervals[point.name] = interval
-        elif point.group is PollGroup.IDENTITY:
-            intervals[point.name] = None
-    return DeviceTarget(name=name, address=address, profile=profile, intervals=intervals, **options)
-
-
-@dataclass
-class Rig:
-    server: SimulatorServer
-    worker: BusWorker
-    sink: ListSink
-    line: Line
-
-    async def run_for(self, seconds: float) -> None:
-        task = asyncio.create_task(self.worker.run())
-        await asyncio.sleep(seconds)
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
-
-    def frames(self) -> list[Any]:
-        return list(self.server.bus.frame_log)
-
-
-@contextlib.asynccontextmanager
-async def rig(
-    tmp_path: Path,
-    devices: list[dict[str, Any]],
-    targets: list[DeviceTarget],
-    *,
-    line: dict[str, Any] | None = None,
-    pace: bool = True,
-    **worker_options: Any,
-) -> AsyncIterator[Rig]:
-    line = line or {"baudrate": 9600, "parity": "E", "stopbits": 1}
-    server = SimulatorServer(
-        build_bus(parse_settings({"devices": devices, "line": line, "pace": pace}))
-    )
-    port = tmp_path / "ttyRS485"
-    server.open_pty(port)
-    sink = ListSink()
-    bus_line = Line(port=str(port), line=LineFormat(**line))
-    worker = BusWorker(name="line1", line=bus_line, devices=targets, sinks=[sink], **worker_options)
-    try:
-        yield Rig(server=server, worker=worker, sink=sink, line=bus_line)
-    finally:
-        await bus_line.close()
-        await server.close()
-
-
-PLANT = [
-    {"profile": "jumo-digiline-odo-s10", "address": 1},
-    {"profile": "jumo-digiline-odo-h10", "address": 2},
-    {"profile": "jumo-digiline-odo-h20", "address": 3},
-    {"profile": "jumo-tecline-cl2", "address": 20},
-    {"profile": "reiss-m0c", "address": 10},
-]
-
-
-def plant_targets(interval: float = 0.5) -> list[DeviceTarget]:
-    return [
-        target("s10", "jumo-digiline-odo-s10", 1, interval=interval),
-        target("h10", "jumo-digiline-odo-h10", 2, interval=interval),
-        target("h20", "jumo-digiline-odo-h20", 3, interval=interval),
-        target("cl2", "jumo-tecline-cl2", 20, interval=interval),
-        target("m0c", "reiss-m0c", 10, interval=interval),
-    ]
 
 
 def gaps_on_the_wire(records: list[Any]) -> list[tuple[float, Any]]:

@@ -1,0 +1,139 @@
+"""Writes that are safe: checked, flash-guarded, written with the rules, and read back.
+
+:class:`SafeWriter` is the one path by which commands (MQTT ``…/set``, ``gateway write``)
+and feeds change a device's registers:
+
+1. the value is checked and encoded for the point (:func:`gateway.commands.validate_write`);
+2. a flash-backed point is read first and judged by :func:`gateway.flash.check_flash_write`
+   (allowed by name, unchanged values skipped, the daily budget), and an accepted flash
+   write is counted in the persistent ledger *before* it is sent;
+3. the registers go out with function 06 or 16, and the post-write wait is kept;
+4. the point is read back, so the caller sees what the device now holds.
+
+Anything refused in steps 1 and 2 raises :class:`CommandRejectedError` and nothing is sent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from gateway import codec
+from gateway.errors import BusError, CommandRejectedError, EncodeError
+from gateway.flash import Action, check_flash_write, utc_today
+from gateway.profiles.model import Storage
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from datetime import date
+
+    from gateway.flash import FlashLedger, FlashPolicy
+    from gateway.link import DeviceLink
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class WriteOutcome:
+    """What became of an accepted write.
+
+    ``written`` is false when a flash-backed point already held the value; ``value`` is
+    what the device holds afterwards (read back), ``None`` if the read-back failed, in
+    which case ``note`` says why.
+    """
+
+    device: str
+    point: str
+    written: bool
+    value: codec.Decoded
+    registers: tuple[int, ...]
+    flash: bool
+    note: str = ""
+
+
+class SafeWriter:
+    """The write path of one device, with its flash policy and the shared ledger."""
+
+    def __init__(
+        self,
+        link: DeviceLink,
+        *,
+        policy: FlashPolicy,
+        ledger: FlashLedger,
+        today: Callable[[], date] = utc_today,
+    ) -> None:
+        """Write to ``link``'s device under ``policy``, counting flash writes in ``ledger``."""
+        self.link = link
+        self.policy = policy
+        self.ledger = ledger
+        self._today = today
+
+    @property
+    def device(self) -> str:
+        """The device written to."""
+        return self.link.device
+
+    async def set(self, point: str, value: object) -> WriteOutcome:
+        """Write ``value`` to ``point`` if every rule allows it; see the module docstring."""
+        link = self.link
+        registers = await link.encode(point, value)
+        target = link.profile.point(point)
+        flash = target.storage is Storage.FLASH
+        current: codec.Decoded = None
+        held: tuple[int, ...] | None = None
+        if flash and point in self.policy.allowed:
+            current, held = await self._current(point)
+        decision = check_flash_write(
+            link.profile,
+            point,
+            link.device,
+            policy=self.policy,
+            ledger=self.ledger,
+            current=held,
+            registers=registers,
+            today=self._today(),
+        )
+        if decision.action is Action.REFUSE:
+            raise CommandRejectedError(decision.reason, point=point)
+        if decision.action is Action.SKIP:
+            return WriteOutcome(
+                device=link.device,
+                point=point,
+                written=False,
+                value=current,
+                registers=registers,
+                flash=flash,
+                note=decision.reason,
+            )
+        if decision.record:
+            self.ledger.record(link.device, point, self._today())
+        await link.write_registers(point, registers)
+        note = ""
+        try:
+            after = await link.read_value(point)
+        except BusError as exc:
+            after, note = None, f"written; the read-back failed: {exc}"
+        return WriteOutcome(
+            device=link.device,
+            point=point,
+            written=True,
+            value=after,
+            registers=registers,
+            flash=flash,
+            note=note,
+        )
+
+    async def _current(self, point: str) -> tuple[codec.Decoded, tuple[int, ...] | None]:
+        """What a flash-backed point holds, decoded and as registers to compare with."""
+        try:
+            current = await self.link.read_value(point)
+        except BusError as exc:
+            raise CommandRejectedError(
+                f"could not read the current value before a flash write, so nothing was "
+                f"written: {exc}",
+                point=point,
+            ) from exc
+        fmt = self.link.profile.point(point).format
+        try:
+            held = codec.encode(fmt, current, float_order=await self.link.float_order())
+        except EncodeError:
+            held = None  # a fault value or an unknown code: compare nothing, write
+        return current, held

@@ -1,0 +1,188 @@
+"""Shared test rigs: the simulator on a real pseudo-terminal and a bus worker on its other end.
+
+Every test that talks to a simulated sensor uses these, so each test file does not grow
+its own copy of the set-up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from gateway.bus import Line
+from gateway.link import DeviceLink
+from gateway.profiles import PollGroup, get_profile
+from gateway.scheduler import BusWorker, DeviceTarget
+from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from gateway.timing import LineFormat
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator, Sequence
+    from pathlib import Path
+
+    from gateway.samples import DeviceEvent, Sample
+    from gateway.simulator.device import SimulatedDevice, WriteRecord
+
+
+@dataclass
+class ListSink:
+    samples: list[Sample] = field(default_factory=list)
+    events: list[DeviceEvent] = field(default_factory=list)
+
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        self.samples.extend(samples)
+
+    async def device_event(self, event: DeviceEvent) -> None:
+        self.events.append(event)
+
+    def good(self, device: str, point: str) -> list[Sample]:
+        return [s for s in self.samples if (s.device, s.point) == (device, point) and s.good]
+
+
+def target(
+    name: str,
+    profile_id: str,
+    address: int,
+    *,
+    interval: float = 0.5,
+    groups: Sequence[PollGroup] = (PollGroup.PROCESS, PollGroup.STATUS),
+    **options: Any,
+) -> DeviceTarget:
+    profile = get_profile(profile_id)
+    intervals: dict[str, float | None] = {}
+    for point in profile.points:
+        if point.view:
+            continue
+        if point.group in groups:
+            intervals[point.name] = interval
+        elif point.group is PollGroup.IDENTITY:
+            intervals[point.name] = None
+    return DeviceTarget(name=name, address=address, profile=profile, intervals=intervals, **options)
+
+
+@dataclass
+class Rig:
+    server: SimulatorServer
+    worker: BusWorker
+    sink: ListSink
+    line: Line
+
+    async def run_for(self, seconds: float) -> None:
+        task = asyncio.create_task(self.worker.run())
+        await asyncio.sleep(seconds)
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+    def frames(self) -> list[Any]:
+        return list(self.server.bus.frame_log)
+
+
+@contextlib.asynccontextmanager
+async def rig(
+    tmp_path: Path,
+    devices: list[dict[str, Any]],
+    targets: list[DeviceTarget],
+    *,
+    line: dict[str, Any] | None = None,
+    pace: bool = True,
+    **worker_options: Any,
+) -> AsyncIterator[Rig]:
+    line = line or {"baudrate": 9600, "parity": "E", "stopbits": 1}
+    server = SimulatorServer(
+        build_bus(parse_settings({"devices": devices, "line": line, "pace": pace}))
+    )
+    port = tmp_path / "ttyRS485"
+    server.open_pty(port)
+    sink = ListSink()
+    bus_line = Line(port=str(port), line=LineFormat(**line))
+    worker = BusWorker(name="line1", line=bus_line, devices=targets, sinks=[sink], **worker_options)
+    try:
+        yield Rig(server=server, worker=worker, sink=sink, line=bus_line)
+    finally:
+        await bus_line.close()
+        await server.close()
+
+
+PLANT = [
+    {"profile": "jumo-digiline-odo-s10", "address": 1},
+    {"profile": "jumo-digiline-odo-h10", "address": 2},
+    {"profile": "jumo-digiline-odo-h20", "address": 3},
+    {"profile": "jumo-tecline-cl2", "address": 20},
+    {"profile": "reiss-m0c", "address": 10},
+]
+
+
+def plant_targets(interval: float = 0.5) -> list[DeviceTarget]:
+    return [
+        target("s10", "jumo-digiline-odo-s10", 1, interval=interval),
+        target("h10", "jumo-digiline-odo-h10", 2, interval=interval),
+        target("h20", "jumo-digiline-odo-h20", 3, interval=interval),
+        target("cl2", "jumo-tecline-cl2", 20, interval=interval),
+        target("m0c", "reiss-m0c", 10, interval=interval),
+    ]
+
+
+def link_target(name: str, profile_id: str, address: int) -> DeviceTarget:
+    """A device polled for nothing: what the command line and link tests talk to."""
+    return DeviceTarget(name=name, address=address, profile=get_profile(profile_id), intervals={})
+
+
+@dataclass
+class LinkRig:
+    """One simulated line with links to its devices; the worker may poll meanwhile."""
+
+    rig: Rig
+    links: dict[str, DeviceLink]
+    polling: asyncio.Task[None] | None = None
+
+    @property
+    def server(self) -> SimulatorServer:
+        return self.rig.server
+
+    def device(self, address: int) -> SimulatedDevice:
+        """The simulated sensor at ``address`` (its registers, write log and behaviour)."""
+        return self.rig.server.bus.devices[address]
+
+    def writes(self, address: int) -> list[WriteRecord]:
+        """The writes the sensor at ``address`` accepted or refused, oldest first."""
+        return list(self.device(address).write_log)
+
+    def violations(self) -> list[Any]:
+        """Timing-rule violations the simulator's referee saw."""
+        return list(self.rig.server.bus.violations)
+
+
+@contextlib.asynccontextmanager
+async def link_rig(
+    tmp_path: Path,
+    devices: list[dict[str, Any]],
+    targets: list[DeviceTarget],
+    *,
+    poll: bool = False,
+    line: dict[str, Any] | None = None,
+    pace: bool = True,
+) -> AsyncIterator[LinkRig]:
+    """The simulator and links to ``targets``; with ``poll`` the worker runs its poll loop.
+
+    Without ``poll`` the port is opened here and every read and write runs inline, as on
+    the command line; with it, they queue on the running worker, as under MQTT commands.
+    """
+    async with rig(tmp_path, devices, targets, line=line, pace=pace) as base:
+        links = {t.name: DeviceLink(base.worker, t.name) for t in targets}
+        result = LinkRig(rig=base, links=links)
+        if poll:
+            result.polling = asyncio.create_task(base.worker.run())
+            await asyncio.sleep(0)
+        else:
+            await base.line.open()
+        try:
+            yield result
+        finally:
+            if result.polling is not None:
+                base.worker.request_stop()
+                result.polling.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await result.polling
