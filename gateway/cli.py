@@ -21,7 +21,7 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from gateway import __version__, codec
+from gateway import __version__, cli_calibrate, cli_operations, codec
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
 from gateway.bus import Line
@@ -537,6 +537,10 @@ def scan_command(
     if not report.devices:
         _err.print(f"[bold red]no device answered[/] on {port}", highlight=False)
         raise typer.Exit(code=1)
+
+
+cli_calibrate.register(app)
+cli_operations.register(app)
 
 
 def main() -> None:

@@ -16,11 +16,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
+from rich.console import Console
 
 from gateway import codec
 from gateway.app import device_target, state_directory
 from gateway.config import DEFAULT_FLASH_WRITE_BUDGET, load_config
-from gateway.errors import ConfigError
+from gateway.errors import ConfigError, GatewayError
 from gateway.flash import FlashLedger, FlashPolicy
 from gateway.link import DeviceLink, open_link
 from gateway.profiles import get_profile
@@ -31,6 +32,16 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
 LEDGER_FILE = "flash-writes.sqlite"
+
+out = Console(highlight=False, soft_wrap=True)
+err = Console(stderr=True, highlight=False)
+
+
+def fail(exc: GatewayError) -> typer.Exit:
+    """Print an error as the command line does everywhere; raise what it returns."""
+    err.print(f"[bold red]error:[/] {exc}")
+    return typer.Exit(code=2)
+
 
 ConfigOption = Annotated[
     Path | None,

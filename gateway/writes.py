@@ -20,14 +20,14 @@ from typing import TYPE_CHECKING
 
 from gateway import codec
 from gateway.errors import BusError, CommandRejectedError, EncodeError
-from gateway.flash import Action, check_flash_write, utc_today
+from gateway.flash import Action, FlashPolicy, check_flash_write, utc_today
 from gateway.profiles.model import Storage
 
 if TYPE_CHECKING:
     from collections.abc import Callable
     from datetime import date
 
-    from gateway.flash import FlashLedger, FlashPolicy
+    from gateway.flash import FlashLedger
     from gateway.link import DeviceLink
 
 
@@ -71,21 +71,33 @@ class SafeWriter:
         """The device written to."""
         return self.link.device
 
-    async def set(self, point: str, value: object) -> WriteOutcome:
-        """Write ``value`` to ``point`` if every rule allows it; see the module docstring."""
+    async def set(
+        self, point: str, value: object, *, explicit: bool = False, read_back: bool = True
+    ) -> WriteOutcome:
+        """Write ``value`` to ``point`` if every rule allows it; see the module docstring.
+
+        ``explicit`` is for an operator's deliberate step (a calibration, setting the
+        clock): a flash-backed point needs no place in the allow-list and is written even
+        if unchanged (writing the tecLine date stamp again is what activates a
+        calibration), but the daily budget still holds and the write is still counted.
+        ``read_back=False`` saves the read-back (feeds, which write often).
+        """
         link = self.link
         registers = await link.encode(point, value)
         target = link.profile.point(point)
         flash = target.storage is Storage.FLASH
         current: codec.Decoded = None
         held: tuple[int, ...] | None = None
-        if flash and point in self.policy.allowed:
+        policy = self.policy
+        if flash and explicit:
+            policy = FlashPolicy(allowed=policy.allowed | {point}, daily_budget=policy.daily_budget)
+        elif flash and point in policy.allowed:
             current, held = await self._current(point)
         decision = check_flash_write(
             link.profile,
             point,
             link.device,
-            policy=self.policy,
+            policy=policy,
             ledger=self.ledger,
             current=held,
             registers=registers,
@@ -107,10 +119,12 @@ class SafeWriter:
             self.ledger.record(link.device, point, self._today())
         await link.write_registers(point, registers)
         note = ""
-        try:
-            after = await link.read_value(point)
-        except BusError as exc:
-            after, note = None, f"written; the read-back failed: {exc}"
+        after: codec.Decoded = None
+        if read_back:
+            try:
+                after = await link.read_value(point)
+            except BusError as exc:
+                note = f"written; the read-back failed: {exc}"
         return WriteOutcome(
             device=link.device,
             point=point,
