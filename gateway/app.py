@@ -13,11 +13,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gateway.bus import Line
+from gateway.command_router import CommandRouter
 from gateway.config import Cadence
+from gateway.feeds import FeedEngine
+from gateway.flash import LEDGER_FILE, FlashLedger, utc_today
+from gateway.link import DeviceLink
 from gateway.scheduler import BusWorker, DeviceTarget
 from gateway.sinks.mqtt import MqttSink
 from gateway.sinks.prometheus import MetricsServer
 from gateway.state import DeviceInfo, GatewayState, StateSink
+from gateway.writes import SafeWriter
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -91,6 +96,49 @@ def build_workers(
     return workers
 
 
+def build_writers(
+    config: GatewayConfig, workers: Sequence[BusWorker], ledger: FlashLedger
+) -> dict[str, SafeWriter]:
+    """The write path of every configured device, with its flash policy."""
+    by_bus = {worker.name: worker for worker in workers}
+    return {
+        device.name: SafeWriter(
+            DeviceLink(by_bus[device.bus], device.name),
+            policy=device.flash_policy(),
+            ledger=ledger,
+        )
+        for device in config.devices
+    }
+
+
+def _wire_writes(
+    config: GatewayConfig,
+    state: GatewayState,
+    workers: Sequence[BusWorker],
+    ledger: FlashLedger,
+    mqtt: MqttSink | None,
+) -> FeedEngine | None:
+    """Commands over MQTT, feeds and the flash-write metrics; the feed engine if any."""
+    state.writes.flash_counts = lambda: ledger.counts(utc_today())
+    state.writes.flash_budgets = {
+        (device.name, point): device.flash_write_budget
+        for device in config.devices
+        for point in device.flash_writes
+    }
+    writers = build_writers(config, workers, ledger)
+    feeds = FeedEngine(config.feeds, writers, state=state) if config.feeds else None
+    if feeds is not None:
+        for worker in workers:
+            worker.sinks.append(feeds)
+    if mqtt is not None and config.commands.enabled:
+        mqtt.listeners.append(
+            CommandRouter(config.mqtt.base_topic, writers, state=state, qos=config.mqtt.qos)
+        )
+    if mqtt is not None and feeds is not None and feeds.subscriptions():
+        mqtt.listeners.append(feeds)
+    return feeds
+
+
 def _stop_on_signals() -> asyncio.Event:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -148,18 +196,23 @@ async def run(
             config.mqtt, state, state_dir=state_directory(config), publish=publish_settings(config)
         )
         all_sinks.append(mqtt)
+    ledger = FlashLedger(state_directory(config) / LEDGER_FILE)
+    workers = build_workers(config, all_sinks, state)
+    feeds = _wire_writes(config, state, workers, ledger, mqtt)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
         metrics.start()
-    workers = build_workers(config, all_sinks, state)
     async with contextlib.AsyncExitStack() as stack:
+        stack.callback(ledger.close)
         if metrics is not None:
             stack.callback(metrics.stop)
         for worker in workers:
             stack.push_async_callback(worker.line.close)
         bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
         sink_tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
+        if feeds is not None:
+            sink_tasks.append(asyncio.create_task(feeds.run(), name="feeds"))
         waiter = asyncio.create_task(stop.wait(), name="gateway.stop")
         try:
             done, _ = await asyncio.wait(

@@ -21,7 +21,7 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from gateway import __version__, cli_calibrate, cli_operations, codec
+from gateway import __version__, cli_calibrate, cli_operations, cli_write, codec
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
 from gateway.bus import Line
@@ -539,6 +539,7 @@ def scan_command(
         raise typer.Exit(code=1)
 
 
+cli_write.register(app)
 cli_calibrate.register(app)
 cli_operations.register(app)
 

@@ -22,7 +22,7 @@ from gateway import codec
 from gateway.app import device_target, state_directory
 from gateway.config import DEFAULT_FLASH_WRITE_BUDGET, load_config
 from gateway.errors import ConfigError, GatewayError
-from gateway.flash import FlashLedger, FlashPolicy
+from gateway.flash import LEDGER_FILE, FlashLedger, FlashPolicy
 from gateway.link import DeviceLink, open_link
 from gateway.profiles import get_profile
 from gateway.scheduler import DeviceTarget
@@ -31,7 +31,6 @@ from gateway.timing import LineFormat
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
-LEDGER_FILE = "flash-writes.sqlite"
 
 out = Console(highlight=False, soft_wrap=True)
 err = Console(stderr=True, highlight=False)

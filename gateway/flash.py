@@ -19,6 +19,7 @@ reached the flash, so attempts are what count.
 from __future__ import annotations
 
 import sqlite3
+import threading
 from dataclasses import dataclass
 from datetime import UTC, date, datetime
 from enum import StrEnum
@@ -32,6 +33,9 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from gateway.profiles.model import Profile
+
+
+LEDGER_FILE = "flash-writes.sqlite"  # in the state directory, beside the MQTT queue
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -92,8 +96,21 @@ CREATE TABLE IF NOT EXISTS flash_writes (
 """
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FlashCounts:
+    """A copy of the ledger's counts, safe to read from another thread (the metrics)."""
+
+    day: date | None  # the UTC day ``today`` counts; None before any write this run
+    totals: dict[tuple[str, str], int]  # every flash write ever recorded
+    today: dict[tuple[str, str], int]
+
+
 class FlashLedger:
-    """A persistent count of flash writes per (device, point) and UTC day."""
+    """A persistent count of flash writes per (device, point) and UTC day.
+
+    The database is used from the event loop's thread only; :meth:`counts` hands the
+    metrics thread a copy kept in memory beside it.
+    """
 
     def __init__(self, path: Path) -> None:
         """Open (or create) the ledger at ``path``; a path that cannot be written raises."""
@@ -109,6 +126,33 @@ class FlashLedger:
             raise ConfigError(
                 f"the flash-write ledger {path} cannot be written: {exc}", key="state_dir"
             ) from exc
+        self._lock = threading.Lock()
+        self._totals = self._load_totals()
+        self._day: date | None = None
+        self._today: dict[tuple[str, str], int] = {}
+        self.load_today(utc_today())
+
+    def _load_totals(self) -> dict[tuple[str, str], int]:
+        rows = self._db.execute(
+            "SELECT device, point, SUM(count) FROM flash_writes GROUP BY device, point"
+        ).fetchall()
+        return {(device, point): int(count) for device, point, count in rows}
+
+    def counts(self, today: date) -> FlashCounts:
+        """The totals and ``today``'s counts, from memory (any thread)."""
+        with self._lock:
+            if self._day != today:
+                return FlashCounts(day=today, totals=dict(self._totals), today={})
+            return FlashCounts(day=today, totals=dict(self._totals), today=dict(self._today))
+
+    def load_today(self, today: date) -> None:
+        """Fill the in-memory counts of ``today`` from disk (at start and on a new day)."""
+        rows = self._db.execute(
+            "SELECT device, point, count FROM flash_writes WHERE day = ?", (today.isoformat(),)
+        ).fetchall()
+        with self._lock:
+            self._day = today
+            self._today = {(device, point): int(count) for device, point, count in rows}
 
     def count_today(self, device: str, point: str, today: date) -> int:
         """Flash writes of the point on ``today``."""
@@ -128,10 +172,7 @@ class FlashLedger:
 
     def totals(self) -> dict[tuple[str, str], int]:
         """Flash writes ever recorded, by (device, point): the source of a metric."""
-        rows = self._db.execute(
-            "SELECT device, point, SUM(count) FROM flash_writes GROUP BY device, point"
-        ).fetchall()
-        return {(device, point): int(count) for device, point, count in rows}
+        return self._load_totals()
 
     def record(self, device: str, point: str, today: date) -> None:
         """Count one flash write; if it cannot be counted, the write must not be sent."""
@@ -145,6 +186,13 @@ class FlashLedger:
             raise CommandRejectedError(
                 f"the flash write cannot be counted in {self.path}: {exc}", point=point
             ) from exc
+        key = (device, point)
+        with self._lock:
+            self._totals[key] = self._totals.get(key, 0) + 1
+            if self._day == today:
+                self._today[key] = self._today.get(key, 0) + 1
+                return
+        self.load_today(today)  # a new day (or a test's): its counts come from disk
 
     def close(self) -> None:
         """Close the database (the counts stay on disk)."""

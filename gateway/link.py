@@ -16,6 +16,7 @@ import contextlib
 from typing import TYPE_CHECKING
 
 from gateway.bus import Line
+from gateway.codec import DataType
 from gateway.commands import validate_write
 from gateway.errors import BusError, CommandRejectedError
 from gateway.samples import Quality
@@ -74,8 +75,18 @@ class DeviceLink:
         return (await self.read(point))[point]
 
     async def encode(self, point: str, value: object) -> tuple[int, ...]:
-        """The registers that write ``value`` to ``point``, or a :class:`CommandRejectedError`."""
-        return validate_write(self.profile, point, value, float_order=await self.float_order())
+        """The registers that write ``value`` to ``point``, or a :class:`CommandRejectedError`.
+
+        The value is checked before anything is read: bad input never reaches the bus, not
+        even as the read of the float format register a float needs.
+        """
+        known = self.worker.float_order(self.device)
+        registers = validate_write(self.profile, point, value, float_order=known)
+        if self.profile.point(point).format.dtype is DataType.FLOAT32:
+            order = await self.float_order()
+            if order is not known:
+                registers = validate_write(self.profile, point, value, float_order=order)
+        return registers
 
     async def write(self, point: str, value: object) -> tuple[int, ...]:
         """Check, encode and write a value (06 or 16), keeping the post-write wait.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
@@ -19,6 +20,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
 
     from gateway.bus import LineStats
+    from gateway.flash import FlashCounts
     from gateway.samples import DeviceEvent, Sample
 
 STALE_FACTOR = 2.0  # a value is stale when older than two intervals (plus a timeout)
@@ -71,6 +73,31 @@ class MqttStatus:
 
 
 @dataclass(slots=True)
+class FeedStatus:
+    """One feed as the metrics see it."""
+
+    feed: str  # device/point written
+    source: str  # device/point or mqtt:topic read
+    writes: int = 0
+    errors: int = 0
+    source_value: float | None = None
+    source_at: float | None = None  # monotonic time of the newest source value
+    stale: bool = False
+    fallback: bool = False  # the sensor was switched back to its own source
+
+
+@dataclass(slots=True)
+class WriteStatus:
+    """Commands and feeds: counts by outcome, flash writes, and each feed's state."""
+
+    # (device, kind "set"/"command"/"feed", outcome "ok"/"unchanged"/"rejected"/"failed")
+    outcomes: Counter[tuple[str, str, str]] = field(default_factory=Counter)
+    flash_counts: Callable[[], FlashCounts] | None = None
+    flash_budgets: dict[tuple[str, str], int] = field(default_factory=dict)
+    feeds: dict[str, FeedStatus] = field(default_factory=dict)
+
+
+@dataclass(slots=True)
 class GatewayState:
     """Latest samples, device availability, line statistics and the MQTT status."""
 
@@ -80,6 +107,7 @@ class GatewayState:
     lines: dict[str, LineStats] = field(default_factory=dict)
     health_sources: dict[str, Callable[[], list[DeviceHealth]]] = field(default_factory=dict)
     mqtt: MqttStatus = field(default_factory=MqttStatus)
+    writes: WriteStatus = field(default_factory=WriteStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
@@ -121,6 +149,11 @@ class GatewayState:
             if info is not None:
                 self.devices[key] = replace(info, online=event.online, reason=event.reason)
 
+    def count_write(self, device: str, kind: str, outcome: str) -> None:
+        """Count one command or feed write by its outcome."""
+        with self._lock:
+            self.writes.outcomes[device, kind, outcome] += 1
+
     def device_samples(self, bus: str, device: str) -> dict[str, Sample]:
         """The latest sample of each point of one device (cheap: no full snapshot)."""
         with self._lock:
@@ -136,6 +169,12 @@ class GatewayState:
                 lines=dict(self.lines),
                 health_sources=dict(self.health_sources),
                 mqtt=replace(self.mqtt),
+                writes=WriteStatus(
+                    outcomes=Counter(self.writes.outcomes),
+                    flash_counts=self.writes.flash_counts,
+                    flash_budgets=dict(self.writes.flash_budgets),
+                    feeds={k: replace(v) for k, v in self.writes.feeds.items()},
+                ),
                 started=self.started,
             )
 

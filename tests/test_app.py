@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 from gateway.app import run
 from gateway.config import parse_config
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from tests.test_scheduler import ListSink
+from tests.rigs import ListSink
 
 if TYPE_CHECKING:
     from pathlib import Path

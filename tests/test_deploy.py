@@ -59,9 +59,6 @@ CONTAINER_STATE = "/var/lib/gateway"
 METRICS_PORT = 9108
 MAX_EXPOSURE = 2.0  # systemd-analyze security: 0 (locked down) … 10 (unprotected)
 
-# Metrics that the rules and the dashboard may use before docs/metrics.md lists them: the
-# commands release exports the flash-write counter and its budget, and documents them.
-NOT_YET_EXPORTED = frozenset({"gateway_flash_writes_total", "gateway_flash_write_budget"})
 HISTOGRAM_SUFFIXES = ("_bucket", "_sum", "_count")
 
 
@@ -115,7 +112,7 @@ def metric_names(promql: str) -> set[str]:
 def undocumented(expressions: dict[str, str]) -> dict[str, set[str]]:
     documented, _ = documented_metrics()
     missing = {
-        where: metric_names(expr) - documented - NOT_YET_EXPORTED
+        where: metric_names(expr) - documented
         for where, expr in expressions.items()
     }
     return {where: names for where, names in missing.items() if names}
@@ -132,13 +129,6 @@ def test_metric_names_are_found_in_promql() -> None:
         "gateway_mqtt_queue_max",
     }
     assert metric_names("gateway_requests_count") == {"gateway_requests_count"}  # no histogram
-
-
-def test_not_yet_exported_metrics_are_still_undocumented() -> None:
-    documented, _ = documented_metrics()
-    assert not NOT_YET_EXPORTED & documented, (
-        "docs/metrics.md documents them now: drop them from NOT_YET_EXPORTED"
-    )
 
 
 # --- Prometheus ----------------------------------------------------------------------------
@@ -181,8 +171,8 @@ def test_every_alert_is_tested_firing_and_silent() -> None:
 def test_alert_rules_use_documented_metrics_only() -> None:
     expressions = {rule["alert"]: rule["expr"] for rule in rules()}
     assert undocumented(expressions) == {}
-    flash = {name for expr in expressions.values() for name in metric_names(expr)}
-    assert flash >= NOT_YET_EXPORTED  # the flash-write rule is there, waiting
+    used = {name for expr in expressions.values() for name in metric_names(expr)}
+    assert {"gateway_flash_writes_today", "gateway_flash_write_budget"} <= used
 
 
 def test_alerts_have_severity_and_summary() -> None:

@@ -23,7 +23,7 @@ import random
 import socket
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Final, Protocol
 
 import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
@@ -54,6 +54,18 @@ CLIENT_TIMEOUT_S: Final = 4.0  # connect, PUBACK and disconnect: within the app'
 NOT_AUTHORISED: Final = frozenset({4, 5, 134, 135})  # CONNACK: MQTT 3.1.1 4, 5; MQTT 5 134, 135
 
 
+class Listener(Protocol):
+    """Something that takes messages from the broker: commands, feed sources."""
+
+    def subscriptions(self) -> list[str]:
+        """The topic filters it wants (subscribed with QoS 1 at every connection)."""
+        ...
+
+    async def handle(self, topic: str, payload: bytes, *, retained: bool = False) -> list[Message]:
+        """Take one message; what it returns is published (results)."""
+        ...
+
+
 @dataclass(slots=True)
 class _Published:
     """What was last published on a value topic, for the change and deadband modes."""
@@ -82,9 +94,12 @@ class MqttSink:
         *,
         state_dir: Path,
         publish: Mapping[tuple[str, str], PublishSettings] | None = None,
+        listeners: Sequence[Listener] = (),
     ) -> None:
         """Check the settings that can fail at start (TLS files, the state directory)."""
         self.settings = settings
+        self.listeners = list(listeners)
+        self._handling: set[asyncio.Task[None]] = set()
         self.state = state
         self.base = settings.base_topic
         self.client_id = settings.client_id or f"gateway-{socket.gethostname()}"
@@ -288,7 +303,7 @@ class MqttSink:
                         try:
                             await self._on_connect(client)
                             delay = BACKOFF_FIRST_S
-                            await self._send_forever(client)
+                            await self._session(client)
                         except asyncio.CancelledError:
                             await self._say_offline(client)
                             raise
@@ -297,6 +312,8 @@ class MqttSink:
                 await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
                 delay = min(delay * 2, self.settings.reconnect_max_s)
         finally:
+            for task in self._handling:
+                task.cancel()
             self._connected = False
             if self._live:
                 self.store.append(list(self._live))
@@ -358,6 +375,50 @@ class MqttSink:
             self.store.remove([i for i, _ in batch])
             self.state.mqtt.published += len(batch)
             self._update_status()
+
+    async def _session(self, client: aiomqtt.Client) -> None:
+        """Send, and take messages for the listeners, until the connection fails."""
+        filters = [f for listener in self.listeners for f in listener.subscriptions()]
+        if not filters:
+            await self._send_forever(client)
+            return
+        for topic_filter in dict.fromkeys(filters):
+            await client.subscribe(topic_filter, qos=1)
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._send_forever(client))
+                group.create_task(self._receive_forever(client))
+        except* aiomqtt.MqttError as failed:
+            raise failed.exceptions[0] from None  # the reconnect loop handles one error
+
+    async def _receive_forever(self, client: aiomqtt.Client) -> None:
+        """Hand every message to the listeners that subscribed to it, each in its own task.
+
+        A command can take seconds (post-write waits, a measurement): it must hold up
+        neither the next message nor the publishing.
+        """
+        async for message in client.messages:
+            topic = message.topic
+            payload = message.payload
+            data = payload if isinstance(payload, bytes) else str(payload or "").encode()
+            for listener in self.listeners:
+                if any(topic.matches(f) for f in listener.subscriptions()):
+                    task = asyncio.create_task(
+                        self._handle(listener, topic.value, data, retained=message.retain)
+                    )
+                    self._handling.add(task)
+                    task.add_done_callback(self._handling.discard)
+
+    async def _handle(
+        self, listener: Listener, topic: str, payload: bytes, *, retained: bool
+    ) -> None:
+        try:
+            replies = await listener.handle(topic, payload, retained=retained)
+        except Exception:
+            _LOGGER.exception("MQTT: handling %s failed", topic)
+            return
+        if replies:
+            self._enqueue(replies)
 
     async def _send_forever(self, client: aiomqtt.Client) -> None:
         while True:

@@ -129,6 +129,11 @@ RESERVED_NAMES: Final = frozenset(
         "gateway_request_latency_seconds_bucket",
         "gateway_request_latency_seconds_sum",
         "gateway_request_latency_seconds_count",
+        "gateway_flash_writes_today",
+        "gateway_flash_write_budget",
+        "gateway_feed_source_age_seconds",
+        "gateway_feed_stale",
+        "gateway_feed_fallback",
     }
     | {
         name + suffix
@@ -144,6 +149,10 @@ RESERVED_NAMES: Final = frozenset(
             "gateway_bus_port_failures",
             "gateway_mqtt_dropped",
             "gateway_mqtt_published",
+            "gateway_writes",
+            "gateway_flash_writes",
+            "gateway_feed_writes",
+            "gateway_feed_errors",
         )
         for suffix in ("", "_total")
     }
@@ -274,6 +283,7 @@ class GatewayCollector(Collector):
         yield from _devices(snapshot, health)
         yield from _lines(snapshot, health, now)
         yield from _mqtt(snapshot)
+        yield from _writes(snapshot, now)
 
 
 def _values(snapshot: GatewayState, now: float) -> Iterator[Metric]:
@@ -612,6 +622,73 @@ def _mqtt(snapshot: GatewayState) -> Iterator[Metric]:
     yield CounterMetricFamily(
         "gateway_mqtt_published", "Messages delivered to the broker", value=mqtt.published
     )
+
+
+def _writes(snapshot: GatewayState, now: float) -> Iterator[Metric]:
+    """Commands and feeds by outcome, flash writes against their budget, feed health."""
+    writes = snapshot.writes
+    outcomes = CounterMetricFamily(
+        "gateway_writes",
+        "Commands and feed writes by kind (set, command, feed) and outcome",
+        labels=["device", "kind", "outcome"],
+    )
+    for (device, kind, outcome), count in sorted(writes.outcomes.items()):
+        outcomes.add_metric([device, kind, outcome], count)
+    yield outcomes
+    if writes.flash_counts is not None:
+        counts = writes.flash_counts()
+        total = CounterMetricFamily(
+            "gateway_flash_writes",
+            "Writes to flash-backed registers, ever (kept across restarts)",
+            labels=["device", "point"],
+        )
+        today = GaugeMetricFamily(
+            "gateway_flash_writes_today",
+            "Writes to flash-backed registers this UTC day",
+            labels=["device", "point"],
+        )
+        for key in sorted(counts.totals.keys() | writes.flash_budgets.keys()):
+            total.add_metric(list(key), counts.totals.get(key, 0))
+            today.add_metric(list(key), counts.today.get(key, 0))
+        yield total
+        yield today
+    budget = GaugeMetricFamily(
+        "gateway_flash_write_budget",
+        "Flash writes allowed per point and UTC day (flash_write_budget)",
+        labels=["device", "point"],
+    )
+    for key, allowed in sorted(writes.flash_budgets.items()):
+        budget.add_metric(list(key), allowed)
+    yield budget
+    if not writes.feeds:
+        return
+    labels = ["feed", "source"]
+    feed_writes = CounterMetricFamily(
+        "gateway_feed_writes", "Values written by a feed", labels=labels
+    )
+    feed_errors = CounterMetricFamily(
+        "gateway_feed_errors", "Failed feed writes and unusable source values", labels=labels
+    )
+    age = GaugeMetricFamily(
+        "gateway_feed_source_age_seconds", "Age of the newest source value", labels=labels
+    )
+    stale = GaugeMetricFamily(
+        "gateway_feed_stale", "1 while the source is older than max_age", labels=labels
+    )
+    fallback = GaugeMetricFamily(
+        "gateway_feed_fallback",
+        "1 while the sensor uses its own source because the feed's went stale",
+        labels=labels,
+    )
+    for name, feed in sorted(writes.feeds.items()):
+        labels_of = [name, feed.source]
+        feed_writes.add_metric(labels_of, feed.writes)
+        feed_errors.add_metric(labels_of, feed.errors)
+        if feed.source_at is not None:
+            age.add_metric(labels_of, max(0.0, now - feed.source_at))
+        stale.add_metric(labels_of, float(feed.stale))
+        fallback.add_metric(labels_of, float(feed.fallback))
+    yield from (feed_writes, feed_errors, age, stale, fallback)
 
 
 # --- /healthz --------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ from gateway.errors import PublishError
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.state import GatewayState
 from tests.mqtt_broker import Broker, TlsFiles, recording
-from tests.test_scheduler import ListSink
+from tests.rigs import ListSink
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator, Sequence
