@@ -14,8 +14,10 @@ either the value read back (``value``, ``written``) or the operation's ``result`
 one after another (a flash write's check and write must not interleave with another's);
 commands to different devices, and polling, go on meanwhile.
 
-A retained command is refused: the broker would hand it to the gateway again at every
-reconnection, and the sensor would be written again each time.
+A command the broker hands over as retained is refused: that happens when the gateway
+subscribes (at every start and reconnection), so a command left retained would otherwise
+be written again each time. (A retained command published while the gateway is connected
+reaches it as a live message, as MQTT 3.1.1 section 3.3.1.3 requires, and is run once.)
 """
 
 from __future__ import annotations
@@ -171,8 +173,9 @@ class CommandRouter:
     def _writer_for(self, route: Route, *, retained: bool) -> SafeWriter:
         if retained:
             raise CommandRejectedError(
-                "retained commands are refused: the broker would deliver them again at "
-                "every reconnection; publish the command without the retain flag"
+                "a retained command, delivered again at (re)connection, is refused: it would "
+                "be written at every reconnection; publish commands without the retain flag "
+                "and clear this one (an empty retained message on its topic)"
             )
         writer = self.writers.get(route.device)
         if writer is None:

@@ -1031,7 +1031,9 @@ def _cross_check(data: Mapping[str, Any]) -> Iterator[tuple[_KeyPath, str]]:
         bus = bus_models.get(model.bus)
         if bus is not None:
             yield from _check_timeout(here, model, bus)
-    yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices)
+    mqtt = data.get("mqtt")
+    mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
+    yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
 
 
 def _check_flash_writes(
@@ -1058,7 +1060,7 @@ def _check_flash_writes(
 
 
 def _check_feeds(
-    feeds: Sequence[_Entry[FeedConfig]], devices: Sequence[_Entry[DeviceConfig]]
+    feeds: Sequence[_Entry[FeedConfig]], devices: Sequence[_Entry[DeviceConfig]], *, mqtt_on: bool
 ) -> Iterator[tuple[_KeyPath, str]]:
     """A feed writes a RAM or volatile point of a known device, from a polled source."""
     by_name = {d.model.name: d.model for d in devices if d.model is not None}
@@ -1076,32 +1078,39 @@ def _check_feeds(
         first = targets.setdefault((model.device, model.point), feed.index)
         if first != feed.index:
             yield (*here, "point"), f"{model.name} is already fed by feeds[{first}]"
-        source = model.source
-        if source.device is None or source.point is None:
-            continue
-        origin = by_name.get(source.device)
-        if origin is None:
-            yield (
-                (*here, "source", "device"),
-                f"unknown device {source.device!r}; devices: {_names(by_name)}",
-            )
-            continue
-        profile = _profile_or_none(origin.profile)
-        if profile is None:
-            continue
-        if not profile.has_point(source.point):
-            yield (
-                (*here, "source", "point"),
-                f"profile {origin.profile} has no point {source.point!r}",
-            )
-        elif not origin.interval_for(source.point).periodic:
-            yield (
-                (*here, "source", "point"),
-                (
-                    f"{source.device}/{source.point} is not polled periodically, so it would "
-                    "never feed anything; give it an interval under the device's points"
-                ),
-            )
+        yield from _check_feed_source(here, model.source, by_name, mqtt_on=mqtt_on)
+
+
+def _check_feed_source(
+    here: _KeyPath, source: FeedSource, by_name: Mapping[str, DeviceConfig], *, mqtt_on: bool
+) -> Iterator[tuple[_KeyPath, str]]:
+    if source.topic is not None and not mqtt_on:
+        yield (*here, "source", "topic"), "an MQTT source needs MQTT (mqtt.enabled is false)"
+    if source.device is None or source.point is None:
+        return
+    origin = by_name.get(source.device)
+    if origin is None:
+        yield (
+            (*here, "source", "device"),
+            f"unknown device {source.device!r}; devices: {_names(by_name)}",
+        )
+        return
+    profile = _profile_or_none(origin.profile)
+    if profile is None:
+        return
+    if not profile.has_point(source.point):
+        yield (
+            (*here, "source", "point"),
+            f"profile {origin.profile} has no point {source.point!r}",
+        )
+    elif not origin.interval_for(source.point).periodic:
+        yield (
+            (*here, "source", "point"),
+            (
+                f"{source.device}/{source.point} is not polled periodically, so it would "
+                "never feed anything; give it an interval under the device's points"
+            ),
+        )
 
 
 def _check_feed_target(
@@ -1117,7 +1126,11 @@ def _check_feed_target(
     if not point.writable:
         yield (*here, "point"), f"{feed.point} is read-only"
     elif point.storage is Storage.FLASH:
-        free = [p.name for p in profile.points if p.writable and p.storage is not Storage.FLASH]
+        free = [
+            p.name
+            for p in profile.points
+            if p.writable and p.storage is not Storage.FLASH and p.dtype in NUMERIC_TYPES
+        ]
         hint = f"; RAM or volatile points of {device.profile}: {', '.join(free)}" if free else ""
         yield (
             (*here, "point"),

@@ -24,7 +24,7 @@ from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.rigs import ListSink
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Iterator, Sequence
+    from collections.abc import AsyncIterator, Sequence
     from pathlib import Path
 
     from gateway.samples import Sample
@@ -42,16 +42,6 @@ SENSORS = [
     },
     {"profile": "reiss-m0c", "address": 10, "animate": False, "values": {"concentration": 0.168}},
 ]
-
-
-@pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Broker]:
-    directory = tmp_path / "broker"
-    directory.mkdir()
-    running = Broker(directory)
-    running.start()
-    yield running
-    running.stop()
 
 
 @contextlib.asynccontextmanager
