@@ -33,7 +33,8 @@ from gateway.cli_device import (
     out,
 )
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
-from gateway.flash import FlashPolicy
+from gateway.flash import FlashLedger, FlashPolicy
+from gateway.profiles.model import Storage
 from gateway.samples import json_value
 from gateway.writes import SafeWriter
 
@@ -46,7 +47,9 @@ async def _write(spec: DeviceSpec, point: str, value: object, *, allow_flash: bo
     policy = spec.policy
     if allow_flash:
         policy = FlashPolicy(allowed=policy.allowed | {point}, daily_budget=policy.daily_budget)
-    ledger = spec.ledger()
+    flash = spec.target.profile.point(point).storage is Storage.FLASH
+    # Only a flash write needs the shared ledger on disk; anything else leaves no file.
+    ledger = spec.ledger() if flash else FlashLedger(None)
     try:
         async with device_link(spec) as link:
             return await SafeWriter(link, policy=policy, ledger=ledger).set(point, value)

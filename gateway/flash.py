@@ -112,12 +112,16 @@ class FlashLedger:
     metrics thread a copy kept in memory beside it.
     """
 
-    def __init__(self, path: Path) -> None:
-        """Open (or create) the ledger at ``path``; a path that cannot be written raises."""
+    def __init__(self, path: Path | None) -> None:
+        """Open (or create) the ledger at ``path``; a path that cannot be written raises.
+
+        ``None`` keeps it in memory: for a command-line write that cannot touch flash.
+        """
         self.path = path
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(path, isolation_level=None)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(path or ":memory:", isolation_level=None)
             self._db.executescript(_SCHEMA)
             # Prove the file is writable now, not at the first flash write.
             self._db.execute("BEGIN IMMEDIATE")
