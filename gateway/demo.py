@@ -103,9 +103,15 @@ def _config(port: Path, mqtt_port: int | None, metrics_port: int, state_dir: Pat
         if mqtt_port is not None
         else "mqtt: {enabled: false}\n"
     )
+    # The S10 takes its compensation temperature from the tecLine's, as a plant would.
+    feeds = (
+        "feeds:\n"
+        "  - {device: aeration_oxygen, point: compensation_temperature, interval: 30,"
+        " deadband: 0.1, source: {device: pool_chlorine, point: temperature}}\n"
+    )
     return (
         f"buses:\n  - {{name: demo, port: {port}, baudrate: 19200, parity: E}}\n"
-        f"devices:\n{devices}{mqtt}"
+        f"devices:\n{devices}{mqtt}{feeds}"
         f"prometheus: {{host: 127.0.0.1, port: {metrics_port}}}\n"
         f"state_dir: {state_dir}\n"
     )
@@ -158,7 +164,7 @@ def _table(state: GatewayState) -> Group:
 
 async def run_demo(*, mqtt_port: int = 1883, metrics_port: int = 9108, live: bool = True) -> None:
     """Run the demo until SIGINT or SIGTERM."""
-    console = Console()
+    console = Console(soft_wrap=True)  # commands to copy stay on one line
     with tempfile.TemporaryDirectory(prefix="gateway-demo-") as tmp:
         directory = Path(tmp)
         pty = directory / "ttyDEMO"
@@ -179,6 +185,10 @@ async def run_demo(*, mqtt_port: int = 1883, metrics_port: int = 9108, live: boo
                     console.print(
                         f"watch MQTT:  mosquitto_sub -h 127.0.0.1 -p {broker_port} "
                         f"-t '{BASE_TOPIC}/#' -v"
+                    )
+                    console.print(
+                        f"write:       mosquitto_pub -h 127.0.0.1 -p {broker_port} "
+                        f"-t {BASE_TOPIC}/digester_oxygen/compensation_pressure/set -m 1003.5"
                     )
                 console.print(f"metrics:     curl http://127.0.0.1:{metrics_port}/metrics")
                 console.print(f"health:      curl http://127.0.0.1:{metrics_port}/healthz")
