@@ -125,3 +125,17 @@ class CommandRejectedError(GatewayError):
         self.reason = reason
         self.point = point
         super().__init__(f"{point}: {reason}" if point else reason)
+
+
+class CalibrationInterruptedError(GatewayError):
+    """A calibration stopped part-way through its writes; ``written`` lists what went out.
+
+    A separate kind from :class:`CommandRejectedError`, which promises that nothing was
+    sent: here the device may hold part of a calibration, and the message says what to do.
+    """
+
+    def __init__(self, message: str, *, written: tuple[str, ...], failed: str) -> None:
+        """Keep the points written before the failure and the point that failed."""
+        self.written = written
+        self.failed = failed
+        super().__init__(message)
