@@ -111,10 +111,7 @@ def metric_names(promql: str) -> set[str]:
 
 def undocumented(expressions: dict[str, str]) -> dict[str, set[str]]:
     documented, _ = documented_metrics()
-    missing = {
-        where: metric_names(expr) - documented
-        for where, expr in expressions.items()
-    }
+    missing = {where: metric_names(expr) - documented for where, expr in expressions.items()}
     return {where: names for where, names in missing.items() if names}
 
 
