@@ -114,6 +114,7 @@ class MqttSink:
         self._rng = random.Random()  # noqa: S311 - jitter only
         self._failures_in_a_row = 0
         self._discovered: set[tuple[str, str]] = set()
+        self._sequence: dict[str, int] = {}  # state documents per device since the start
         if settings.tls is not None:
             for name in ("ca", "cert", "key"):
                 path = getattr(settings.tls, name)
@@ -231,8 +232,10 @@ class MqttSink:
             else:
                 faults[point] = sample.fault or sample.quality.value
                 quality[point] = sample.quality.value
+        seq = self._sequence[device] = self._sequence.get(device, 0) + 1
         document = {
             "time": when.isoformat(),
+            "seq": seq,
             "values": values,
             "units": units,
             "faults": faults,

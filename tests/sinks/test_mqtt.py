@@ -99,7 +99,9 @@ async def test_every_topic_of_the_contract(tmp_path: Path, broker: Broker) -> No
         )  # a clean stop
     # A fault float is a fault: its value topic is cleared, never a number.
     assert set(seen.on("gw/aeration/oxygen")) == {""}
-    state = json.loads(seen.on("gw/aeration/state")[-1])
+    documents = [json.loads(p) for p in seen.on("gw/aeration/state")]
+    assert [d["seq"] for d in documents] == list(range(1, len(documents) + 1))  # none lost
+    state = documents[-1]
     assert state["faults"]["oxygen"] == "overrange"
     assert state["quality"]["oxygen"] == "fault"
     assert "oxygen" not in state["values"]
