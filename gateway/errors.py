@@ -17,7 +17,9 @@
     │   ├── BusTimeoutError         no (complete) answer in time
     │   └── BusClosedError          the port is closed or went away
     ├── PublishError                a sink could not deliver
-    └── CommandRejectedError        a write command failed validation; nothing was sent
+    ├── CommandRejectedError        a write command failed validation; nothing was sent
+    ├── CalibrationInterruptedError a calibration stopped part-way (what was written)
+    └── OperationTimeoutError       an operation's device did not get there in time
 
 Foreign exceptions (pymodbus, pyserial, yaml) are translated into these at exactly
 one boundary each, with ``raise ... from exc``.
@@ -139,3 +141,7 @@ class CalibrationInterruptedError(GatewayError):
         self.written = written
         self.failed = failed
         super().__init__(message)
+
+
+class OperationTimeoutError(GatewayError):
+    """An operation's device did not reach the awaited state in time (the write was sent)."""
