@@ -280,3 +280,46 @@ async def test_a_stale_feed_hands_the_sensor_back_its_own_source(
         assert writes(server, 1)[3:] == [(16, 0x25B0, cdab(16.2)), (6, 0x25AF, (0b001,))]
         assert (feed.stale, feed.fallback) == (False, False)
         assert server.bus.stats()["timing_violations"] == 0
+
+
+async def test_operations_as_mqtt_commands(tmp_path: Path, broker: Broker) -> None:
+    async with (
+        simulated(tmp_path, SENSORS) as server,
+        recording(broker.port, "gw/#") as seen,
+        gateway(config(tmp_path, broker.port)) as state,
+        publisher(broker.port) as client,
+    ):
+        await seen.wait_for("gw/hygienic/availability", "online")
+        h10 = server.bus.devices[2]
+        counter = h10.get("measurement_counter")
+        measured = await command(client, seen, "gw/hygienic/command/measure", '{"id": "m1"}')
+        assert (measured["status"], measured["id"], measured["command"]) == ("ok", "m1", "measure")
+        assert measured["result"]["oxygen"] == h10.get("oxygen")
+        assert h10.get("measurement_counter") == counter + 1  # type: ignore[operator]
+        assert (16, 0x3001, (0, 5)) in writes(server, 2)  # bit 2 set, bit 0 kept
+
+        log = await command(client, seen, "gw/basin/command/calibration_log", "")
+        assert log["status"] == "ok"
+        assert log["result"]["kind"] == "history"
+
+        clock = await command(client, seen, "gw/aeration/command/set_clock", "{}")
+        assert clock["status"] == "ok"
+        assert abs(clock["result"]["offset_after_s"]) < 2.0
+        [clock_write] = [w for w in writes(server, 1) if w[1] == 0x2840]
+        assert clock_write[0] == 16
+
+        before = {a: writes(server, a) for a in (1, 2, 10)}
+        refusals = {
+            "gw/basin/command/measure": "does not apply to profile reiss-m0c",
+            "gw/hygienic/command/self_destruct": "self_destruct",
+            "gw/hygienic/command/measure": "malformed JSON",
+        }
+        for topic, reason in refusals.items():
+            payload = "{oops" if topic.endswith("measure") and "hygienic" in topic else ""
+            refused = await command(client, seen, topic, payload)
+            assert refused["status"] == "error", topic
+            assert reason in refused["reason"], (topic, refused["reason"])
+        assert {a: writes(server, a) for a in (1, 2, 10)} == before
+        assert state.writes.outcomes["hygienic", "command", "ok"] == 1
+        assert state.writes.outcomes["hygienic", "command", "rejected"] == 2
+        assert server.bus.stats()["timing_violations"] == 0
