@@ -102,6 +102,10 @@ class DeviceState:
     target: DeviceTarget
     next_due: dict[str, float] = field(default_factory=dict)
     identity_pending: set[str] = field(default_factory=set)
+    # The earliest deadline of each class (slow: diagnostics), cleared whenever a deadline,
+    # the pending identity or the unreadable points change: asked for on every scheduling
+    # step of every device, it must not walk all points each time.
+    deadline_cache: dict[bool, float] = field(default_factory=dict)
     values: dict[str, codec.Decoded] = field(default_factory=dict)
     attempts: Counter[str] = field(default_factory=Counter)
     online: bool | None = None  # None until the first answer or the first offline verdict
@@ -407,6 +411,7 @@ class BusWorker:
         """Everything due now, identity again (start or reconnection)."""
         state.next_due.clear()
         state.identity_pending.clear()
+        state.deadline_cache.clear()
         state.fresh = set(state.target.intervals)
         profile = state.profile
         for name, interval in state.target.intervals.items():
@@ -439,14 +444,20 @@ class BusWorker:
         """When the device next has work of the class: values (fast) or diagnostics (slow)."""
         if state.online is False:
             return state.probe_at if not slow else math.inf
-        if not slow and state.identity_pending - state.unreadable:
+        if not slow and any(n not in state.unreadable for n in state.identity_pending):
             return 0.0
-        pending = [
-            t
-            for n, t in state.next_due.items()
-            if n not in state.unreadable and self._is_slow(state, n) == slow
-        ]
-        return min(pending, default=math.inf)
+        cached = state.deadline_cache.get(slow)
+        if cached is None:
+            cached = min(
+                (
+                    t
+                    for n, t in state.next_due.items()
+                    if n not in state.unreadable and self._is_slow(state, n) == slow
+                ),
+                default=math.inf,
+            )
+            state.deadline_cache[slow] = cached
+        return cached
 
     def _pick(self, now: float, *, slow: bool) -> DeviceState | None:
         """The device with the earliest due work of the class (ties: lower address)."""
@@ -575,6 +586,7 @@ class BusWorker:
             if exc.code == frames.ILLEGAL_ADDRESS:
                 point = block.points[0]
                 state.unreadable.add(point.name)
+                state.deadline_cache.clear()
                 _LOGGER.warning(
                     "%s/%s: the device does not answer %s (%#06x): exception 02; no longer polled",
                     self.name,
@@ -624,7 +636,9 @@ class BusWorker:
                 samples.append(self._sample(state, point, fault=fault, comms_error=True, at=at))
                 continue
             state.values[point.name] = value
-            state.identity_pending.discard(point.name)
+            if point.name in state.identity_pending:
+                state.identity_pending.discard(point.name)
+                state.deadline_cache.clear()
             if isinstance(value, codec.Fault):
                 samples.append(self._sample(state, point, fault=value.name, at=at))
             else:
@@ -635,6 +649,7 @@ class BusWorker:
         at = (time.monotonic(), datetime.now(tz=UTC))
         for point in block.points:
             state.identity_pending.discard(point.name)
+        state.deadline_cache.clear()
         return [self._sample(state, p, fault=reason, comms_error=True, at=at) for p in block.points]
 
     def _sample(
@@ -670,6 +685,7 @@ class BusWorker:
 
     def _advance(self, state: DeviceState, names: Sequence[str], now: float) -> None:
         """Move the deadlines of the points just handled; count and skip missed ones."""
+        state.deadline_cache.clear()
         for name in set(names):
             interval = state.target.intervals.get(name)
             if interval is None or name not in state.next_due:
