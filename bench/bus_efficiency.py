@@ -1,19 +1,21 @@
 """How close the bus engine gets to the fastest polling the manuals allow.
 
-Reference plant: one S10, one H10, two tecLine and one Reiss M0c on one line at 9600 8E1
-(or --baudrate/--parity), simulated in a separate process with wire pacing, so the line
-takes the time a real one would. The gateway polls the process and status points of every
-device as fast as it may (poll interval 1 ms, so the line is always busy) for --seconds.
+Reference plant: one S10, one H10, two tecLine and one Reiss M0c on one line, simulated
+in a separate process with wire pacing, so the line takes the time a real one would. The
+gateway polls the process and status points of every device as fast as it may (poll
+interval 1 ms, so the line is always busy) for --seconds.
 
-Printed, and written to bench/results/bus_efficiency.json:
+Each line format of --formats in turn (default: 9600 8E1, 19200 8N1, 38400 8E1, 115200 8N1
+and 9600 8N2); printed as a table, and written to bench/results/bus_efficiency.json:
 - frames and bus time per cycle of the plan, against one request per point;
 - sustained transactions and point values per second;
 - efficiency: the theoretical minimum bus time of the measured transactions (gap before
   each request, request and answer on the wire, the simulated device's answer delay)
   divided by the bus time measured;
-- the gateway's CPU time per transaction (this process only; the simulator runs apart).
+- the gateway's CPU time per transaction (this process only; the simulator runs apart)
+  and its peak resident memory.
 
-Run: .venv/bin/python bench/bus_efficiency.py [--seconds 20] [--baudrate 9600 --parity E]
+Run: .venv/bin/python bench/bus_efficiency.py [--seconds 15] [--formats 9600-E-1,19200-N-1]
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import asyncio
 import contextlib
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -151,16 +154,11 @@ async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[s
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    parser.add_argument("--seconds", type=float, default=20.0)
-    parser.add_argument("--baudrate", type=int, default=9600)
-    parser.add_argument("--parity", choices="NEO", default="E")
-    parser.add_argument("--stopbits", type=int, choices=(1, 2), default=1)
-    args = parser.parse_args()
-    line = LineFormat(baudrate=args.baudrate, parity=args.parity, stopbits=args.stopbits)
+SWEEP = ("9600-E-1", "19200-N-1", "38400-E-1", "115200-N-1", "9600-N-2")
+
+
+def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
+    """Run the reference plant at one line format and work out its figures."""
     figures = plan_figures(line)
     with tempfile.TemporaryDirectory() as tmp:
         config, port, stats = (
@@ -189,51 +187,58 @@ def main() -> None:
         assert simulator.stdout is not None
         simulator.stdout.readline()  # ready
         try:
-            measured = asyncio.run(measure(port, line, args.seconds))
+            measured = asyncio.run(measure(port, line, seconds))
         finally:
             simulator.terminate()
             simulator.wait(timeout=10)
         referee = json.loads(stats.read_text(encoding="utf-8"))
     cycles_per_s = measured["transactions_per_s"] / figures["frames_per_cycle"]
     measured_cycle_s = 1.0 / cycles_per_s
-    efficiency = figures["bus_s_per_cycle"] / measured_cycle_s
-    result = {
+    return {
         "line": str(line),
         "devices": [pid for _, pid, _ in PLANT],
         **figures,
         "measured_s_per_cycle": measured_cycle_s,
         "cycles_per_s": cycles_per_s,
         **measured,
-        "efficiency": efficiency,
+        "efficiency": figures["bus_s_per_cycle"] / measured_cycle_s,
+        "gateway_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "timing_violations": referee["timing_violations"],
     }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--seconds", type=float, default=15.0)
+    parser.add_argument(
+        "--formats",
+        default=",".join(SWEEP),
+        help="BAUD-PARITY-STOPBITS list (default: %(default)s)",
+    )
+    args = parser.parse_args()
+    results = []
+    for text in args.formats.split(","):
+        baudrate, parity, stopbits = text.split("-")
+        line = LineFormat(baudrate=int(baudrate), parity=parity, stopbits=int(stopbits))
+        results.append(one_format(line, args.seconds))
+        print(json.dumps(results[-1]), flush=True)
     RESULTS.mkdir(exist_ok=True)
-    name = f"bus_efficiency_{line.baudrate}_8{line.parity}{line.stopbits}.json"
-    (RESULTS / name).write_text(json.dumps(result, indent=2), encoding="utf-8")
-    rows = [
-        ("line", str(line)),
-        (
-            "frames per cycle (plan / one per point)",
-            f"{figures['frames_per_cycle']} / {figures['frames_per_cycle_one_per_point']}",
-        ),
-        (
-            "bus time per cycle, ms (plan / one per point)",
-            (
-                f"{1000 * figures['bus_s_per_cycle']:.1f} / "
-                f"{1000 * figures['bus_s_per_cycle_one_per_point']:.1f}"
-            ),
-        ),
-        ("measured time per cycle, ms", f"{1000 * measured_cycle_s:.1f}"),
-        ("efficiency (minimum / measured)", f"{efficiency:.3f}"),
-        ("transactions per second", f"{measured['transactions_per_s']:.1f}"),
-        ("point values per second", f"{measured['values_per_s']:.1f}"),
-        ("gateway CPU per transaction, µs", f"{measured['cpu_us_per_transaction']:.0f}"),
-        ("errors / timing violations", f"{measured['errors']} / {referee['timing_violations']}"),
-    ]
-    width = max(len(label) for label, _ in rows)
-    for label, value in rows:
-        print(f"{label:<{width}}  {value}")
-    print(json.dumps(result))
+    (RESULTS / "bus_efficiency.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
+    print(
+        f"{'line':<12} {'frames/cycle':>13} {'min ms':>7} {'meas ms':>8} {'efficiency':>10} "
+        f"{'tx/s':>6} {'values/s':>8} {'µs CPU/tx':>9} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
+    )
+    for r in results:
+        frames_text = f"{r['frames_per_cycle']}/{r['frames_per_cycle_one_per_point']}"
+        print(
+            f"{r['line']:<12} {frames_text:>13} {1000 * r['bus_s_per_cycle']:>7.1f} "  # type: ignore[operator]
+            f"{1000 * r['measured_s_per_cycle']:>8.1f} {r['efficiency']:>10.3f} "  # type: ignore[operator]
+            f"{r['transactions_per_s']:>6.1f} {r['values_per_s']:>8.1f} "
+            f"{r['cpu_us_per_transaction']:>9.0f} {r['gateway_rss_mib']:>7.1f} "
+            f"{r['errors']:>4} {r['timing_violations']:>4}"
+        )
 
 
 if __name__ == "__main__":

@@ -186,8 +186,10 @@ asyncio.run(main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3])))
 
 
 @contextlib.asynccontextmanager
-async def simulators(directory: Path, buses: int, devices: int) -> AsyncIterator[list[Path]]:
-    """All simulated buses in one process apart from the gateway, so they share one core."""
+async def simulators(
+    directory: Path, buses: int, devices: int
+) -> AsyncIterator[tuple[list[Path], int]]:
+    """All simulated buses in one process apart from the gateway; their ports and its pid."""
     process = await asyncio.create_subprocess_exec(
         sys.executable,
         "-c",
@@ -200,7 +202,7 @@ async def simulators(directory: Path, buses: int, devices: int) -> AsyncIterator
     assert process.stdout is not None
     await process.stdout.readline()
     try:
-        yield [directory / f"ttyBUS{b}" for b in range(buses)]
+        yield [directory / f"ttyBUS{b}" for b in range(buses)], process.pid
     finally:
         process.terminate()
         await process.wait()
@@ -237,7 +239,7 @@ async def plant(
                     sent = datetime.fromisoformat(json.loads(payload)["time"])
                     latencies.append((datetime.now(tz=UTC) - sent).total_seconds())
 
-    async with simulators(directory, buses, devices) as ports:
+    async with simulators(directory, buses, devices) as (ports, _):
         config = parse_config(plant_config(ports, devices, broker, directory), environ={})
         state = GatewayState()
         stop = asyncio.Event()

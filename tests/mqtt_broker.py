@@ -166,6 +166,7 @@ class Received:
     topic: str
     payload: str
     retain: bool
+    at: float = field(default_factory=time.monotonic)  # when it arrived here
 
 
 @dataclass

@@ -12,7 +12,7 @@ from __future__ import annotations
 import random
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Final
 
 from gateway import frames
 from gateway.codec import DataType
@@ -21,6 +21,10 @@ from gateway.simulator.device import SimulatedDevice, SlaveExceptionError
 
 if TYPE_CHECKING:
     from gateway.timing import LineFormat
+
+# A request that starts this soon after a late answer or noise began had been sent before
+# the master could hear it: a collision, not a gap the master failed to keep.
+COLLISION_WINDOW_S: Final = 0.001
 
 
 @dataclass(slots=True, kw_only=True)
@@ -105,6 +109,7 @@ class SimulatedBus:
     requests_by_device: Counter[int] = field(default_factory=Counter)
     last_frame_end: float = float("-inf")
     answer_until: float = float("-inf")
+    unsolicited_end: float = float("-inf")  # the last late answer or noise on the line
     _rng: random.Random = field(init=False)
 
     def __post_init__(self) -> None:
@@ -142,6 +147,12 @@ class SimulatedBus:
     def _timing_ok(self, frame: bytes, start: float) -> bool:
         gap = start - self.last_frame_end
         required = self._gap_required(frame[0])
+        if gap < required and start - self.unsolicited_end < COLLISION_WINDOW_S:
+            # A late answer or noise went out as the master was already sending: on a real
+            # line the two collide. The slave's fault, not the master's: counted apart,
+            # and the garbled request is not answered.
+            self.counters["collisions"] += 1
+            return False
         if gap < required:
             self._violate("inter_frame_gap", frame, start, required, gap)
             return False
@@ -336,6 +347,8 @@ class SimulatedBus:
         self.last_frame_end = max(self.last_frame_end, now)
         if reply.kind == "response":
             self.answer_until = now  # the answer is complete on the line
+        else:
+            self.unsolicited_end = now  # a late answer or noise: no master can foresee it
 
     def silence(self, address: int, duration_s: float, now: float) -> None:
         """Make a device ignore everything for a while, as during a power cycle."""

@@ -11,6 +11,7 @@ from gateway.codec import Fault, WordOrder
 from gateway.errors import ConfigError, DeviceExceptionError
 from gateway.profiles import get_profile
 from gateway.simulator import SimulatedDevice
+from gateway.simulator.bus import Reply
 from tests.simulator.helpers import ClockedMaster, make_bus
 
 S10 = {"profile": "jumo-digiline-odo-s10", "address": 1, "animate": False}
@@ -422,6 +423,23 @@ def test_request_while_an_answer_is_pending_is_a_collision() -> None:
     assert first[0].at == pytest.approx(master.now + 0.305)
     assert bus.on_frame(frames.read_request(1, 0x2620, 2).frame, master.now + 0.1) == []
     assert bus.violations[-1].rule == "answer_in_progress"
+
+
+def test_a_late_answer_colliding_with_a_request_is_the_slaves_fault() -> None:
+    """A late answer that starts as the master sends collides; the master kept its gap."""
+    bus = make_bus(S10, TECLINE)
+    master = ClockedMaster(bus)
+    master.ask(frames.read_request(1, 0x2620, 2))
+    late = Reply(at=master.now + 0.2, data=b"\x14\x03\x00", kind="late", device=20)
+    bus.on_sent(late, late.at)  # the master could not hear it coming
+    assert bus.on_frame(frames.read_request(1, 0x2620, 2).frame, late.at + 0.0005) == []
+    assert bus.counters["collisions"] == 1
+    assert bus.violations == []
+    # A master that heard it and still did not wait the gap is in the wrong.
+    noise = Reply(at=late.at + 0.5, data=b"\xff", kind="noise", device=20)
+    bus.on_sent(noise, noise.at)
+    assert bus.on_frame(frames.read_request(1, 0x2620, 2).frame, noise.at + 0.0015) == []
+    assert bus.violations[-1].rule == "inter_frame_gap"
 
 
 # --- fault injection (the bytes; the wire tests show them over a real line) ---------------
