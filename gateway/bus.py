@@ -282,19 +282,22 @@ class Line:
         receiver = self._live_receiver()
         scan = _Scan(request, exceptions=exceptions, byte_count_16bit=byte_count_16bit)
         while True:
-            result = scan.feed(receiver.buffer)
+            try:
+                result = scan.feed(receiver.buffer)
+            except DeviceExceptionError:
+                # An exception answer is an answer too: consumed here, or the next
+                # transaction would flush it and count it a second time, as a stale frame.
+                self._consume(receiver, scan, request.device)
+                raise
             if result is not None:
-                del receiver.buffer[: scan.consumed]
-                # What was skipped on the way is counted: a late answer of another
-                # device (stale) and garbage (noise).
-                if scan.other_device is not None:
-                    self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
-                if scan.garbage:
-                    self.stats.errors[request.device, ErrorKind.NOISE] += 1
+                self._consume(receiver, scan, request.device)
                 return result, receiver.last_byte_at
             now = time.monotonic()
-            # A suspicious frame (bad CRC, other device) is final once the line falls silent.
-            settle = receiver.last_byte_at + self._silence_s if scan.suspect else deadline
+            # A corrupted answer from the device itself is final once the line falls silent.
+            # A frame of another device is not: it may be a late answer that came first,
+            # with the device's own answer still to come; leaving then would put the next
+            # request on the line while it answers.
+            settle = receiver.last_byte_at + self._silence_s if scan.crc_bad else deadline
             wake = min(deadline, settle)
             if now >= wake:
                 receiver.buffer.clear()
@@ -303,6 +306,18 @@ class Line:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(receiver.arrived.wait(), timeout=wake - now)
             self._live_receiver()
+
+    def _consume(self, receiver: _Receiver, scan: _Scan, device: int) -> None:
+        """Drop the bytes up to the answer; count what was skipped on the way.
+
+        A late answer of another device is a stale frame of that device, garbage is
+        noise on this request.
+        """
+        del receiver.buffer[: scan.consumed]
+        if scan.other_device is not None:
+            self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
+        if scan.garbage:
+            self.stats.errors[device, ErrorKind.NOISE] += 1
 
 
 _WAIT: Final = object()  # a plausible answer has started: wait for the rest
@@ -331,7 +346,11 @@ class _Scan:
         """The answer if the bytes hold one; ``None`` while more bytes are needed."""
         data = bytes(buffer)
         for offset in range(len(data) - 1):
-            verdict = self._try(data[offset:])
+            try:
+                verdict = self._try(data[offset:])
+            except DeviceExceptionError:
+                self.consumed = offset + self._length
+                raise
             if verdict is _WAIT:
                 return None
             if isinstance(verdict, frames.Response):
@@ -364,9 +383,6 @@ class _Scan:
             )
         except UnexpectedDeviceError:
             self.other_device = head[0]
-        except DeviceExceptionError:
-            self.consumed = len(candidate)
-            raise
         except MalformedFrameError:
             self.garbage = True
         return None

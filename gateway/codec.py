@@ -423,7 +423,10 @@ def _split32(number: int) -> tuple[int, int]:
 def _encode_float(fmt: Format, value: object, order: WordOrder) -> tuple[int, ...]:
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise EncodeError(f"float32 needs a number, got {value!r}")
-    number = float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # an integer beyond any float (JSON allows 4300 digits)
+        raise EncodeError(f"{value!r} does not fit a float32") from None
     if not math.isfinite(number):
         raise EncodeError(f"{value!r} is not a finite number")
     if abs(number) > struct.unpack(">f", b"\x7f\x7f\xff\xff")[0]:

@@ -29,7 +29,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.commands import parse_set_payload
+from gateway import operations
+from gateway.commands import parse_json, parse_set_payload
 from gateway.errors import CommandRejectedError, GatewayError
 from gateway.samples import json_value
 from gateway.sinks.message import Message
@@ -81,10 +82,7 @@ def _parse_arguments(payload: bytes) -> tuple[dict[str, object], str | None]:
         raise CommandRejectedError(f"the payload is not UTF-8 text: {exc}") from exc
     if not text:
         return {}, None
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CommandRejectedError(f"malformed JSON: {exc}") from exc
+    data = parse_json(text)
     if not isinstance(data, dict):
         raise CommandRejectedError("the payload must be empty or a JSON object of arguments")
     raw_id = data.pop("id", None)
@@ -97,8 +95,8 @@ def _parse_arguments(payload: bytes) -> tuple[dict[str, object], str | None]:
 def _salvage_id(payload: bytes) -> str | None:
     """The id of a payload that was refused, if one can be read, to echo it anyway."""
     try:
-        data = json.loads(payload)
-    except (ValueError, UnicodeDecodeError):
+        data = parse_json(payload.decode("utf-8"))
+    except (UnicodeDecodeError, CommandRejectedError):
         return None
     raw = data.get("id") if isinstance(data, dict) else None
     if isinstance(raw, str):
@@ -212,8 +210,6 @@ class CommandRouter:
             )
             return body, "ok" if done.written else "unchanged"
         arguments, command_id = _parse_arguments(payload)
-        from gateway import operations  # noqa: PLC0415 - TEMPORARY until operations lands
-
         try:
             result = await operations.run_operation(
                 route.name, writer, arguments, now=self._clock()

@@ -48,6 +48,9 @@ WRITE_MULTIPLE_REGISTERS = 0x10  # Modbus Application Protocol V1.1b3, 6.12
 _TRUE_WORDS = frozenset({"true", "1", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "off"})
 _JSON_KEYS = frozenset({"value", "id"})
+# A value is a scalar or an object of bits, arguments an object of scalars: 8 levels is
+# plenty, and keeps the repr() in a rejection reason far from the recursion limit.
+MAX_JSON_DEPTH = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,10 +81,7 @@ def parse_set_payload(payload: bytes) -> SetCommand:
         raise CommandRejectedError("the payload is empty")
     if not text.startswith("{"):
         return SetCommand(value=text)
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CommandRejectedError(f"malformed JSON: {exc}") from exc
+    data = parse_json(text)
     if not isinstance(data, dict):  # "{" can only start an object; kept for the type checker
         raise CommandRejectedError("malformed JSON: expected an object")
     if "value" not in data:
@@ -90,6 +90,44 @@ def parse_set_payload(payload: bytes) -> SetCommand:
     if unknown:
         raise CommandRejectedError(f"unknown keys {unknown} in the JSON object; allowed: value, id")
     return SetCommand(value=data["value"], id=_command_id(data.get("id")))
+
+
+def parse_json(text: str) -> object:
+    """A command's JSON document, or a :class:`CommandRejectedError` saying what is wrong.
+
+    Beyond malformed JSON, three things ``json.loads`` lets through or raises in its own
+    way are refused here, at the boundary, because later steps would fail on them
+    outside the gateway's errors: an integer of more than 4300 digits (``ValueError``),
+    nesting deep enough to exhaust the recursion limit (``RecursionError`` here, or
+    later in the ``repr`` of a rejection reason), and a lone UTF-16 surrogate escape
+    (U+D800 to U+DFFF on its own), which is no text and cannot be encoded into the
+    UTF-8 result.
+    """
+    try:
+        data = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise CommandRejectedError(f"malformed JSON: {exc}") from exc
+    pending: list[tuple[object, int]] = [(data, 1)]
+    while pending:  # iterative: the document may be as deep as the recursion limit
+        item, depth = pending.pop()
+        if depth > MAX_JSON_DEPTH:
+            raise CommandRejectedError(f"the JSON nests deeper than {MAX_JSON_DEPTH} levels")
+        if isinstance(item, dict):
+            pending.extend((key, depth + 1) for key in item)
+            pending.extend((value, depth + 1) for value in item.values())
+        elif isinstance(item, list):
+            pending.extend((value, depth + 1) for value in item)
+        elif isinstance(item, str) and not _is_text(item):
+            raise CommandRejectedError("the JSON holds a lone surrogate escape, which is no text")
+    return data
+
+
+def _is_text(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
 
 
 def _command_id(raw: object) -> str | None:

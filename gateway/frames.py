@@ -31,6 +31,7 @@ from gateway.errors import (
     CrcError,
     DeviceExceptionError,
     EncodeError,
+    GatewayError,
     MalformedFrameError,
     UnexpectedDeviceError,
 )
@@ -243,25 +244,39 @@ def parse_response(
     if pdu is None:
         raise MalformedFrameError(f"cannot decode response {frame.hex(' ')}")
     if isinstance(pdu, ExceptionResponse):
-        function = pdu.function_code & ~EXCEPTION_FLAG
-        if function != request.function:
-            raise MalformedFrameError(
-                f"exception for function {function:#04x} while {request.function:#04x} was asked"
-            )
-        code = int(pdu.exception_code)
-        raise DeviceExceptionError(
-            device=request.device,
-            function=function,
-            code=code,
-            meaning=exceptions.get(code, f"exception_{code}"),
-        )
+        raise _exception_error(request, frame, pdu, exceptions)
     if pdu.function_code != request.function:
         raise MalformedFrameError(
             f"function {pdu.function_code:#04x} does not answer {request.function:#04x}"
         )
     if request.function in READ_FUNCTIONS:
         return _read_response(request, frame, tuple(pdu.registers), tolerated)
-    return _write_response(request, int(pdu.address), pdu)
+    return _write_response(request, frame, pdu)
+
+
+def _exception_error(
+    request: Request,
+    frame: bytes,
+    pdu: Any,  # noqa: ANN401 - pymodbus PDUs are untyped
+    exceptions: Mapping[int, str],
+) -> GatewayError:
+    """The error an exception response stands for: the device's, or a malformed frame."""
+    function = pdu.function_code & ~EXCEPTION_FLAG
+    if function != request.function:
+        return MalformedFrameError(
+            f"exception for function {function:#04x} while {request.function:#04x} was asked"
+        )
+    if len(frame) != EXCEPTION_FRAME_LENGTH:
+        # pymodbus decodes what it needs and ignores the rest, and a frame followed by
+        # 0x00 passes the CRC again shifted by one byte: so the length is checked here.
+        return MalformedFrameError(f"{len(frame)} bytes for an exception response")
+    code = int(pdu.exception_code)
+    return DeviceExceptionError(
+        device=request.device,
+        function=function,
+        code=code,
+        meaning=exceptions.get(code, f"exception_{code}"),
+    )
 
 
 def _read_response(
@@ -281,7 +296,10 @@ def _read_response(
     )
 
 
-def _write_response(request: Request, address: int, pdu: Any) -> Response:  # noqa: ANN401
+def _write_response(request: Request, frame: bytes, pdu: Any) -> Response:  # noqa: ANN401
+    if len(frame) != WRITE_RESPONSE_LENGTH:  # as for exceptions: trailing bytes are ignored
+        raise MalformedFrameError(f"{len(frame)} bytes for a write confirmation")
+    address = int(pdu.address)
     if request.function == WRITE_SINGLE:
         echoed = (address, tuple(pdu.registers))
         if echoed != (request.address, request.values):
@@ -321,7 +339,11 @@ def parse_request(frame: bytes) -> Request:
     if not crc_ok(frame):
         raise CrcError(f"CRC {frame[-2:].hex()} does not match {crc16(frame[:-2]).hex()}")
     device, function = frame[0], frame[1]
-    if function in READ_FUNCTIONS and len(frame) == READ_REQUEST_LENGTH:
+    known = function in READ_FUNCTIONS or function in {WRITE_SINGLE, WRITE_MULTIPLE}
+    if known and len(frame) != request_length(frame):
+        # pymodbus ignores bytes after what it decodes; a slave must not act on them.
+        raise MalformedFrameError(f"{len(frame)} bytes for a function {function:#04x} request")
+    if function in READ_FUNCTIONS:
         # pymodbus refuses counts outside 1..125 while decoding; a slave must instead
         # answer them with exception 02, so the two fields are read here.
         address, count = struct.unpack(">HH", frame[2:6])

@@ -1,0 +1,66 @@
+"""The line owner on a real pseudo-terminal, with the other end written by hand.
+
+These tests put exact bytes at exact moments on the line, which the simulator (a correct
+slave) never does: late answers of other devices ahead of the right one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import tty
+from typing import TYPE_CHECKING
+
+from gateway import frames
+from gateway.bus import ErrorKind, Line
+from gateway.timing import LineFormat
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+LINE = LineFormat(baudrate=9600, parity="N", stopbits=1)
+
+
+def answer(device: int, registers: tuple[int, ...]) -> bytes:
+    return frames.read_response(device, 0x03, registers)
+
+
+async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: Path) -> None:
+    """Device 20's late answer comes first; device 1's own answer 20 ms later is taken.
+
+    Giving up at the foreign frame would put the next request on the line while device 1
+    is still answering: a collision the soak found.
+    """
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    port = tmp_path / "ttyHAND"
+    port.symlink_to(os.ttyname(slave))
+    line = Line(port=str(port), line=LINE)
+    await line.open()
+    try:
+        request = frames.read_request(1, 0x2620, 2)
+
+        async def other_end() -> None:
+            received = b""
+            while len(received) < len(request.frame):
+                await asyncio.sleep(0.001)
+                try:
+                    received += os.read(master, 64)
+                except BlockingIOError:
+                    continue
+            os.write(master, answer(20, (0x1111, 0x2222)))  # someone else's late answer
+            await asyncio.sleep(0.02)  # silence far longer than 3.5 characters
+            os.write(master, answer(1, (0x0000, 0x41A2)))
+
+        os.set_blocking(master, False)
+        peer = asyncio.create_task(other_end())
+        exchange = await line.transact(request, timeout_s=0.2, gap_s=LINE.frame_gap_s())
+        await peer
+        assert exchange is not None
+        assert exchange.response.registers == (0x0000, 0x41A2)
+        assert line.stats.errors[20, ErrorKind.STALE] == 1  # counted against its sender
+        assert line.stats.errors[1, ErrorKind.WRONG_ADDRESS] == 0
+    finally:
+        await line.close()
+        os.close(master)
+        os.close(slave)
