@@ -20,12 +20,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import tempfile
 import time
 from pathlib import Path
 
 from bench.publish import mosquitto, plant_config, rss_mib, simulators
+from bench.soak import process_figures
 from gateway.app import run
 from gateway.config import parse_config
 from gateway.state import GatewayState
@@ -33,12 +33,6 @@ from gateway.state import GatewayState
 RESULTS = Path(__file__).parent / "results"
 POLL_INTERVAL_S = 1.0
 WARM_UP_S = 6.0
-
-
-def process_cpu_s(pid: int) -> float:
-    """CPU seconds of another process, from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 async def one(
@@ -61,7 +55,7 @@ async def one(
         requests0, missed0 = totals()
         published0 = state.mqtt.published
         cpu0, wall0 = time.process_time(), time.monotonic()
-        sim0 = process_cpu_s(sim_pid)
+        sim0 = process_figures(sim_pid)[1]
         worst_lag = 0.0
         end = wall0 + seconds
         while time.monotonic() < end:
@@ -69,7 +63,7 @@ async def one(
             worst_lag = max([worst_lag, *(h.lag_s for h in state.health())])
         wall = time.monotonic() - wall0
         cpu = time.process_time() - cpu0
-        sim = process_cpu_s(sim_pid) - sim0
+        sim = process_figures(sim_pid)[1] - sim0
         requests, missed = totals()
         rss = rss_mib()
         stop.set()

@@ -24,15 +24,15 @@ from rich.table import Table
 from gateway import __version__, cli_calibrate, cli_operations, cli_write, codec
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
-from gateway.bus import Line
 from gateway.config import check_config, load_config
 from gateway.demo import run_demo
 from gateway.errors import ConfigError, GatewayError
+from gateway.link import open_link
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.samples import Quality, Sample, json_value
 from gateway.scan import parse_addresses, scan_formats
 from gateway.scan import scan as scan_bus
-from gateway.scheduler import BusWorker, DeviceTarget
+from gateway.scheduler import DeviceTarget
 from gateway.simulator import (
     SimulationSettings,
     SimulatorServer,
@@ -318,13 +318,8 @@ def _read_targets(profile_id: str, points: list[str], *, every: bool) -> dict[st
 
 
 async def _read(port: str, line_format: LineFormat, target: DeviceTarget) -> list[Sample]:
-    line = Line(port=port, line=line_format)
-    await line.open()
-    try:
-        worker = BusWorker(name="read", line=line, devices=[target])
-        return await worker.read_once(target.name)
-    finally:
-        await line.close()
+    async with open_link(port, line_format, target) as link:
+        return await link.worker.read_once(target.name)
 
 
 @app.command()
