@@ -12,13 +12,14 @@ bench/results/scale.json:
 - whether every bus met its intervals: the worst poll lag and the deadlines missed.
 
 Run from the repository root: .venv/bin/python -m bench.scale [--seconds 20]
-[--matrix 1x30,4x30,16x30]
+[--matrix 1x30,4x30,16x30] [--profile FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import cProfile
 import json
 import tempfile
 import time
@@ -36,7 +37,13 @@ WARM_UP_S = 6.0
 
 
 async def one(
-    broker: int, directory: Path, buses: int, devices: int, seconds: float
+    broker: int,
+    directory: Path,
+    buses: int,
+    devices: int,
+    seconds: float,
+    *,
+    profile: Path | None = None,
 ) -> dict[str, object]:
     run_dir = directory / f"{buses}x{devices}"
     run_dir.mkdir()
@@ -58,9 +65,15 @@ async def one(
         sim0 = process_figures(sim_pid)[1]
         worst_lag = 0.0
         end = wall0 + seconds
+        profiler = cProfile.Profile() if profile else None
+        if profiler:
+            profiler.enable()
         while time.monotonic() < end:
             await asyncio.sleep(1.0)
             worst_lag = max([worst_lag, *(h.lag_s for h in state.health())])
+        if profiler and profile:
+            profiler.disable()
+            profiler.dump_stats(profile.with_suffix(f".{buses}x{devices}.prof"))
         wall = time.monotonic() - wall0
         cpu = time.process_time() - cpu0
         sim = process_figures(sim_pid)[1] - sim0
@@ -83,13 +96,17 @@ async def one(
     }
 
 
-async def main_async(matrix: list[tuple[int, int]], seconds: float) -> list[dict[str, object]]:
+async def main_async(
+    matrix: list[tuple[int, int]], seconds: float, profile: Path | None
+) -> list[dict[str, object]]:
     results = []
     with tempfile.TemporaryDirectory() as tmp:
         directory = Path(tmp)
         with mosquitto(directory) as broker:
             for buses, devices in matrix:
-                results.append(await one(broker, directory, buses, devices, seconds))
+                results.append(
+                    await one(broker, directory, buses, devices, seconds, profile=profile)
+                )
                 print(json.dumps(results[-1]), flush=True)
     return results
 
@@ -100,9 +117,14 @@ def main() -> None:
     )
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--matrix", default="1x8,1x30,4x30,16x30")
+    parser.add_argument(
+        "--profile",
+        type=Path,
+        help="write a cProfile of the measured window per configuration (FILE.<BxD>.prof)",
+    )
     args = parser.parse_args()
     matrix = [(int(b), int(d)) for b, d in (item.split("x") for item in args.matrix.split(","))]
-    results = asyncio.run(main_async(matrix, args.seconds))
+    results = asyncio.run(main_async(matrix, args.seconds, args.profile))
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "scale.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     header = (

@@ -242,6 +242,7 @@ def plan_reads(
     # the sums) go to fewer reads, then to the shortest last read, and so on backwards.
     best: list[tuple[float, int]] = [(0.0, 0)] + [(math.inf, 0)] * len(units)
     start = [0] * (len(units) + 1)
+    read_s = [cost.read_s(count) for count in range(limit + 1)]  # the inner loop's costs
     for end in range(1, len(units) + 1):
         last = units[end - 1].last
         for begin in range(end - 1, -1, -1):
@@ -249,7 +250,7 @@ def plan_reads(
             if not valid(unit.first, last, unit.run_last):
                 break  # growing the block to the left keeps it invalid
             before_s, before_reads = best[begin]
-            candidate = (before_s + cost.read_s(last - unit.first + 1), before_reads + 1)
+            candidate = (before_s + read_s[last - unit.first + 1], before_reads + 1)
             if _cheaper(candidate, best[end]):
                 best[end], start[end] = candidate, begin
 

@@ -165,6 +165,41 @@ async def test_fewer_frames_than_one_request_per_point(tmp_path: Path) -> None:
     assert len(reads) < per_point / 4  # one request per point: a frame per value
 
 
+async def test_diagnostics_cut_short_resume_with_the_same_reads(tmp_path: Path) -> None:
+    """Values due every 0.25 s cut an H10's 260 diagnostics into pieces (19200 baud).
+
+    What remains due after each cut is read with the blocks of one plan of the whole
+    class, not re-planned: the diagnostics' reads never overlap one another (a re-planned
+    remainder starts its blocks elsewhere), and every diagnostic still comes round at
+    its interval.
+    """
+    devices = [{"profile": "jumo-digiline-odo-h10", "address": 2}]
+    profile = get_profile("jumo-digiline-odo-h10")
+    slow_groups = {PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION}
+    slow = {p.name for p in profile.points if not p.view and p.group in slow_groups}
+    fast = [p.name for p in profile.points_in(PollGroup.PROCESS, PollGroup.STATUS) if not p.view]
+    intervals: dict[str, float | None] = dict.fromkeys(fast, 0.25) | dict.fromkeys(slow, 2.0)
+    h10 = DeviceTarget(name="h10", address=2, profile=profile, intervals=intervals)
+    line = {"baudrate": 19200, "parity": "N", "stopbits": 1}
+    async with rig(tmp_path, devices, [h10], line=line) as r:
+        await r.run_for(9.0)
+    slow_starts = {profile.point(n).address for n in slow}
+    fast_starts = {profile.point(n).address for n in fast}
+    reads = {
+        (rec.address, rec.quantity)
+        for rec in r.frames()
+        if rec.function == 3 and rec.address in slow_starts - fast_starts and rec.start > 1.0
+    }  # after the start, which reads the unit and float format registers on their own
+    spans = sorted((a, a + q - 1) for a, q in reads)
+    assert len(spans) > 3  # cut into several reads
+    for (_, last), (first, _) in itertools.pairwise(spans):
+        assert first > last, spans
+    polled = Counter(s.point for s in r.sink.samples if s.good and s.point in slow)
+    assert set(polled) == slow
+    assert min(polled.values()) >= 3  # at 2 s in 9 s, the first read at the start
+    assert r.server.bus.stats()["timing_violations"] == 0
+
+
 # --- faults ------------------------------------------------------------------------------
 
 STATIC = [

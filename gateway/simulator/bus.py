@@ -64,6 +64,7 @@ class FrameRecord:
     device: int
     function: int
     address: int
+    quantity: int  # bytes 4-5: registers of a 03, 04 or 16 (an 06's value), else -1
     outcome: str  # "answered", "broadcast", "ignored:<rule>", "silent", "crc", ...
     answer_at: float | None = None
 
@@ -176,6 +177,7 @@ class SimulatedBus:
             device=frame[0] if frame else -1,
             function=frame[1] if len(frame) > 1 else -1,
             address=int.from_bytes(frame[2:4], "big") if len(frame) >= 4 else -1,  # noqa: PLR2004
+            quantity=int.from_bytes(frame[4:6], "big") if len(frame) >= 6 else -1,  # noqa: PLR2004
             outcome="answered",
         )
         self.frame_log.append(record)
