@@ -5,7 +5,8 @@ Each configuration runs the gateway in this process against simulated lines at 1
 mosquitto, for --seconds after a warm-up. Printed per configuration, and written to
 bench/results/scale.json:
 
-- transactions and state documents per second;
+- transactions and MQTT messages acknowledged per second, and how fast the queue of
+  messages still to send grows (about 0 when MQTT keeps up with the polling);
 - the gateway's CPU share of one core and its resident memory;
 - the simulators' CPU share (both share this machine: a saturated simulator process makes
   every bus late, whatever the gateway does);
@@ -60,7 +61,7 @@ async def one(
             return requests, missed
 
         requests0, missed0 = totals()
-        published0 = state.mqtt.published
+        published0, depth0 = state.mqtt.published, state.mqtt.queue_depth
         cpu0, wall0 = time.process_time(), time.monotonic()
         sim0 = process_figures(sim_pid)[1]
         worst_lag = 0.0
@@ -78,6 +79,7 @@ async def one(
         cpu = time.process_time() - cpu0
         sim = process_figures(sim_pid)[1] - sim0
         requests, missed = totals()
+        depth = state.mqtt.queue_depth
         rss = rss_mib()
         stop.set()
         await asyncio.wait_for(gateway, timeout=60)
@@ -87,6 +89,8 @@ async def one(
         "devices": buses * devices,
         "transactions_per_s": (requests - requests0) / wall,
         "mqtt_messages_per_s": (state.mqtt.published - published0) / wall,
+        # Messages waiting to be sent: flat when MQTT keeps up with the polling.
+        "mqtt_queue_growth_per_s": (depth - depth0) / wall,
         "gateway_cpu_share": cpu / wall,
         "gateway_rss_mib": rss,
         "simulators_cpu_share": sim / wall,
@@ -128,14 +132,16 @@ def main() -> None:
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "scale.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     header = (
-        f"{'buses':>5} {'devices':>7} {'tx/s':>7} {'msg/s':>7} {'CPU':>6} {'RSS MiB':>8} "
+        f"{'buses':>5} {'devices':>7} {'tx/s':>7} {'msg/s':>7} {'queue/s':>7} {'CPU':>6} "
+        f"{'RSS MiB':>8} "
         f"{'sim CPU':>8} {'worst lag s':>11} {'missed':>6}  intervals met"
     )
     print(header)
     for r in results:
         print(
             f"{r['buses']:>5} {r['devices']:>7} {r['transactions_per_s']:>7.0f} "
-            f"{r['mqtt_messages_per_s']:>7.0f} {r['gateway_cpu_share']:>6.0%} "
+            f"{r['mqtt_messages_per_s']:>7.0f} {r['mqtt_queue_growth_per_s']:>7.0f} "
+            f"{r['gateway_cpu_share']:>6.0%} "
             f"{r['gateway_rss_mib']:>8.1f} {r['simulators_cpu_share']:>8.0%} "
             f"{r['worst_poll_lag_s']:>11.2f} {r['missed_deadlines']:>6}  "
             f"{'yes' if r['meets_intervals'] else 'no'}"

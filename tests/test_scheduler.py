@@ -178,7 +178,7 @@ async def test_diagnostics_cut_short_resume_with_the_same_reads(tmp_path: Path) 
     slow_groups = {PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION}
     slow = {p.name for p in profile.points if not p.view and p.group in slow_groups}
     fast = [p.name for p in profile.points_in(PollGroup.PROCESS, PollGroup.STATUS) if not p.view]
-    intervals: dict[str, float | None] = dict.fromkeys(fast, 0.25) | dict.fromkeys(slow, 2.0)
+    intervals: dict[str, float | None] = {n: 2.0 if n in slow else 0.25 for n in [*fast, *slow]}
     h10 = DeviceTarget(name="h10", address=2, profile=profile, intervals=intervals)
     line = {"baudrate": 19200, "parity": "N", "stopbits": 1}
     async with rig(tmp_path, devices, [h10], line=line) as r:
