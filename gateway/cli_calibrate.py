@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
-from dataclasses import dataclass
 from datetime import datetime
 from typing import TYPE_CHECKING, Annotated, Final
 
@@ -21,33 +20,16 @@ from rich.text import Text
 
 from gateway import calibration
 from gateway.calibration import CalibrationOutcome, Status, Step, StepKind
-from gateway.cli_device import (
-    AddressOption,
-    BaudrateOption,
-    ConfigOption,
-    DeviceOption,
-    FloatOrderOption,
-    ParityOption,
-    PortOption,
-    ProfileOption,
-    StopbitsOption,
-    TimeoutOption,
-    device_link,
-    device_spec,
-    err,
-    fail,
-    out,
-)
+from gateway.cli_device import device_link, err, fail, out, with_device_options
 from gateway.errors import CommandRejectedError, GatewayError
 from gateway.writes import SafeWriter
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable
-    from pathlib import Path
 
     from rich.console import Console
 
-    from gateway.cli_device import DeviceSpec
+    from gateway.cli_device import DeviceOptions, DeviceSpec
 
     Flow = Callable[[SafeWriter, calibration.Operator], Awaitable[CalibrationOutcome]]
 
@@ -168,7 +150,7 @@ async def _session(
 
 
 def _run(
-    options: _DeviceOptions,
+    options: DeviceOptions,
     flow: Flow,
     *,
     yes: bool,
@@ -196,37 +178,8 @@ def _run(
     )
 
 
-@dataclass(frozen=True, slots=True, kw_only=True)
-class _DeviceOptions:
-    """The shared device options of a command, resolved to a spec inside the error guard."""
-
-    config: Path | None
-    device: str | None
-    port: str | None
-    address: int | None
-    profile: str | None
-    baudrate: int
-    parity: str
-    stopbits: int
-    timeout: float | None
-    float_order: str | None
-
-    def spec(self) -> DeviceSpec:
-        return device_spec(
-            config=self.config,
-            device=self.device,
-            port=self.port,
-            address=self.address,
-            profile=self.profile,
-            baudrate=self.baudrate,
-            parity=self.parity,
-            stopbits=self.stopbits,
-            timeout=self.timeout,
-            float_order=self.float_order,
-        )
-
-
 @calibrate_app.command("slope")
+@with_device_options
 def slope_command(
     *,
     reference: ReferenceOption,
@@ -236,30 +189,9 @@ def slope_command(
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
 ) -> None:
     """tecLine/Reiss slope calibration: X_Span = (cell current - X_Zero) / reference."""
-    options = _DeviceOptions(
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
         return await calibration.calibrate_slope(
@@ -276,6 +208,7 @@ def slope_command(
 
 
 @calibrate_app.command("zero")
+@with_device_options
 def zero_command(
     *,
     zero_current: Annotated[
@@ -291,30 +224,9 @@ def zero_command(
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
 ) -> None:
     """Zero-point calibration: tecLine/Reiss X_Zero (annex 7.4), or H10/H20 via 0x3003."""
-    options = _DeviceOptions(
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
         if writer.link.profile.has_point("zero_point_calibration_trigger"):
@@ -338,6 +250,7 @@ def zero_command(
 
 
 @calibrate_app.command("end-value")
+@with_device_options
 def end_value_command(
     *,
     reference: Annotated[
@@ -355,30 +268,9 @@ def end_value_command(
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
 ) -> None:
     """H10/H20 end-value calibration via 0x2043 and 0x3005, with mode and date."""
-    options = _DeviceOptions(
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
         return await calibration.calibrate_oxygen_end_value(
@@ -389,35 +281,15 @@ def end_value_command(
 
 
 @calibrate_app.command("nominal")
+@with_device_options
 def nominal_command(
     *,
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
 ) -> None:
     """tecLine/Reiss: restore the nominal slope (0x030A) and the zero point 0 (annex 7.5)."""
-    options = _DeviceOptions(
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
         return await calibration.restore_nominal_slope(writer, operator, when=_when(at))
@@ -426,6 +298,7 @@ def nominal_command(
 
 
 @calibrate_app.command("check")
+@with_device_options
 def check_command(
     *,
     reference: ReferenceOption,
@@ -433,30 +306,9 @@ def check_command(
     samples: SamplesOption = 3,
     every: EveryOption = 2.0,
     as_json: JsonOption = False,
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
 ) -> None:
     """tecLine/Reiss regular check (annex 7.3.4): today's slope against nominal; no writes."""
-    options = _DeviceOptions(
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
         return await calibration.check_slope(

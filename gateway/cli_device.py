@@ -11,9 +11,11 @@ command over MQTT instead.
 from __future__ import annotations
 
 import contextlib
+import functools
+import inspect
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar, get_type_hints
 
 import typer
 from rich.console import Console
@@ -29,7 +31,9 @@ from gateway.scheduler import DeviceTarget
 from gateway.timing import LineFormat
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator
+    from collections.abc import AsyncIterator, Callable
+
+_R = TypeVar("_R")
 
 
 out = Console(highlight=False, soft_wrap=True)
@@ -84,31 +88,89 @@ class DeviceSpec:
         return FlashLedger(self.state_dir / LEDGER_FILE)
 
 
-def device_spec(
-    *,
-    config: Path | None,
-    device: str | None,
-    port: str | None,
-    address: int | None,
-    profile: str | None,
-    baudrate: int = 9600,
-    parity: str = "N",
-    stopbits: int = 1,
-    timeout: float | None = None,
-    float_order: str | None = None,
-) -> DeviceSpec:
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceOptions:
+    """The device options as given on the command line, before they are resolved."""
+
+    config: Path | None = None
+    device: str | None = None
+    port: str | None = None
+    address: int | None = None
+    profile: str | None = None
+    baudrate: int = 9600
+    parity: str = "N"
+    stopbits: int = 1
+    timeout: float | None = None
+    float_order: str | None = None
+
+    def spec(self) -> DeviceSpec:
+        """The device they name (see :func:`device_spec`)."""
+        return device_spec(self)
+
+
+# The options in the order --help lists them, with their annotations and defaults.
+_OPTIONS: tuple[tuple[str, object, object], ...] = (
+    ("config", ConfigOption, None),
+    ("device", DeviceOption, None),
+    ("port", PortOption, None),
+    ("address", AddressOption, None),
+    ("profile", ProfileOption, None),
+    ("baudrate", BaudrateOption, 9600),
+    ("parity", ParityOption, "N"),
+    ("stopbits", StopbitsOption, 1),
+    ("timeout", TimeoutOption, None),
+    ("float_order", FloatOrderOption, None),
+)
+
+
+def with_device_options(command: Callable[..., _R]) -> Callable[..., _R]:
+    """Give a typer command the device options; it receives them as ``options``.
+
+    Typer takes a command's options from its signature, so without this every command
+    that acts on one sensor would spell out the same ten parameters. The wrapper's
+    signature is the command's own (less ``options``) followed by the device options.
+    """
+    signature = inspect.signature(command)
+    # Typer needs the annotations themselves (what Annotated holds), not their text;
+    # ``options`` is typically annotated with a name imported only for type checking.
+    hints = get_type_hints(command, localns={"DeviceOptions": DeviceOptions}, include_extras=True)
+    own = [
+        p.replace(annotation=hints.get(p.name, p.annotation))
+        for p in signature.parameters.values()
+        if p.name != "options"
+    ]
+    added = [
+        inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=kind, default=default)
+        for name, kind, default in _OPTIONS
+    ]
+    names = [name for name, _, _ in _OPTIONS]
+
+    @functools.wraps(command)
+    def wrapper(**kwargs: Any) -> _R:  # noqa: ANN401 - whatever typer parsed
+        options = DeviceOptions(**{name: kwargs.pop(name) for name in names})
+        return command(options=options, **kwargs)
+
+    parameters = [*own, *added]
+    wrapper.__signature__ = signature.replace(parameters=parameters)  # type: ignore[attr-defined]
+    wrapper.__annotations__ = {p.name: p.annotation for p in parameters}
+    return wrapper
+
+
+def device_spec(options: DeviceOptions) -> DeviceSpec:
     """Resolve the options to one device, or a :class:`ConfigError` saying what is missing."""
-    order = _word_order(float_order)
-    if config is not None:
-        if device is None:
+    order = _word_order(options.float_order)
+    if options.config is not None:
+        if options.device is None:
             raise ConfigError("--config needs --device NAME")
-        if port is not None or address is not None or profile is not None:
+        if options.port is not None or options.address is not None or options.profile is not None:
             raise ConfigError("give either --config with --device, or --port/--address/--profile")
-        settings = load_config(config)
-        found = [d for d in settings.devices if d.name == device]
+        settings = load_config(options.config)
+        found = [d for d in settings.devices if d.name == options.device]
         if not found:
             known = ", ".join(d.name for d in settings.devices) or "none"
-            raise ConfigError(f"--device {device!r}: not in {config} (devices: {known})")
+            raise ConfigError(
+                f"--device {options.device!r}: not in {options.config} (devices: {known})"
+            )
         chosen = found[0]
         bus = settings.bus(chosen.bus)
         target = device_target(chosen, bus)
@@ -118,7 +180,7 @@ def device_spec(
             profile=target.profile,
             intervals={},  # nothing is polled: the command reads what it needs
             float_order=order or target.float_order,
-            timeout_s=timeout if timeout is not None else target.timeout_s,
+            timeout_s=options.timeout if options.timeout is not None else target.timeout_s,
             min_response_time_s=target.min_response_time_s,
             extra_gap_s=target.extra_gap_s,
             retries=target.retries,
@@ -131,21 +193,25 @@ def device_spec(
             policy=chosen.flash_policy(),
             state_dir=state_directory(settings),
         )
-    if port is None or address is None or profile is None:
+    if options.port is None or options.address is None or options.profile is None:
         raise ConfigError("give --port, --address and --profile (or --config with --device)")
-    if parity not in {"N", "E", "O"} or stopbits not in {1, 2}:
+    if options.parity not in {"N", "E", "O"} or options.stopbits not in {1, 2}:
         raise ConfigError("--parity must be N, E or O and --stopbits 1 or 2")
     target = DeviceTarget(
-        name=f"address_{address}",
-        address=address,
-        profile=get_profile(profile),
+        name=f"address_{options.address}",
+        address=options.address,
+        profile=get_profile(options.profile),
         intervals={},
         float_order=order,
-        timeout_s=timeout,
+        timeout_s=options.timeout,
     )
     return DeviceSpec(
-        port=port,
-        line=LineFormat(baudrate=baudrate, parity=parity, stopbits=stopbits),  # type: ignore[arg-type]
+        port=options.port,
+        line=LineFormat(
+            baudrate=options.baudrate,
+            parity=options.parity,  # type: ignore[arg-type]  # checked above
+            stopbits=options.stopbits,
+        ),
         target=target,
         policy=FlashPolicy(allowed=frozenset(), daily_budget=DEFAULT_FLASH_WRITE_BUDGET),
         state_dir=Path("state"),

@@ -19,68 +19,27 @@ import typer
 from rich.table import Table
 
 from gateway import codec, operations
-from gateway.cli_device import (
-    AddressOption,
-    BaudrateOption,
-    ConfigOption,
-    DeviceOption,
-    FloatOrderOption,
-    ParityOption,
-    PortOption,
-    ProfileOption,
-    StopbitsOption,
-    TimeoutOption,
-    device_link,
-    device_spec,
-    err,
-    fail,
-    out,
-)
+from gateway.cli_device import device_link, err, fail, out, with_device_options
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
 from gateway.writes import SafeWriter
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable
-    from pathlib import Path
 
-    from gateway.cli_device import DeviceSpec
+    from gateway.cli_device import DeviceOptions, DeviceSpec
 
 _T = TypeVar("_T")
 
 JsonOption = Annotated[bool, typer.Option("--json", help="Print the result as JSON.")]
 
 
-def _device(
-    operation: str,
-    *,
-    config: Path | None,
-    device: str | None,
-    port: str | None,
-    address: int | None,
-    profile: str | None,
-    baudrate: int,
-    parity: str,
-    stopbits: int,
-    timeout: float | None,
-    float_order: str | None,
-) -> DeviceSpec:
+def _device(operation: str, options: DeviceOptions) -> DeviceSpec:
     """The device the options name, refused (exit 2) unless ``operation`` applies to it.
 
     Checked before the port is opened: a wrong device is refused without a frame sent.
     """
     try:
-        spec = device_spec(
-            config=config,
-            device=device,
-            port=port,
-            address=address,
-            profile=profile,
-            baudrate=baudrate,
-            parity=parity,
-            stopbits=stopbits,
-            timeout=timeout,
-            float_order=float_order,
-        )
+        spec = options.spec()
         operations.require_operation(operation, spec.target.profile)
     except (CommandRejectedError, ConfigError, ProfileError) as exc:
         raise fail(exc) from exc
@@ -125,17 +84,9 @@ def _shown(value: codec.Decoded) -> str:
 # --- set-clock --------------------------------------------------------------------------
 
 
+@with_device_options
 def set_clock(
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
     local: Annotated[
         bool,
         typer.Option(
@@ -145,19 +96,7 @@ def set_clock(
     as_json: JsonOption = False,
 ) -> None:
     """Set the sensor's clock (S10) or calibration date (H10/H20) from this host's clock."""
-    spec = _device(
-        operations.SET_CLOCK,
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
+    spec = _device(operations.SET_CLOCK, options)
     result = _run(
         spec, lambda writer: operations.set_clock(writer, now=datetime.now(UTC), local=local)
     )
@@ -193,17 +132,9 @@ def _seconds(value: float | None) -> str:
 # --- measure ----------------------------------------------------------------------------
 
 
+@with_device_options
 def measure(
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
     wait: Annotated[
         float,
         typer.Option(
@@ -216,19 +147,7 @@ def measure(
     as_json: JsonOption = False,
 ) -> None:
     """Trigger a single measurement (H10/H20), wait for it, print oxygen and temperature."""
-    spec = _device(
-        operations.MEASURE,
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
+    spec = _device(operations.MEASURE, options)
     result = _run(spec, lambda writer: operations.measure(writer, timeout_s=wait))
     if as_json:
         _print_json({"device": result.device, **result.as_dict()})
@@ -243,33 +162,13 @@ def measure(
 # --- calibration-log --------------------------------------------------------------------
 
 
+@with_device_options
 def calibration_log(
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    options: DeviceOptions,
     as_json: JsonOption = False,
 ) -> None:
     """Print the calibration logbook (H10/H20) or history (tecLine, Reiss) as a table."""
-    spec = _device(
-        operations.CALIBRATION_LOG,
-        config=config,
-        device=device,
-        port=port,
-        address=address,
-        profile=profile,
-        baudrate=baudrate,
-        parity=parity,
-        stopbits=stopbits,
-        timeout=timeout,
-        float_order=float_order,
-    )
+    spec = _device(operations.CALIBRATION_LOG, options)
     log = _run(spec, lambda writer: operations.calibration_log(writer.link))
     if as_json:
         _print_json({"device": log.device, **log.as_dict()})

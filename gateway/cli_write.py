@@ -15,23 +15,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from gateway.cli_device import (
-    AddressOption,
-    BaudrateOption,
-    ConfigOption,
-    DeviceOption,
-    FloatOrderOption,
-    ParityOption,
-    PortOption,
-    ProfileOption,
-    StopbitsOption,
-    TimeoutOption,
-    device_link,
-    device_spec,
-    err,
-    fail,
-    out,
-)
+from gateway.cli_device import device_link, err, fail, out, with_device_options
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
 from gateway.flash import FlashLedger, FlashPolicy
 from gateway.profiles.model import Storage
@@ -39,7 +23,7 @@ from gateway.samples import json_value
 from gateway.writes import SafeWriter
 
 if TYPE_CHECKING:
-    from gateway.cli_device import DeviceSpec
+    from gateway.cli_device import DeviceOptions, DeviceSpec
     from gateway.writes import WriteOutcome
 
 
@@ -57,6 +41,7 @@ async def _write(spec: DeviceSpec, point: str, value: object, *, allow_flash: bo
         ledger.close()
 
 
+@with_device_options
 def write(
     point: Annotated[str, typer.Argument(help="The point to write (see 'gateway profiles show').")],
     value: Annotated[
@@ -66,16 +51,8 @@ def write(
             "JSON for a bit field ('{\"temperature_from_ram\": true}')."
         ),
     ],
-    config: ConfigOption = None,
-    device: DeviceOption = None,
-    port: PortOption = None,
-    address: AddressOption = None,
-    profile: ProfileOption = None,
-    baudrate: BaudrateOption = 9600,
-    parity: ParityOption = "N",
-    stopbits: StopbitsOption = 1,
-    timeout: TimeoutOption = None,
-    float_order: FloatOrderOption = None,
+    *,
+    options: DeviceOptions,
     allow_flash: Annotated[
         bool,
         typer.Option(
@@ -94,18 +71,7 @@ def write(
         except json.JSONDecodeError as exc:
             raise fail(CommandRejectedError(f"malformed JSON: {exc}")) from exc
     try:
-        spec = device_spec(
-            config=config,
-            device=device,
-            port=port,
-            address=address,
-            profile=profile,
-            baudrate=baudrate,
-            parity=parity,
-            stopbits=stopbits,
-            timeout=timeout,
-            float_order=float_order,
-        )
+        spec = options.spec()
         outcome = asyncio.run(_write(spec, point, parsed, allow_flash=allow_flash))
     except (CommandRejectedError, ConfigError, ProfileError) as exc:
         raise fail(exc) from exc  # refused: nothing was written (exit 2)
