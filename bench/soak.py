@@ -61,6 +61,7 @@ PRESSURE_TOPIC = "site/air_pressure"
 QUIET_TAIL_S = 8.0  # faults stop this long before the end, so everything settles
 FAULTS = FaultPlan(crc=0.01, drop=0.005, late=0.005, late_s=0.3, noise=0.005, wrong_address=0.003)
 MAX_RECOVERY_S = 12.0
+VIOLATION_CONTEXT_S = 0.06  # frames shown either side of a timing violation
 MAX_RSS_GROWTH_MIB = 8.0
 OUTAGE_MARGIN_S = 5.0  # commands sent this long before a broker stop may be lost with it
 MIN_SAMPLES = 4  # memory samples needed to judge growth
@@ -489,6 +490,17 @@ def check_faults(soak: Soak, metrics: Metrics, verdict: Verdict) -> None:
         "timing_violations": violations,
     }
     verdict.check(not violations, f"{violations} timing violations")
+    for name, server in soak.servers.items():
+        for violation in server.bus.violations:
+            # With the frames around it: what the master did just before tells why.
+            around = [
+                f"{r.start:.4f} dev {r.device} fn {r.function} @{r.address:#06x} {r.outcome}"
+                f"{'' if r.answer_at is None else f' answered {r.answer_at:.4f}'}"
+                for r in server.bus.frame_log
+                if abs(r.start - violation.time) < VIOLATION_CONTEXT_S
+            ]
+            print(f"violation on {name}: {json.dumps(violation.as_dict())}", file=sys.stderr)
+            print("  " + "\n  ".join(around), file=sys.stderr)
     # A corrupted answer can fail as a CRC error, as malformed, or (a corrupted byte count
     # promises more bytes than come) as a timeout; a late one as a timeout and later a
     # stale frame: each kind is shown, and every fault must have failed something.

@@ -175,6 +175,19 @@ class Line:
             transport.abort()
             await asyncio.sleep(0)
 
+    def _unread_input(self) -> bool:
+        """Whether bytes have arrived that the receiver has not seen (one ioctl, no read).
+
+        The soak found a request sent 2 ms after a late answer of another device: the
+        answer sat in the kernel's buffer while the event loop was busy, so the gap was
+        measured from an older byte.
+        """
+        port = self._transport.get_extra_info("serial") if self._transport else None
+        try:
+            return bool(port is not None and port.in_waiting)
+        except (OSError, serial.SerialException):
+            return False  # the port went away: the write will say so
+
     def _live_receiver(self) -> _Receiver:
         receiver = self._receiver
         if receiver is None or self._transport is None:
@@ -204,6 +217,12 @@ class Line:
             quiet_since = max(self.last_frame_end, receiver.last_byte_at)
             ready = max(quiet_since + gap_s, not_before)
             delay = ready - time.monotonic()
+            if delay <= 0 and self._unread_input():
+                # Bytes wait in the port's buffer that the event loop has not handed over
+                # yet (a late answer or noise while this process was busy elsewhere): the
+                # line was not quiet. They arrived at the latest now; the gap starts again.
+                receiver.last_byte_at = time.monotonic()
+                continue
             if delay <= 0:
                 return
             # The event loop's timers wake up to 1 ms late (epoll counts milliseconds), so a

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import time
 import tty
 from typing import TYPE_CHECKING
 
@@ -60,6 +61,32 @@ async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: P
         assert exchange.response.registers == (0x0000, 0x41A2)
         assert line.stats.errors[20, ErrorKind.STALE] == 1  # counted against its sender
         assert line.stats.errors[1, ErrorKind.WRONG_ADDRESS] == 0
+    finally:
+        await line.close()
+        os.close(master)
+        os.close(slave)
+
+
+async def test_bytes_the_event_loop_has_not_read_yet_restart_the_gap(tmp_path: Path) -> None:
+    """A late answer still in the port's buffer when the gap looks over: wait again.
+
+    The bytes arrive while the event loop is busy (here: no await between the write and
+    the wait), so the receiver has not timestamped them. The gap must count from them.
+    """
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    port = tmp_path / "ttyHAND"
+    port.symlink_to(os.ttyname(slave))
+    line = Line(port=str(port), line=LINE)
+    await line.open()
+    try:
+        await asyncio.sleep(0.1)  # the line has been quiet far longer than any gap
+        gap_s = 0.02
+        os.write(master, answer(20, (0x1111, 0x2222)))
+        arrived = time.monotonic()
+        time.sleep(0.005)  # noqa: ASYNC251 - busy elsewhere: the kernel has them, the loop not
+        await line.wait_gap(gap_s)
+        assert time.monotonic() - arrived >= gap_s
     finally:
         await line.close()
         os.close(master)
