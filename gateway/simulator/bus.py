@@ -169,9 +169,14 @@ class SimulatedBus:
 
     # --- frames ------------------------------------------------------------------------
 
-    def on_frame(self, frame: bytes, start: float) -> list[Reply]:
-        """Handle one frame whose first byte arrived at ``start``; replies to put on the line."""
+    def on_frame(self, frame: bytes, start: float, *, judged: bool = True) -> list[Reply]:
+        """Handle one frame whose first byte arrived at ``start``; replies to put on the line.
+
+        ``judged=False`` answers without refereeing the timing (see the transport's watch).
+        """
         self.counters["frames"] += 1
+        if not judged:
+            self.counters["unjudged"] += 1
         record = FrameRecord(
             start=start - self.started,
             device=frame[0] if frame else -1,
@@ -181,7 +186,7 @@ class SimulatedBus:
             outcome="answered",
         )
         self.frame_log.append(record)
-        replies = self._on_frame(frame, start, record)
+        replies = self._on_frame(frame, start, record, judged=judged)
         answers = [r for r in replies if r.kind in {"response", "late"}]
         if answers:
             record.answer_at = answers[-1].at - self.started
@@ -189,10 +194,12 @@ class SimulatedBus:
             record.outcome = "dropped"
         return replies
 
-    def _on_frame(self, frame: bytes, start: float, record: FrameRecord) -> list[Reply]:
+    def _on_frame(
+        self, frame: bytes, start: float, record: FrameRecord, *, judged: bool
+    ) -> list[Reply]:
         end = start + (self.line.wire_s(len(frame)) if self.pace else 0.0)
         violations = len(self.violations)
-        timing_ok = self._timing_ok(frame, start) if frame else False
+        timing_ok = (self._timing_ok(frame, start) if judged else True) if frame else False
         self.last_frame_end = max(self.last_frame_end, end)
         if not timing_ok:
             record.outcome = (
@@ -344,10 +351,13 @@ class SimulatedBus:
         replies.append(Reply(at=at, data=answer, kind=kind, device=device.address))
         return replies
 
-    def on_sent(self, reply: Reply, now: float) -> None:
-        """Note when a reply really left, so the next gap is measured from there."""
+    def on_sent(self, reply: Reply, now: float, *, late: bool = False) -> None:
+        """Note when a reply really left, so the next gap is measured from there.
+
+        ``late``: it left later than the device's timing says (the simulator was held up).
+        """
         self.last_frame_end = max(self.last_frame_end, now)
-        if reply.kind == "response":
+        if reply.kind == "response" and not late:
             self.answer_until = now  # the answer is complete on the line
         else:
             self.unsolicited_end = now  # a late answer or noise: no master can foresee it

@@ -11,6 +11,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import os
 import termios
 import tty
@@ -29,6 +30,11 @@ _LOGGER = logging.getLogger(__name__)
 MIN_SILENCE_S: Final = 0.0015  # below this, event-loop timers are not reliable
 STATS_INTERVAL_S: Final = 0.25
 TIMER_GRANULARITY_S: Final = 0.0012  # epoll waits in whole milliseconds, rounded up
+# The referee's watch on its own event loop: a tick every WATCH_S; a tick overdue by more
+# than STALL_S means the loop was held up (a busy harness in the same process, a thread
+# holding the GIL, a fork), so what arrived meanwhile has no trustworthy arrival time.
+WATCH_S: Final = 0.005
+STALL_S: Final = 0.003
 
 
 class SimulatorError(GatewayError):
@@ -43,6 +49,7 @@ class _Burst:
         self._send = send
         self._buffer = bytearray()
         self._start = 0.0
+        self._judged = True  # False: the burst came in while the loop was held up
         self._timer: asyncio.TimerHandle | None = None
 
     def feed(self, data: bytes) -> None:
@@ -50,6 +57,7 @@ class _Burst:
         now = loop.time()
         if not self._buffer:
             self._start = now
+            self._judged = not self._server.stalled(now)
         self._buffer.extend(data)
         if self._timer is not None:
             self._timer.cancel()
@@ -66,7 +74,7 @@ class _Burst:
             if not frames.crc_ok(frame):
                 frame = burst  # a slave cannot find frames inside garbage: all of it is one
             burst = burst[len(frame) :]
-            self._server.handle(frame, start, self._send)
+            self._server.handle(frame, start, self._send, judged=self._judged)
             if self._server.bus.pace:
                 start += line.wire_s(len(frame))
 
@@ -84,10 +92,36 @@ class SimulatorServer:
         self._servers: list[asyncio.Server] = []
         self._stats_task: asyncio.Task[None] | None = None
         bus.start(self.loop.time())
+        self._watch_due = self.loop.time() + WATCH_S
+        self._watch = self.loop.call_at(self._watch_due, self._tick)
+        self._caught_up_at = -math.inf
 
-    def handle(self, frame: bytes, start: float, send: Callable[[bytes], None]) -> None:
-        """Give a received frame to the bus and schedule its replies on the line."""
-        for reply in self.bus.on_frame(frame, start):
+    def _tick(self) -> None:
+        now = self.loop.time()
+        if now - self._watch_due > STALL_S:
+            self.bus.counters["referee_stalls"] += 1
+            self._caught_up_at = now
+        self._watch_due = now + WATCH_S
+        self._watch = self.loop.call_at(self._watch_due, self._tick)
+
+    def stalled(self, now: float) -> bool:
+        """Whether the loop is only now catching up after being held up.
+
+        An overdue watch tick at the moment bytes are taken means they may have waited in
+        the kernel. Bytes taken just after the tick found the stall may have too: a stream
+        reader hands them over one loop turn after they were read.
+        """
+        return now - self._watch_due > STALL_S or now - self._caught_up_at < STALL_S
+
+    def handle(
+        self, frame: bytes, start: float, send: Callable[[bytes], None], *, judged: bool = True
+    ) -> None:
+        """Give a received frame to the bus and schedule its replies on the line.
+
+        ``judged=False``: the frame came in while this loop was held up, so its arrival
+        time says nothing about the master's timing; it is answered but not refereed.
+        """
+        for reply in self.bus.on_frame(frame, start, judged=judged):
             # Timers fire up to 1 ms late; wake a little early and finish the wait by
             # yielding, so the simulated device answers when its timing says.
             self.loop.call_at(reply.at - TIMER_GRANULARITY_S, self._emit_on_time, reply, send)
@@ -107,7 +141,9 @@ class SimulatorServer:
             send(reply.data)
         except OSError as exc:  # the master went away; the line is simply not listened to
             _LOGGER.debug("reply not delivered: %s", exc)
-        self.bus.on_sent(reply, sent)
+        # Held up past its time, the reply is late by the simulator's fault: a master that
+        # gave up and moved on collides with it, and is not to blame.
+        self.bus.on_sent(reply, sent, late=sent - reply.at > STALL_S)
 
     # --- endpoints -----------------------------------------------------------------------
 
@@ -161,6 +197,7 @@ class SimulatorServer:
 
     async def close(self) -> None:
         """Stop serving, write the final stats, remove the pty link."""
+        self._watch.cancel()
         if self._stats_task is not None:
             self._stats_task.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import re
 import shutil
+import time
 from typing import TYPE_CHECKING, Any
 
 import pytest
@@ -250,6 +251,30 @@ async def test_early_request_is_ignored_on_the_wire() -> None:
         writer.close()
         assert first == CLEAN
         assert server.bus.stats()["violations_by_rule"] == {"inter_frame_gap": 1}
+
+
+async def test_frames_that_waited_out_a_stall_of_the_referee_are_not_judged() -> None:
+    """Back-to-back requests that arrive while the simulator's loop is held up.
+
+    The kernel kept them while the loop was blocked, so their arrival times say nothing
+    of the master's gaps: the referee must not blame it. Both are answered, none is a
+    violation, and the stall is counted. The test before shows the same bytes judged.
+    """
+    async with serving([DEVICES[0]]) as server:
+        port = await server.open_tcp("127.0.0.1", 0)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        await asyncio.sleep(0.05)
+        writer.write(TEMPERATURE.frame)
+        time.sleep(0.004)  # noqa: ASYNC251 - the master's gap, while the loop is held up
+        writer.write(TEMPERATURE.frame)
+        time.sleep(0.03)  # noqa: ASYNC251 - a harness busy elsewhere: nobody reads
+        received = await asyncio.wait_for(reader.readexactly(2 * len(CLEAN)), timeout=1)
+        writer.close()
+        assert received == CLEAN + CLEAN
+        stats = server.bus.stats()
+        assert stats["timing_violations"] == 0
+        assert stats["counters"]["unjudged"] == 2
+        assert stats["counters"]["referee_stalls"] >= 1
 
 
 async def test_pyserial_socket_url_reaches_the_simulator() -> None:
