@@ -62,6 +62,7 @@ QUIET_TAIL_S = 8.0  # faults stop this long before the end, so everything settle
 FAULTS = FaultPlan(crc=0.01, drop=0.005, late=0.005, late_s=0.3, noise=0.005, wrong_address=0.003)
 MAX_RECOVERY_S = 12.0
 MAX_UNJUDGED_SHARE = 0.01  # frames the referee may skip after its own loop was held up
+MAX_UNJUDGED_FLOOR = 30  # ... or this many: the start and the end each hold it up briefly
 VIOLATION_CONTEXT_S = 0.06  # frames shown either side of a timing violation
 MAX_RSS_GROWTH_MIB = 8.0
 OUTAGE_MARGIN_S = 5.0  # commands sent this long before a broker stop may be lost with it
@@ -496,7 +497,7 @@ def check_faults(soak: Soak, metrics: Metrics, verdict: Verdict) -> None:
     # Frames that came in while the simulators' loop (this process) was held up are not
     # refereed: their arrival times are unknown. Too many, and the check above means little.
     verdict.check(
-        unjudged <= MAX_UNJUDGED_SHARE * transactions,
+        unjudged <= max(MAX_UNJUDGED_SHARE * transactions, MAX_UNJUDGED_FLOOR),
         f"{unjudged} of {transactions} frames not judged: the harness held its simulators up",
     )
     for name, server in soak.servers.items():
