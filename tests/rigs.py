@@ -8,6 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -19,7 +24,7 @@ from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.timing import LineFormat
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Sequence
+    from collections.abc import AsyncIterator, Iterator, Sequence
     from pathlib import Path
 
     from gateway.samples import DeviceEvent, Sample
@@ -186,3 +191,39 @@ async def link_rig(
                 result.polling.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await result.polling
+
+
+# --- the simulator as its own process, for the command-line tests -------------------------
+
+STATS_INTERVAL_S = 0.35  # a little over the simulator's 250 ms between stats files
+
+
+@contextlib.contextmanager
+def simulate_process(directory: Path, config: str) -> Iterator[tuple[Path, Path]]:
+    """``gateway simulate --pty`` on ``config`` (YAML text): yields the pty and the stats file.
+
+    The simulator is an independent observer of the wire: what was written and the
+    timing are read from its stats file.
+    """
+    port, stats = directory / "ttySIM", directory / "stats.json"
+    path = directory / "sim.yaml"
+    path.write_text(config, encoding="utf-8")
+    command = [sys.executable, "-m", "gateway", "simulate", "--config", str(path)]
+    with subprocess.Popen(
+        [*command, "--pty", str(port), "--stats", str(stats)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    ) as simulator:
+        assert simulator.stdout is not None
+        assert simulator.stdout.readline().startswith("simulating")
+        yield port, stats
+        simulator.send_signal(signal.SIGINT)
+        simulator.communicate(timeout=10)
+
+
+def stats_of(stats: Path) -> dict[str, Any]:
+    """The simulator's stats file, once it has been written again."""
+    time.sleep(STATS_INTERVAL_S)
+    data: dict[str, Any] = json.loads(stats.read_text(encoding="utf-8"))
+    return data

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.rigs import simulate_process, stats_of
 from tests.test_profiles import PROFILE_IDS
 
 
@@ -84,44 +85,19 @@ def test_version_and_module_entry_point() -> None:
 
 @pytest.fixture
 def simulated_line(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
-    port, stats = tmp_path / "ttySIM", tmp_path / "stats.json"
-    config = tmp_path / "sim.yaml"
-    config.write_text(
+    with simulate_process(
+        tmp_path,
         "line: {baudrate: 19200, parity: E, stopbits: 1}\n"
         "devices:\n"
         "  - {profile: jumo-digiline-odo-s10, address: 1, animate: false,"
         " values: {temperature: 20.25, oxygen: {fault: overrange}}}\n"
         "  - {profile: reiss-m0c, address: 10, animate: false, values: {concentration: 0.168}}\n",
-        encoding="utf-8",
-    )
-    with subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gateway",
-            "simulate",
-            "--config",
-            str(config),
-            "--pty",
-            str(port),
-            "--stats",
-            str(stats),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    ) as simulator:
-        assert simulator.stdout is not None
-        assert simulator.stdout.readline().startswith("simulating")
-        yield port, stats
-        simulator.send_signal(signal.SIGINT)
-        simulator.communicate(timeout=10)
+    ) as line:
+        yield line
 
 
 def frames_received(stats: Path) -> int:
-    time.sleep(0.35)  # one stats interval
-    data = json.loads(stats.read_text(encoding="utf-8"))
-    return int(data["counters"].get("frames", 0))
+    return int(stats_of(stats)["counters"].get("frames", 0))
 
 
 def test_read_prints_values_and_faults_as_json(simulated_line: tuple[Path, Path]) -> None:

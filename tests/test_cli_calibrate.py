@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
-import time
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -14,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from gateway.flash import FlashLedger
+from tests.rigs import simulate_process, stats_of
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -46,37 +45,8 @@ def gateway(cwd: Path, *args: str, stdin: str = "") -> subprocess.CompletedProce
 
 @pytest.fixture
 def line(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
-    port, stats = tmp_path / "ttySIM", tmp_path / "stats.json"
-    config = tmp_path / "sim.yaml"
-    config.write_text(SIMULATED, encoding="utf-8")
-    with subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gateway",
-            "simulate",
-            "--config",
-            str(config),
-            "--pty",
-            str(port),
-            "--stats",
-            str(stats),
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    ) as simulator:
-        assert simulator.stdout is not None
-        assert simulator.stdout.readline().startswith("simulating")
-        yield port, stats
-        simulator.send_signal(signal.SIGINT)
-        simulator.communicate(timeout=10)
-
-
-def stats_of(path: Path) -> dict[str, Any]:
-    time.sleep(0.35)  # one stats interval
-    data: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
-    return data
+    with simulate_process(tmp_path, SIMULATED) as simulated:
+        yield simulated
 
 
 def writes_to(stats: dict[str, Any], address: int) -> list[tuple[int, int, list[int]]]:

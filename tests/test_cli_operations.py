@@ -7,16 +7,15 @@ timing are read from its stats file, as an independent observer of the wire.
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
 from gateway.flash import LEDGER_FILE, FlashLedger
+from tests.rigs import simulate_process, stats_of
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -39,9 +38,8 @@ HISTORY = """\
 
 @pytest.fixture
 def simulated_line(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
-    port, stats = tmp_path / "ttySIM", tmp_path / "stats.json"
-    config = tmp_path / "sim.yaml"
-    config.write_text(
+    with simulate_process(
+        tmp_path,
         "line: {baudrate: 19200, parity: E, stopbits: 1}\n"
         "devices:\n"
         "  - {profile: jumo-digiline-odo-s10, address: 1}\n"
@@ -50,20 +48,8 @@ def simulated_line(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
         "    address: 20\n"
         "    animate: false\n"
         "    values:\n" + HISTORY,
-        encoding="utf-8",
-    )
-    command = [sys.executable, "-m", "gateway", "simulate", "--config", str(config)]
-    with subprocess.Popen(
-        [*command, "--pty", str(port), "--stats", str(stats)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    ) as simulator:
-        assert simulator.stdout is not None
-        assert simulator.stdout.readline().startswith("simulating")
-        yield port, stats
-        simulator.send_signal(signal.SIGINT)
-        simulator.communicate(timeout=10)
+    ) as line:
+        yield line
 
 
 def gateway(cwd: Path, *args: str, tz: str = "UTC") -> subprocess.CompletedProcess[str]:
@@ -77,12 +63,6 @@ def gateway(cwd: Path, *args: str, tz: str = "UTC") -> subprocess.CompletedProce
         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8", "TZ": tz},
         cwd=cwd,
     )
-
-
-def stats_of(stats: Path) -> dict[str, Any]:
-    time.sleep(0.35)  # one stats interval
-    data: dict[str, Any] = json.loads(stats.read_text(encoding="utf-8"))
-    return data
 
 
 def writes(data: dict[str, Any], address: int) -> list[tuple[int, int, list[int]]]:

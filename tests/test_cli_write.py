@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import json
-import time
 from typing import TYPE_CHECKING, Any
 
+from tests.rigs import stats_of
 from tests.test_cli import gateway, simulated_line
 
 if TYPE_CHECKING:
@@ -15,9 +15,7 @@ __all__ = ["simulated_line"]  # the fixture, used by name
 
 
 def written(stats: Path, address: int) -> list[dict[str, Any]]:
-    time.sleep(0.35)  # one stats interval
-    data = json.loads(stats.read_text(encoding="utf-8"))
-    return list(data["devices"][str(address)]["writes"])
+    return list(stats_of(stats)["devices"][str(address)]["writes"])
 
 
 def line_options(port: Path, address: int, profile: str) -> list[str]:
