@@ -227,3 +227,23 @@ def stats_of(stats: Path) -> dict[str, Any]:
     time.sleep(STATS_INTERVAL_S)
     data: dict[str, Any] = json.loads(stats.read_text(encoding="utf-8"))
     return data
+
+
+def run_gateway(
+    *args: str, cwd: Path, stdin: str = "", tz: str | None = None
+) -> subprocess.CompletedProcess[str]:
+    """``gateway ARGS`` as a user runs it, in ``cwd`` (a command without --config keeps
+    its ``state/`` there), with a wide terminal and, if given, a time zone."""
+    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"}
+    if tz is not None:
+        env["TZ"] = tz
+    return subprocess.run(
+        [sys.executable, "-m", "gateway", *args],
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=60,
+        input=stdin,
+        env=env,
+        cwd=cwd,
+    )

@@ -12,20 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from tests.rigs import simulate_process, stats_of
+from tests.rigs import run_gateway, simulate_process, stats_of
 from tests.test_profiles import PROFILE_IDS
 
 
 def gateway(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "gateway", *args],
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=60,
-        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"},
-        cwd=Path(__file__).parent,
-    )
+    return run_gateway(*args, cwd=Path(__file__).parent)
 
 
 def test_profiles_lists_every_id() -> None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -12,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from gateway.flash import FlashLedger
-from tests.rigs import simulate_process, stats_of
+from tests.rigs import run_gateway, simulate_process, stats_of
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -31,16 +30,7 @@ H10 = ("--address", "2", "--profile", "jumo-digiline-odo-h10", *LINE)
 
 def gateway(cwd: Path, *args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
     """Run ``gateway``; in ``cwd``, where a command without --config keeps ``state/``."""
-    return subprocess.run(
-        [sys.executable, "-m", "gateway", *args],
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=60,
-        input=stdin,
-        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"},
-        cwd=cwd,
-    )
+    return run_gateway(*args, cwd=cwd, stdin=stdin)
 
 
 @pytest.fixture

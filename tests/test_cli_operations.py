@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
 from gateway.flash import LEDGER_FILE, FlashLedger
-from tests.rigs import simulate_process, stats_of
+from tests.rigs import run_gateway, simulate_process, stats_of
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -54,15 +53,7 @@ def simulated_line(tmp_path: Path) -> Iterator[tuple[Path, Path]]:
 
 def gateway(cwd: Path, *args: str, tz: str = "UTC") -> subprocess.CompletedProcess[str]:
     """The command in ``cwd``, whose ``state/`` then holds the flash-write ledger."""
-    return subprocess.run(
-        [sys.executable, "-m", "gateway", *args],
-        capture_output=True,
-        text=True,
-        check=False,
-        timeout=60,
-        env={"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8", "TZ": tz},
-        cwd=cwd,
-    )
+    return run_gateway(*args, cwd=cwd, tz=tz)
 
 
 def writes(data: dict[str, Any], address: int) -> list[tuple[int, int, list[int]]]:
