@@ -183,10 +183,12 @@ class Line:
         measured from an older byte.
         """
         port = self._transport.get_extra_info("serial") if self._transport else None
+        if port is None or not port.is_open:
+            return False  # the port went away: the write or the receiver will say so
         try:
-            return bool(port is not None and port.in_waiting)
-        except (OSError, serial.SerialException):
-            return False  # the port went away: the write will say so
+            return bool(port.in_waiting)
+        except (OSError, TypeError, serial.SerialException):
+            return False  # closed meanwhile (pyserial then has no file descriptor)
 
     def _live_receiver(self) -> _Receiver:
         receiver = self._receiver

@@ -7,13 +7,17 @@ slave) never does: late answers of other devices ahead of the right one.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import time
 import tty
 from typing import TYPE_CHECKING
 
+import serial
+
 from gateway import frames
 from gateway.bus import ErrorKind, Line
+from gateway.errors import BusClosedError
 from gateway.timing import LineFormat
 
 if TYPE_CHECKING:
@@ -89,5 +93,28 @@ async def test_bytes_the_event_loop_has_not_read_yet_restart_the_gap(tmp_path: P
         assert time.monotonic() - arrived >= gap_s
     finally:
         await line.close()
+        os.close(master)
+        os.close(slave)
+
+
+async def test_a_port_closed_under_the_line_is_not_an_unexpected_error(tmp_path: Path) -> None:
+    """The port closes (unplugged) just as the gap is checked: a closed-port error or a
+    normal return, never a crash in the check for unread bytes (the unplug test hit it)."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    port = tmp_path / "ttyHAND"
+    port.symlink_to(os.ttyname(slave))
+    line = Line(port=str(port), line=LINE)
+    await line.open()
+    try:
+        await asyncio.sleep(0.05)
+        transport = line._transport  # the serial port under the transport
+        assert transport is not None
+        transport.get_extra_info("serial").close()
+        with contextlib.suppress(BusClosedError):
+            await line.wait_gap(0.0)
+    finally:
+        with contextlib.suppress(serial.SerialException):  # closed behind its back
+            await line.close()
         os.close(master)
         os.close(slave)
