@@ -38,7 +38,7 @@ from gateway.sinks.message import Message
 from gateway.store import MessageStore
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Coroutine, Mapping, Sequence
     from datetime import datetime
     from pathlib import Path
 
@@ -376,7 +376,7 @@ class MqttSink:
                 for _, m in batch:
                     if len(window) == WINDOW:
                         await window.popleft()
-                    window.append(asyncio.create_task(self._send(client, m)))
+                    window.append(_in_flight(self._send(client, m)))
                 while window:
                     await window.popleft()
             finally:
@@ -452,7 +452,7 @@ class MqttSink:
                     self._connected = True
                 while len(window) < min(WINDOW, len(self._live)):
                     message = self._live[len(window)]
-                    window.append(asyncio.create_task(self._send(client, message)))
+                    window.append(_in_flight(self._send(client, message)))
                 if not window:
                     self._update_status()
                     self._wake.clear()
@@ -465,3 +465,14 @@ class MqttSink:
         finally:
             for task in window:
                 task.cancel()
+
+
+def _in_flight(publish: Coroutine[object, object, None]) -> asyncio.Task[None]:
+    """A publish of the window, as a task whose failure counts as seen.
+
+    Only the head of the window is awaited; when the connection fails, the others fail
+    too and are dropped with it (their messages stay queued), which is no news to log.
+    """
+    task = asyncio.create_task(publish)
+    task.add_done_callback(lambda done: done.cancelled() or done.exception())
+    return task
