@@ -66,13 +66,13 @@ async def one(
         sim0 = process_figures(sim_pid)[1]
         worst_lag = 0.0
         end = wall0 + seconds
-        profiler = cProfile.Profile() if profile else None
-        if profiler:
+        profiler = cProfile.Profile()
+        if profile:
             profiler.enable()
         while time.monotonic() < end:
             await asyncio.sleep(1.0)
             worst_lag = max([worst_lag, *(h.lag_s for h in state.health())])
-        if profiler and profile:
+        if profile:
             profiler.disable()
             profiler.dump_stats(profile.with_suffix(f".{buses}x{devices}.prof"))
         wall = time.monotonic() - wall0

@@ -554,13 +554,13 @@ class BusWorker:
         """
         intervals = state.target.intervals
         wanted = {intervals.get(name) for name in names}
-        members = sorted(
+        members = [  # in any order: the planner keys its cache by the set
             name
             for name in state.target.slow_points
             if intervals.get(name) in wanted
             and name not in state.unreadable
             and name not in state.identity_pending
-        )
+        ]
         due = set(names)
         return tuple(
             block

@@ -21,6 +21,7 @@ from gateway.errors import BusClosedError
 from gateway.timing import LineFormat
 
 if TYPE_CHECKING:
+    from collections.abc import AsyncIterator
     from pathlib import Path
 
 LINE = LineFormat(baudrate=9600, parity="N", stopbits=1)
@@ -30,12 +31,9 @@ def answer(device: int, registers: tuple[int, ...]) -> bytes:
     return frames.read_response(device, 0x03, registers)
 
 
-async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: Path) -> None:
-    """Device 20's late answer comes first; device 1's own answer 20 ms later is taken.
-
-    Giving up at the foreign frame would put the next request on the line while device 1
-    is still answering: a collision the soak found.
-    """
+@contextlib.asynccontextmanager
+async def hand_wired(tmp_path: Path) -> AsyncIterator[tuple[Line, int]]:
+    """A line open on a pty whose other end (the file descriptor yielded) the test writes."""
     master, slave = os.openpty()
     tty.setraw(slave)
     port = tmp_path / "ttyHAND"
@@ -43,6 +41,21 @@ async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: P
     line = Line(port=str(port), line=LINE)
     await line.open()
     try:
+        yield line, master
+    finally:
+        with contextlib.suppress(serial.SerialException):  # a test may close it behind its back
+            await line.close()
+        os.close(master)
+        os.close(slave)
+
+
+async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: Path) -> None:
+    """Device 20's late answer comes first; device 1's own answer 20 ms later is taken.
+
+    Giving up at the foreign frame would put the next request on the line while device 1
+    is still answering: a collision the soak found.
+    """
+    async with hand_wired(tmp_path) as (line, master):
         request = frames.read_request(1, 0x2620, 2)
 
         async def other_end() -> None:
@@ -65,10 +78,6 @@ async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: P
         assert exchange.response.registers == (0x0000, 0x41A2)
         assert line.stats.errors[20, ErrorKind.STALE] == 1  # counted against its sender
         assert line.stats.errors[1, ErrorKind.WRONG_ADDRESS] == 0
-    finally:
-        await line.close()
-        os.close(master)
-        os.close(slave)
 
 
 async def test_bytes_the_event_loop_has_not_read_yet_restart_the_gap(tmp_path: Path) -> None:
@@ -77,13 +86,7 @@ async def test_bytes_the_event_loop_has_not_read_yet_restart_the_gap(tmp_path: P
     The bytes arrive while the event loop is busy (here: no await between the write and
     the wait), so the receiver has not timestamped them. The gap must count from them.
     """
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    port = tmp_path / "ttyHAND"
-    port.symlink_to(os.ttyname(slave))
-    line = Line(port=str(port), line=LINE)
-    await line.open()
-    try:
+    async with hand_wired(tmp_path) as (line, master):
         await asyncio.sleep(0.1)  # the line has been quiet far longer than any gap
         gap_s = 0.02
         os.write(master, answer(20, (0x1111, 0x2222)))
@@ -91,30 +94,15 @@ async def test_bytes_the_event_loop_has_not_read_yet_restart_the_gap(tmp_path: P
         time.sleep(0.005)  # noqa: ASYNC251 - busy elsewhere: the kernel has them, the loop not
         await line.wait_gap(gap_s)
         assert time.monotonic() - arrived >= gap_s
-    finally:
-        await line.close()
-        os.close(master)
-        os.close(slave)
 
 
 async def test_a_port_closed_under_the_line_is_not_an_unexpected_error(tmp_path: Path) -> None:
     """The port closes (unplugged) just as the gap is checked: a closed-port error or a
     normal return, never a crash in the check for unread bytes (the unplug test hit it)."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    port = tmp_path / "ttyHAND"
-    port.symlink_to(os.ttyname(slave))
-    line = Line(port=str(port), line=LINE)
-    await line.open()
-    try:
+    async with hand_wired(tmp_path) as (line, _):
         await asyncio.sleep(0.05)
         transport = line._transport  # the serial port under the transport
         assert transport is not None
         transport.get_extra_info("serial").close()
         with contextlib.suppress(BusClosedError):
             await line.wait_gap(0.0)
-    finally:
-        with contextlib.suppress(serial.SerialException):  # closed behind its back
-            await line.close()
-        os.close(master)
-        os.close(slave)
