@@ -582,7 +582,8 @@ def check_commands(soak: Soak, seen: Recorder, verdict: Verdict) -> None:
         if status is None:
             verdict.check(
                 in_broker_outage(soak, seen, command.sent_at) and result.get("results", 0) == 0,
-                f"command {command.id}: {result.get('results', 0)} results",
+                f"command {command.id} ({command.device} {command.point}, sent"
+                f" @{command.sent_at:.1f}s): {result.get('results', 0)} results",
             )
             continue
         ok += status == "ok"

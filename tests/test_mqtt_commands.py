@@ -15,7 +15,9 @@ from typing import TYPE_CHECKING, Any
 
 import aiomqtt
 
+from gateway.sinks.message import Message
 from gateway.sinks.prometheus import GatewayCollector
+from gateway.store import MessageStore
 from tests.mqtt_broker import recording
 from tests.sinks.test_mqtt import gateway, simulated
 
@@ -196,6 +198,37 @@ async def test_commands_can_be_switched_off(tmp_path: Path, broker: Broker) -> N
         await asyncio.sleep(1.0)
         assert seen.on("gw/aeration/compensation_temperature/set/result") == []
         assert writes(server, 1) == []
+
+
+async def test_a_command_sent_at_online_is_run_while_the_backlog_drains(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """``online`` means commands are heard: the gateway subscribes before it says so.
+
+    A broker restart leaves a backlog on disk; a plant system that sends a command the
+    moment it sees ``online`` must not lose it to a subscription made only after the
+    backlog is sent (a clean session drops what arrives before).
+    """
+    backlog = MessageStore(tmp_path / "state" / "mqtt-queue.sqlite", max_messages=100_000)
+    backlog.append([Message.text("gw/backlog", str(i)) for i in range(5_000)])
+    backlog.close()
+    async with (
+        simulated(tmp_path, SENSORS) as server,
+        recording(broker.port, "gw/+/+/set/result") as seen,
+        publisher(broker.port) as client,
+    ):
+        await client.subscribe("gw/status", qos=1)
+        async with gateway(config(tmp_path, broker.port)) as state:
+            async with asyncio.timeout(15):
+                async for message in client.messages:
+                    if message.payload == b"online":
+                        break
+            backlog_left = state.mqtt.queue_depth
+            topic = "gw/aeration/compensation_temperature/set"
+            result = await command(client, seen, topic, '{"value": 22.5, "id": "at-once"}')
+        assert backlog_left > 0, "the command went out while the backlog drained"
+        assert (result["status"], result["id"], result["value"]) == ("ok", "at-once", 22.5)
+        assert writes(server, 1) == [(16, 0x25B0, cdab(22.5))]
 
 
 async def test_feeds_keep_compensation_values_current(tmp_path: Path, broker: Broker) -> None:

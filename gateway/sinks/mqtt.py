@@ -337,10 +337,13 @@ class MqttSink:
             _LOGGER.info("MQTT: connected to %s:%d again", self.settings.host, self.settings.port)
         self._failures_in_a_row = 0
         self.state.mqtt.last_error = None
+        # Subscribed before saying online: a plant system may send a command as soon as it
+        # sees ``online``, and a clean session drops what arrives before the subscription
+        # (the soak lost a command sent while a broker restart's backlog drained). The
+        # backlog drains in the session, while commands are already taken.
+        for topic_filter in self._filters():
+            await client.subscribe(topic_filter, qos=1)
         await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
-        await self._drain(client)  # the backlog first, before anything newer
-        self._connected = True
-        self._update_status()
 
     def _lost(self, exc: aiomqtt.MqttError) -> None:
         """Note the failure; unsent live messages go to the head of the disk queue."""
@@ -392,18 +395,21 @@ class MqttSink:
 
     async def _session(self, client: aiomqtt.Client) -> None:
         """Send, and take messages for the listeners, until the connection fails."""
-        filters = [f for listener in self.listeners for f in listener.subscriptions()]
-        if not filters:
+        if not self._filters():
             await self._send_forever(client)
             return
-        for topic_filter in dict.fromkeys(filters):
-            await client.subscribe(topic_filter, qos=1)
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._send_forever(client))
                 group.create_task(self._receive_forever(client))
         except* aiomqtt.MqttError as failed:
             raise failed.exceptions[0] from None  # the reconnect loop handles one error
+
+    def _filters(self) -> list[str]:
+        """The listeners' topic filters, each once."""
+        return list(
+            dict.fromkeys(f for listener in self.listeners for f in listener.subscriptions())
+        )
 
     async def _receive_forever(self, client: aiomqtt.Client) -> None:
         """Hand every message to the listeners that subscribed to it, each in its own task.
@@ -447,9 +453,11 @@ class MqttSink:
         try:
             while True:
                 if len(self.store) and not window:
-                    self._connected = False
-                    await self._drain(client)
+                    self._connected = False  # newer messages queue on disk behind the backlog
+                    await self._drain(client)  # the backlog first, before anything newer
+                if not self._connected:
                     self._connected = True
+                    self._update_status()
                 while len(window) < min(WINDOW, len(self._live)):
                     message = self._live[len(window)]
                     window.append(_in_flight(self._send(client, message)))
