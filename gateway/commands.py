@@ -10,9 +10,10 @@ Text is typed by the point it is meant for:
 - numbers (``float32`` and the integer types): ``"20.5"``, ``"3"``; ``"3.5"`` is not an integer;
 - ``bool``: ``true``/``false``, ``1``/``0``, ``on``/``off`` (any case);
 - enums: the label (``"wet"``) or the code (``"1"``);
-- bit fields: a JSON object of bit names to ``true``/``false``, or the raw integer. The word is
-  written whole: bits not named in the object, and bits the profile does not name, are
-  written as 0. To change one bit, send the state of every bit;
+- bit fields: a JSON object of bit names to ``true``/``false``, or the raw integer. Here an
+  object encodes as if every bit it does not name were 0; the write path
+  (:mod:`gateway.writes`) reads the word first and changes only the bits named. A raw
+  integer is the whole word;
 - ``datetime`` (digiLine clock): ISO 8601 with an offset, ``2024-05-01T12:00:00+02:00``;
 - ``yymmddhhmm`` (calibration stamp): ISO 8601 to the minute; the stamp has no time zone, so
   an offset, if given, is dropped and the wall-clock time written as given;

@@ -4,6 +4,8 @@
 and feeds change a device's registers:
 
 1. the value is checked and encoded for the point (:func:`gateway.commands.validate_write`);
+   a bit field given as an object of bit names changes those bits only: the word is read
+   and the other bits, named or not, are written back as the device holds them;
 2. a flash-backed point is read first and judged by :func:`gateway.flash.check_flash_write`
    (allowed by name, unchanged values skipped, the daily budget), and an accepted flash
    write is counted in the persistent ledger *before* it is sent;
@@ -15,6 +17,7 @@ Anything refused in steps 1 and 2 raises :class:`CommandRejectedError` and nothi
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -83,8 +86,10 @@ class SafeWriter:
         ``read_back=False`` saves the read-back (feeds, which write often).
         """
         link = self.link
-        registers = await link.encode(point, value)
+        registers = await link.encode(point, value)  # refuses bad input before any read
         target = link.profile.point(point)
+        if isinstance(value, Mapping) and target.format.dtype in codec.BITFIELD_TYPES:
+            registers = await link.encode(point, await self._merged_bits(point, value))
         flash = target.storage is Storage.FLASH
         current: codec.Decoded = None
         held: tuple[int, ...] | None = None
@@ -134,6 +139,30 @@ class SafeWriter:
             flash=flash,
             note=note,
         )
+
+    async def _merged_bits(self, point: str, bits: Mapping[object, object]) -> int:
+        """The word the device holds with the named ``bits`` set or cleared.
+
+        A plant system that sends ``{"salinity_from_ram": true}`` means that bit, not "clear
+        every other": the rest of the word (the bits the profile does not name included,
+        e.g. the S10 control byte's bits 4-7) is kept as read.
+        """
+        try:
+            held = await self.link.read_value(point)
+        except BusError as exc:
+            raise CommandRejectedError(
+                f"could not read the bits to keep, so nothing was written: {exc}", point=point
+            ) from exc
+        if not isinstance(held, codec.BitfieldValue):
+            raise CommandRejectedError(
+                f"the bits to keep read as {held!r}, so nothing was written", point=point
+            )
+        positions = {name: bit for bit, name in self.link.profile.point(point).format.bits.items()}
+        raw = held.raw
+        for name, state in bits.items():
+            mask = 1 << positions[str(name)]  # names and states were checked by encode
+            raw = raw | mask if state else raw & ~mask
+        return raw
 
     async def _current(self, point: str) -> tuple[codec.Decoded, tuple[int, ...] | None]:
         """What a flash-backed point holds, decoded and as registers to compare with."""

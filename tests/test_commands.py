@@ -139,7 +139,7 @@ def test_bool_words(s10: Profile) -> None:
 
 def test_bitfield_names_and_rejections(s10: Profile) -> None:
     point = "compensation_control"
-    # Bits not named are written as 0: the word is written whole.
+    # Encoded alone, bits not named are 0; the write path keeps them as the device holds them.
     assert validate_write(
         s10, point, {"temperature_from_ram": True, "pressure_from_ram": True}, float_order=CDAB
     ) == (0b101,)

@@ -95,6 +95,35 @@ async def test_single_register_goes_out_as_function_06(tmp_path: Path, ledger: F
         }
 
 
+async def test_named_bits_change_only_themselves_the_rest_of_the_word_is_kept(
+    tmp_path: Path, ledger: FlashLedger
+) -> None:
+    async with link_rig(tmp_path, PLANT, targets()) as rig:
+        # Bits 0 and 2 named and set; bit 4 is one the S10 profile does not name.
+        rig.device(1).put("compensation_control", 0b1_0101)
+        done = await writer(rig, "s10", ledger).set(
+            "compensation_control", {"salinity_from_ram": True, "pressure_from_ram": False}
+        )
+        [record] = rig.writes(1)
+        assert (record.function, record.address, record.values) == (6, 0x25AF, (0b1_0011,))
+        assert done.registers == (0b1_0011,)
+        assert rig.device(1).get("compensation_control").raw == 0b1_0011  # type: ignore[union-attr]
+        raw = await writer(rig, "s10", ledger).set("compensation_control", 0b010)
+        assert raw.registers == (0b010,)  # a raw number is the whole word
+        assert [r.values for r in rig.writes(1)] == [(0b1_0011,), (0b010,)]
+
+
+async def test_a_bit_that_is_not_in_the_field_reads_nothing_and_writes_nothing(
+    tmp_path: Path, ledger: FlashLedger
+) -> None:
+    async with link_rig(tmp_path, PLANT, targets()) as rig:
+        frames_before = len(rig.rig.frames())
+        with pytest.raises(CommandRejectedError, match="is not a bit of this field"):
+            await writer(rig, "s10", ledger).set("compensation_control", {"ph_from_ram": True})
+        assert rig.writes(1) == []
+        assert len(rig.rig.frames()) == frames_before
+
+
 async def test_h10_volatile_write_keeps_the_250_ms_wait_on_the_wire(
     tmp_path: Path, ledger: FlashLedger
 ) -> None:
