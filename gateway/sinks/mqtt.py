@@ -52,6 +52,9 @@ BATCH: Final = 100  # messages read from disk at a time while a backlog drains
 # Publishes awaiting their PUBACK at once: below paho's own limit of 20 in flight, beyond
 # which it would hold messages back in a queue of its own.
 WINDOW: Final = 16
+# aiomqtt logs a warning for every publish beyond 10 awaiting completion; the window holds
+# 16 on purpose, so it warns only past the window and the few publishes outside it.
+PENDING_CALLS_WARNING: Final = WINDOW + 4
 BACKOFF_FIRST_S: Final = 0.5
 CLIENT_TIMEOUT_S: Final = 4.0  # connect, PUBACK and disconnect: within the app's stop bound
 NOT_AUTHORISED: Final = frozenset({4, 5, 134, 135})  # CONNACK: MQTT 3.1.1 4, 5; MQTT 5 134, 135
@@ -278,7 +281,7 @@ class MqttSink:
                 certfile=str(settings.tls.cert) if settings.tls.cert else None,
                 keyfile=str(settings.tls.key) if settings.tls.key else None,
             )
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             settings.host,
             settings.port,
             username=settings.username,
@@ -293,6 +296,8 @@ class MqttSink:
             # publishes back by tens of milliseconds.
             socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
         )
+        client.pending_calls_threshold = PENDING_CALLS_WARNING
+        return client
 
     async def run(self) -> None:
         """Keep connected; send the backlog in order, then live messages, until cancelled.
