@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
-LATE_ANSWER_WINDOW_S: Final = 1.0  # after a timeout, a late answer may still come
+LATE_ANSWER_WINDOW_S: Final = 1.0  # after no answer of its own, a device's late one may come
 BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
 PORT_BACKOFF_FIRST_S: Final = 0.5
@@ -526,14 +526,28 @@ class BusWorker:
     async def _transact(
         self, state: DeviceState, request: frames.Request, response_bytes: int
     ) -> frames.Response:
-        exchange = await self.line.transact(
-            request,
-            timeout_s=self._timeout_for(state, response_bytes),
-            gap_s=self._gap_s(state),
-            not_before=state.not_before,
-            exceptions=state.profile.exceptions,
-            byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
-        )
+        """One transaction with the device; after no answer of its own, its late-answer window.
+
+        A timeout, only noise, or only another device's frame: the device's own answer has
+        not come and may still come late. Nothing more goes to the device for the window, so
+        that answer is flushed as stale instead of taken for the next request's (the soak
+        found noise, then the answer 0.3 s late, taken as the immediate retry's answer, and
+        the next request sent over the retry's real answer). A corrupted answer of its own
+        (CRC) is the device's answer: nothing more is to come.
+        """
+        try:
+            exchange = await self.line.transact(
+                request,
+                timeout_s=self._timeout_for(state, response_bytes),
+                gap_s=self._gap_s(state),
+                not_before=state.not_before,
+                exceptions=state.profile.exceptions,
+                byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
+            )
+        except (BusTimeoutError, MalformedFrameError, UnexpectedDeviceError):
+            window_end = time.monotonic() + self.late_answer_window_s
+            state.not_before = max(state.not_before, window_end)
+            raise
         assert exchange is not None  # noqa: S101 - unicast requests always have an answer
         return exchange.response
 
@@ -623,8 +637,6 @@ class BusWorker:
                 )
             return self._failed(state, block, f"exception_{exc.code:02d}")
         except (BusTimeoutError, FrameError) as exc:
-            if isinstance(exc, BusTimeoutError):
-                state.not_before = time.monotonic() + self.late_answer_window_s
             await self._count_failure(state, str(exc))
             if state.online is not False and self._retry(state, block):
                 return None
@@ -788,7 +800,6 @@ class BusWorker:
             cap = max(state.target.probe_max_s, state.target.poll_interval_s)
             state.backoff_s = min(max(state.backoff_s, state.target.poll_interval_s) * 2, cap)
             state.probe_at = now + state.backoff_s * self._rng.uniform(0.8, 1.2)
-            state.not_before = time.monotonic() + self.late_answer_window_s
             return
         state.online = None
         await self._mark_online(state, "answered a probe")

@@ -279,6 +279,28 @@ async def test_injected_faults_are_counted_and_never_give_a_wrong_value(
     assert all(s.good for s in r.sink.samples if s.monotonic > cleared + 1.3)
 
 
+async def test_after_noise_and_no_answer_the_late_answer_is_not_taken_for_the_next(
+    tmp_path: Path,
+) -> None:
+    """Noise, then the device's answer 0.3 s late: the request failed as noise only.
+
+    The answer is still to come, so the device waits out its late-answer window; retried
+    at once, the late answer would pass for the retry's, and the next request would go out
+    while the retry's own answer was on the line (the soak found it).
+    """
+    devices = [{**STATIC[0], "faults": {"noise": 1.0, "late": 1.0, "late_s": 0.3}}, STATIC[1]]
+    async with rig(tmp_path, devices, static_targets()) as r:
+        await r.run_for(4.0)
+    to_s10 = [rec.start for rec in r.frames() if rec.device == 1]
+    assert len(to_s10) >= 3
+    assert all(later - earlier >= 1.0 for earlier, later in itertools.pairwise(to_s10))
+    errors = Counter({k: v for (_, k), v in r.line.stats.errors.items()})
+    assert errors["malformed"] + errors["crc"] == len(to_s10)
+    assert errors["stale_frame"] >= len(to_s10) - 1  # each late answer flushed, unread
+    assert r.server.bus.violations == []
+    assert [s for s in r.sink.samples if s.device == "s10" and s.good] == []
+
+
 async def test_silent_sensor_goes_offline_and_comes_back(tmp_path: Path) -> None:
     devices = [{**STATIC[0], "faults": {"silences": [[1.5, 3.0]]}}, STATIC[1]]
     targets = [
