@@ -472,20 +472,28 @@ def _encode_enum(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ..
     return _split32(code) if fmt.dtype is DataType.ENUM32 else (code,)
 
 
+def with_bits(fmt: Format, raw: int, bits: Mapping[object, object]) -> int:
+    """``raw`` with the named ``bits`` set (``True``) or cleared (``False``), the rest kept.
+
+    >>> flags = Format(dtype=DataType.BITFIELD, count=1, bits={0: "a", 2: "c"})
+    >>> bin(with_bits(flags, 0b1_0001, {"a": False, "c": True}))
+    '0b10100'
+    """
+    names = {name: bit for bit, name in fmt.bits.items()}
+    for name, state in bits.items():
+        if name not in names:
+            raise EncodeError(f"{name!r} is not a bit of this field: {sorted(names)}")
+        if not isinstance(state, bool):
+            raise EncodeError(f"bit {name!r} needs true or false, got {state!r}")
+        mask = 1 << names[name]
+        raw = raw | mask if state else raw & ~mask
+    return raw
+
+
 def _encode_bitfield(fmt: Format, value: object, _order: WordOrder) -> tuple[int, ...]:
     if isinstance(value, BitfieldValue):
         value = value.raw
-    if isinstance(value, Mapping):
-        names = {name: bit for bit, name in fmt.bits.items()}
-        raw = 0
-        for name, state in value.items():
-            if name not in names:
-                raise EncodeError(f"{name!r} is not a bit of this field: {sorted(names)}")
-            if not isinstance(state, bool):
-                raise EncodeError(f"bit {name!r} needs true or false, got {state!r}")
-            raw |= int(state) << names[name]
-    else:
-        raw = _as_int(value, fmt.dtype)
+    raw = with_bits(fmt, 0, value) if isinstance(value, Mapping) else _as_int(value, fmt.dtype)
     return _split32(raw) if fmt.dtype is DataType.BITFIELD32 else (raw,)
 
 

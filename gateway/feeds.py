@@ -216,9 +216,10 @@ class FeedEngine:
             raise GatewayError(f"{writer.device}: the control byte reads {control!r}")
         if dict(control.flags).get(bit) == use_ram:
             return
-        # Bits the profile does not name (4-7, for JUMO masters) are kept as read.
-        mask = control_mask(writer, bit)
-        raw = control.raw | mask if use_ram else control.raw & ~mask
+        # Bits the profile does not name (4-7, for JUMO masters) are kept as read; the
+        # raw word, not the bit's name, so the write path does not read the byte again.
+        fmt = writer.link.profile.point(CONTROL_POINT).format
+        raw = codec.with_bits(fmt, control.raw, {bit: use_ram})
         await writer.set(CONTROL_POINT, raw, read_back=False)
 
     # --- refresh and staleness ------------------------------------------------------------
@@ -287,12 +288,6 @@ class FeedEngine:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-
-
-def control_mask(writer: SafeWriter, bit: str) -> int:
-    """The mask of a named bit of the S10 control byte."""
-    bits = writer.link.profile.point(CONTROL_POINT).format.bits
-    return next(1 << index for index, name in bits.items() if name == bit)
 
 
 def _number(payload: bytes, key: str) -> float | None:

@@ -157,12 +157,7 @@ class SafeWriter:
             raise CommandRejectedError(
                 f"the bits to keep read as {held!r}, so nothing was written", point=point
             )
-        positions = {name: bit for bit, name in self.link.profile.point(point).format.bits.items()}
-        raw = held.raw
-        for name, state in bits.items():
-            mask = 1 << positions[str(name)]  # names and states were checked by encode
-            raw = raw | mask if state else raw & ~mask
-        return raw
+        return codec.with_bits(self.link.profile.point(point).format, held.raw, bits)
 
     async def _current(self, point: str) -> tuple[codec.Decoded, tuple[int, ...] | None]:
         """What a flash-backed point holds, decoded and as registers to compare with."""
