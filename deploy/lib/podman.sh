@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Sourced by deploy/standin-base, deploy/test-image and deploy/test-systemd: podman as it
 # runs on this kind of machine, set for this process only (CONTAINERS_CONF), never for the
 # whole host and never in the Dockerfile users build.
