@@ -809,6 +809,10 @@ def _environment(environ: Mapping[str, str]) -> tuple[dict[str, str], list[Probl
         top = parts[0]
         if top not in GatewayConfig.model_fields:
             continue  # not a setting (GATEWAY_CONFIG and the like are for the command line)
+        if not value:
+            # Empty is unset: Compose passes an unset ${MQTT_PASSWORD} on as "", which
+            # would otherwise replace the file's mqtt.username with an empty one.
+            continue
         if top in lists and len(parts) > 1:
             problems.append(
                 Problem(

@@ -290,6 +290,18 @@ def test_environment_sets_the_mqtt_password() -> None:
     assert config.mqtt.host == "localhost"  # the rest of mqtt still comes from the file
 
 
+def test_an_empty_environment_variable_leaves_the_file_value(tmp_path: Path) -> None:
+    # Compose passes an unset ${MQTT_USERNAME} on as "": that must not blank the file's user.
+    text = (CONFIG_DIR / "plant.yaml").read_text()
+    assert "  username: null" in text
+    path = tmp_path / "plant.yaml"
+    path.write_text(text.replace("  username: null", "  username: plant"))
+    environ = {"GATEWAY_MQTT__USERNAME": "", "GATEWAY_MQTT__PASSWORD": ""}
+    config = load_config(path, environ=environ)
+    assert config.mqtt.username == "plant"
+    assert config.mqtt.password is None
+
+
 def test_environment_sets_the_log_level_case_insensitively() -> None:
     config = load_config(CONFIG_DIR / "plant.yaml", environ={"gateway_logging__level": "debug"})
     assert config.logging.level == "DEBUG"
