@@ -16,6 +16,7 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Annotated, Final
 
 import typer
+from rich.markup import escape
 from rich.text import Text
 
 from gateway import calibration
@@ -170,7 +171,7 @@ def _run(
         raise typer.Exit(code=1)
     if outcome.status is Status.VERIFICATION_FAILED:
         failed = "; ".join(c.name for c in outcome.failed_checks)
-        err.print(f"[bold red]verification failed:[/] {failed}", highlight=False)
+        err.print(f"[bold red]verification failed:[/] {escape(failed)}", highlight=False)
         raise typer.Exit(code=1)
     warnings = f" with {len(outcome.warnings)} warning(s)" if outcome.warnings else ""
     console.print(

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Annotated, Any, TypeVar, get_type_hints
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from gateway import codec
 from gateway.app import device_target, state_directory
@@ -42,7 +43,7 @@ err = Console(stderr=True, highlight=False)
 
 def fail(exc: GatewayError) -> typer.Exit:
     """Print an error as the command line does everywhere; raise what it returns."""
-    err.print(f"[bold red]error:[/] {exc}")
+    err.print(f"[bold red]error:[/] {escape(str(exc))}")
     return typer.Exit(code=2)
 
 

@@ -16,6 +16,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Annotated, TypeVar
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from gateway import codec, operations
@@ -53,7 +54,9 @@ def _run(spec: DeviceSpec, operation: Callable[[SafeWriter], Awaitable[_T]]) -> 
     except CommandRejectedError as exc:
         raise fail(exc) from exc  # refused: nothing was written (exit 2)
     except GatewayError as exc:
-        err.print(f"[bold red]error:[/] {exc}")  # the device or the line failed (exit 1)
+        err.print(
+            f"[bold red]error:[/] {escape(str(exc))}"
+        )  # the device or the line failed (exit 1)
         raise typer.Exit(code=1) from exc
 
 
@@ -103,18 +106,21 @@ def set_clock(
     if as_json:
         _print_json({"device": result.device, **result.as_dict()})
         return
-    table = Table(title=f"{result.device}: {result.point}, {result.meaning}")
+    table = Table(title=escape(f"{result.device}: {result.point}, {result.meaning}"))
     for column in ("", "sensor", "gateway", "sensor - gateway"):
         table.add_column(column)
     table.add_row(
         "before",
-        _shown(result.before),
-        _shown(result.gateway_before),
+        escape(_shown(result.before)),
+        escape(_shown(result.gateway_before)),
         _seconds(result.offset_before_s),
     )
-    table.add_row("written", _shown(result.written), "", "")
+    table.add_row("written", escape(_shown(result.written)), "", "")
     table.add_row(
-        "after", _shown(result.after), _shown(result.gateway_after), _seconds(result.offset_after_s)
+        "after",
+        escape(_shown(result.after)),
+        escape(_shown(result.gateway_after)),
+        _seconds(result.offset_after_s),
     )
     out.print(table)
     if not result.running:
@@ -156,7 +162,9 @@ def measure(
         f"{name} {_shown(value)} {result.units.get(name) or ''}".rstrip()
         for name, value in result.values.items()
     ]
-    out.print(f"{result.device}: {', '.join(parts)} (measured in {result.duration_s:.2f} s)")
+    out.print(
+        f"{result.device}: {', '.join(parts)} (measured in {result.duration_s:.2f} s)", markup=False
+    )
 
 
 # --- calibration-log --------------------------------------------------------------------
@@ -179,7 +187,7 @@ def calibration_log(
             for name, value in log.current.items()
         )
         out.print(f"{log.device}: current calibration: {current}", markup=False)
-    table = Table(title=f"{log.device}: {log.kind}", caption=log.note)
+    table = Table(title=escape(f"{log.device}: {log.kind}"), caption=escape(log.note or ""))
     table.add_column("#", justify="right")
     for name in log.value_fields:
         table.add_column(name)
@@ -188,7 +196,7 @@ def calibration_log(
             table.add_row(str(entry.index), "(empty)", *[""] * (len(log.value_fields) - 1))
             continue
         cells = [
-            f"{_shown(entry.values[name])} {log.unit_of(entry, name)}".rstrip()
+            escape(f"{_shown(entry.values[name])} {log.unit_of(entry, name)}".rstrip())
             for name in log.value_fields
         ]
         table.add_row(str(entry.index), *cells)

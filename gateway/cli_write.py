@@ -14,6 +14,7 @@ import sys
 from typing import TYPE_CHECKING, Annotated
 
 import typer
+from rich.markup import escape
 
 from gateway.cli_device import device_link, err, fail, out, with_device_options
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
@@ -76,7 +77,9 @@ def write(
     except (CommandRejectedError, ConfigError, ProfileError) as exc:
         raise fail(exc) from exc  # refused: nothing was written (exit 2)
     except GatewayError as exc:
-        err.print(f"[bold red]error:[/] {exc}")  # the device or the line failed (exit 1)
+        err.print(
+            f"[bold red]error:[/] {escape(str(exc))}"
+        )  # the device or the line failed (exit 1)
         raise typer.Exit(code=1) from exc
     shown = json_value(outcome.value)  # type: ignore[arg-type]
     if as_json:

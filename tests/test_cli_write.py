@@ -91,6 +91,7 @@ def test_bad_input_writes_nothing(simulated_line: tuple[Path, Path]) -> None:
         ("compensation_temperature", "warm"): "float32 needs a number",
         ("compensation_control", "{broken"): "malformed JSON",
         ("no_such_point", "1"): "no point 'no_such_point'",
+        ("no[such]", "1"): "no point 'no[such]'",  # brackets are text, not rich markup
     }
     for (point, value), message in cases.items():
         result = gateway("write", point, value, *line_options(port, 1, "jumo-digiline-odo-s10"))
