@@ -18,7 +18,8 @@ WORKDIR /src
 # Only what the wheel is built from: a change elsewhere does not rebuild it.
 COPY pyproject.toml README.md ./
 COPY gateway ./gateway
-RUN pip wheel --no-cache-dir --disable-pip-version-check --wheel-dir /wheels .
+RUN pip wheel --no-cache-dir --disable-pip-version-check --wheel-dir /wheels . \
+    && sha256sum /wheels/*.whl >/wheels.sha256
 
 FROM ${PYTHON_IMAGE}
 # Fixed ids, so that a bind-mounted state directory can be chowned on the host
@@ -30,6 +31,10 @@ RUN groupadd --system --gid 10001 gateway \
         --home-dir /var/lib/gateway --no-create-home --shell /usr/sbin/nologin gateway \
     && install -d -o gateway -g gateway -m 0700 /var/lib/gateway \
     && install -d -m 0755 /etc/gateway
+# The wheels' checksums first, as a file (it lists what is installed): a new wheel then
+# rebuilds the install below. Buildah (podman build) leaves a bind mount from another
+# stage out of its cache key (containers/buildah#6609) and would keep the old gateway.
+COPY --from=build /wheels.sha256 /usr/local/share/rs485-gateway/wheels.sha256
 # The wheels are mounted for this step only, so they never become a layer of the image.
 RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
     pip install --no-cache-dir --disable-pip-version-check --no-index --find-links=/wheels \

@@ -17,7 +17,8 @@ subscriber that records everything: no wrong value published; no state document 
 carries a per-device ``seq``) and none duplicated beyond what QoS 1 allows at a broker
 restart; zero timing violations; every injected fault counted in the metrics; every ok
 command's bytes in the sensor's write log and no write without a command or a feed; the
-recovery time after each fault; memory flat; a clean exit on SIGTERM.
+recovery time after each fault; memory flat; a clean exit on SIGTERM; no asyncio exception
+nobody retrieved in the gateway's log.
 
 Printed as a table, written to bench/results/soak.json; exit status 1 if a check fails.
 Run from the repository root: .venv/bin/python -m bench.soak [--minutes 10] [--seed 1]
@@ -48,6 +49,7 @@ import aiomqtt
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.bus import FaultPlan
 from tests.mqtt_broker import Broker, free_port, recording
+from tests.unretrieved import reported_in
 
 if TYPE_CHECKING:
     from tests.mqtt_broker import Recorder
@@ -527,7 +529,10 @@ def check_faults(soak: Soak, metrics: Metrics, verdict: Verdict) -> None:
 
 
 def check_process(soak: Soak, exit_code: int, verdict: Verdict) -> None:
-    """Memory flat over the second half, CPU per transaction, a clean exit."""
+    """Memory flat, CPU per transaction, a clean exit, no unretrieved asyncio exception.
+
+    The last is read from the gateway's log: an unplugged port used to leave one there.
+    """
     rss = [r for _, r in soak.rss]
     half = len(rss) // 2
     growth = (max(rss[half:]) - min(rss[half // 2 : half])) if len(rss) >= MIN_SAMPLES else 0.0
@@ -541,6 +546,9 @@ def check_process(soak: Soak, exit_code: int, verdict: Verdict) -> None:
     }
     verdict.check(growth <= MAX_RSS_GROWTH_MIB, f"memory grew by {growth:.1f} MiB")
     verdict.check(exit_code == 0, f"the gateway exited with {exit_code} on SIGTERM")
+    unretrieved = reported_in((soak.directory / "gateway.log").read_text(encoding="utf-8"))
+    verdict.figures["unretrieved_exceptions"] = len(unretrieved)
+    verdict.check(not unretrieved, f"{len(unretrieved)} unretrieved asyncio exceptions logged")
 
 
 def write_logs(soak: Soak) -> dict[str, list[tuple[int, tuple[int, ...]]]]:

@@ -17,9 +17,12 @@ import asyncio
 import contextlib
 import logging
 import os
+import stat
+import termios
 import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 import serial
@@ -157,7 +160,9 @@ class Line:
                 stopbits=self.format.stopbits,
                 bytesize=8,
             )
-        except (OSError, serial.SerialException, ValueError) as exc:
+        except (OSError, serial.SerialException, ValueError, termios.error) as exc:
+            # termios.error is no OSError: a line setting the port refuses (tcsetattr)
+            # would otherwise end the gateway instead of this bus's retry with backoff.
             self.stats.port_open = False
             raise BusClosedError(f"cannot open {self.port}: {exc}") from exc
         self._transport, self._receiver = transport, receiver
@@ -168,12 +173,19 @@ class Line:
         """Close the port (idempotent)."""
         transport, self._transport, self._receiver = self._transport, None, None
         self.stats.port_open = False
-        if transport is not None:
-            # abort(), not close(): close() drains the output first (tcdrain in a thread),
-            # which can wait for ever on a line nobody reads, and a thread stuck there
-            # keeps the process from exiting. Nothing still queued matters after a stop.
-            transport.abort()
-            await asyncio.sleep(0)
+        if transport is None:
+            return
+        if transport.is_closing():
+            # The port went away and the transport is closing itself (a read error makes
+            # pyserial-asyncio-fast 0.16 close it). Aborting again starts its closing task
+            # a second time, which then calls connection_lost on the protocol the first
+            # one cleared: an AttributeError in a task nobody awaits, at every unplug.
+            return
+        # abort(), not close(): close() drains the output first (tcdrain in a thread),
+        # which can wait for ever on a line nobody reads, and a thread stuck there
+        # keeps the process from exiting. Nothing still queued matters after a stop.
+        transport.abort()
+        await asyncio.sleep(0)
 
     def _unread_input(self) -> bool:
         """Whether bytes have arrived that the receiver has not seen (one ioctl, no read).
@@ -424,10 +436,24 @@ class _Scan:
         return BusTimeoutError(f"{port}: no answer of {what}")
 
 
+# Unix98 pseudo-terminal slaves: character devices of majors 136..143 (the kernel's
+# Documentation/admin-guide/devices.txt), wherever their node is reached from.
+PTY_SLAVE_MAJORS: Final = range(136, 144)
+
+
 def _is_pseudo_terminal(port: str) -> bool:
+    """Whether ``port`` is a pseudo-terminal, by its device number, not its path.
+
+    A pty bound at another path (``/dev/ttyUSB0`` in a container, a bind mount) is still
+    one; its path alone said otherwise, and the parity setting then failed.
+    """
     if "://" in port:
         return False
-    return os.path.realpath(port).startswith("/dev/pts/")
+    try:
+        mode = Path(port).stat()
+    except OSError:
+        return False  # opening it will say what is wrong
+    return stat.S_ISCHR(mode.st_mode) and os.major(mode.st_rdev) in PTY_SLAVE_MAJORS
 
 
 def _kind(exc: Exception) -> str:

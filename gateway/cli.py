@@ -11,6 +11,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -25,11 +26,11 @@ from gateway import __version__, cli_calibrate, cli_operations, cli_write, codec
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
 from gateway.config import check_config, load_config
-from gateway.demo import run_demo
+from gateway.demo import LOCAL_BIND, run_demo
 from gateway.errors import ConfigError, GatewayError
 from gateway.link import open_link
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
-from gateway.samples import Quality, Sample, json_value
+from gateway.samples import Quality, Sample, hex_registers, json_value
 from gateway.scan import parse_addresses, scan_formats
 from gateway.scan import scan as scan_bus
 from gateway.scheduler import DeviceTarget
@@ -58,7 +59,7 @@ _err = Console(stderr=True, highlight=False)
 
 
 def _fail(exc: GatewayError) -> typer.Exit:
-    _err.print(f"[bold red]error:[/] {exc}")
+    _err.print(f"[bold red]error:[/] {escape(str(exc))}")
     return typer.Exit(code=2)
 
 
@@ -99,8 +100,10 @@ def profiles_list(
         sys.stdout.write(json.dumps(rows, indent=2, ensure_ascii=False) + "\n")
         return
     table = Table(title="Sensor profiles")
-    for column in ("id", "family", "variant", "points", "manual"):
-        table.add_column(column)
+    # Whole ids on any width (an id is what users copy): the other columns fold instead.
+    table.add_column("id", no_wrap=True, min_width=max(len(p) for p in profiles))
+    for column in ("family", "variant", "points", "manual"):
+        table.add_column(column, overflow="fold")
     for p in sorted(profiles.values(), key=lambda p: p.id):
         table.add_row(p.id, p.family, p.title, str(len(p.points)), p.spec)
     _out.print(table)
@@ -175,8 +178,8 @@ def profiles_show(
             unit,
             point.group.value,
             point.storage.value if point.storage else "",
-            _range_text(point),
-            point.description,
+            escape(_range_text(point)),
+            escape(point.description),
         )
     _out.print(table)
 
@@ -241,7 +244,10 @@ async def _simulate(
             where.append(f"socket://{tcp[0]}:{port}")
         server.start_stats()
         devices = ", ".join(f"{d.profile.id}@{a}" for a, d in sorted(bus.devices.items()))
-        _out.print(f"simulating {devices} on {' and '.join(where)}, {bus.line}; Ctrl-C stops")
+        _out.print(
+            f"simulating {devices} on {' and '.join(where)}, {bus.line}; Ctrl-C stops",
+            markup=False,
+        )
         sys.stdout.flush()
         await stop.wait()
     finally:
@@ -368,22 +374,25 @@ def read(
         ) from exc
     except GatewayError as exc:
         raise _fail(exc) from exc
+    # Only a failed read fails the command: a fault the sensor sent (2.0e37, or registers
+    # that are not a value) is an answer, and the line worked.
     failed = [s for s in samples if s.quality is Quality.COMMS_ERROR]
     if as_json:
         data = {
             s.point: ({"value": json_value(s.value)} if s.good else {s.quality.value: s.fault})
+            | ({"raw": hex_registers(s.raw)} if s.raw else {})
             | {"unit": s.unit}
             for s in samples
         }
         sys.stdout.write(json.dumps(data, indent=2, ensure_ascii=False) + "\n")
     else:
-        table = Table(title=f"{profile} at address {address} on {port}")
+        table = Table(title=escape(f"{profile} at address {address} on {port}"))
         for column in ("point", "value", "unit", "quality"):
             table.add_column(column, overflow="fold")
         for s in samples:
             shown = format_sample(s).split("=", 1)[1]
             value = shown.removesuffix(f" {s.unit}") if s.unit else shown
-            table.add_row(s.point, value, s.unit or "", s.quality.value)
+            table.add_row(s.point, escape(value), escape(s.unit or ""), s.quality.value)
         _out.print(table)
     if failed:
         _err.print(f"[bold red]error:[/] {len(failed)} of {len(samples)} points could not be read")
@@ -396,13 +405,20 @@ def demo(
         int, typer.Option(help="MQTT port: a broker there, else an embedded one.")
     ] = 1883,
     metrics_port: Annotated[int, typer.Option(help="Port of /metrics and /healthz.")] = 9108,
+    bind: Annotated[
+        str,
+        typer.Option(
+            help="Address /metrics and the embedded MQTT broker listen on; 0.0.0.0 for every "
+            "interface (a container with published ports)."
+        ),
+    ] = LOCAL_BIND,
     live: Annotated[
         bool, typer.Option("--live/--no-live", help="The live table (on a terminal).")
     ] = True,
 ) -> None:
     """Try it all with no hardware: simulated sensors, MQTT, metrics and a live table."""
     try:
-        asyncio.run(run_demo(mqtt_port=mqtt_port, metrics_port=metrics_port, live=live))
+        asyncio.run(run_demo(mqtt_port=mqtt_port, metrics_port=metrics_port, bind=bind, live=live))
     except GatewayError as exc:
         raise _fail(exc) from exc
 
@@ -503,7 +519,7 @@ def scan_command(
     if as_json:
         sys.stdout.write(json.dumps(report.as_dict(), indent=2, ensure_ascii=False) + "\n")
     elif report.devices:
-        table = Table(title=f"Devices on {port}", show_lines=True)
+        table = Table(title=escape(f"Devices on {port}"), show_lines=True)
         for column in ("address", "format", "profile"):
             table.add_column(column, no_wrap=True)
         table.add_column("identification", overflow="fold", ratio=1)
@@ -514,8 +530,8 @@ def scan_command(
                 str(device.address),
                 str(device.line),
                 f"{profile} (guess)" if device.guess else profile,
-                device.details_text(sep="\n"),
-                "; ".join(device.notes),
+                escape(device.details_text(sep="\n")),
+                escape("; ".join(device.notes)),
             )
         _out.print(table)
         sys.stdout.write("\n" + report.config_yaml())
@@ -530,7 +546,7 @@ def scan_command(
             f"broken answers from {where}: another line format? try --all-formats", markup=False
         )
     if not report.devices:
-        _err.print(f"[bold red]no device answered[/] on {port}", highlight=False)
+        _err.print(f"[bold red]no device answered[/] on {escape(port)}", highlight=False)
         raise typer.Exit(code=1)
 
 

@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 from enum import StrEnum
+from typing import Final
 
 from gateway.errors import DecodeError, EncodeError
 
@@ -126,12 +127,28 @@ _YYMMDDHHMM_LAST = datetime(2042, 12, 31, 23, 59)  # noqa: DTZ001 - the stamp ha
 _STRING_ENCODINGS = {"ascii": "ascii", "utf-8": "utf-8", "iso-8859-1": "iso-8859-1"}
 
 
+UNDECODABLE: Final = "undecodable"  # the fault name of registers that are not a value
+
+
 @dataclass(frozen=True, slots=True)
 class Fault:
-    """A float register that carries one of the documented error values."""
+    """A value the sensor sent that is not a measurement, by name.
+
+    Either a float register that carries one of the documented error values (``raw`` the
+    float, e.g. 2.0e37 ``overrange``), or registers that cannot be a value of the point's
+    type (:data:`UNDECODABLE`: an S10 clock dated month 13), with the ``registers`` as
+    read and the ``reason``. The line worked either way: these are faults of the value.
+    """
 
     name: str
-    raw: float
+    raw: float | None = None
+    registers: tuple[int, ...] = ()
+    reason: str = ""
+
+    @classmethod
+    def undecodable(cls, registers: Sequence[int], exc: DecodeError) -> Fault:
+        """The fault of registers that :func:`decode` refused, with its reason."""
+        return cls(name=UNDECODABLE, registers=tuple(registers), reason=str(exc))
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,14 +19,20 @@ class Quality(StrEnum):
     """How far a sample can be trusted."""
 
     GOOD = "good"  # the value the sensor sent, decoded as its manual says
-    FAULT = "fault"  # the sensor reported a fault instead of a value (e.g. overrange)
+    # The sensor answered with a fault instead of a value: a named error value (overrange)
+    # or registers that are not a value of the point's type (undecodable).
+    FAULT = "fault"
     STALE = "stale"  # the last good value is older than its interval allows
-    COMMS_ERROR = "comms_error"  # the value could not be read
+    COMMS_ERROR = "comms_error"  # the value could not be read: the line or the device failed
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Sample:
-    """One point of one device at one moment."""
+    """One point of one device at one moment.
+
+    ``raw`` holds the registers of a value that could not be decoded (fault
+    ``undecodable``), so what the sensor sent can be shown; it is empty otherwise.
+    """
 
     bus: str
     device: str
@@ -39,6 +45,7 @@ class Sample:
     monotonic: float
     time: datetime
     group: str
+    raw: tuple[int, ...] = ()
 
     @property
     def good(self) -> bool:
@@ -56,6 +63,11 @@ class DeviceEvent:
     online: bool
     reason: str
     time: datetime
+
+
+def hex_registers(registers: Sequence[int]) -> list[str]:
+    """Registers as the manuals print them (``0x07E9``), for JSON and logs."""
+    return [f"0x{word:04X}" for word in registers]
 
 
 def json_value(value: Value) -> object:

@@ -3,11 +3,13 @@
 Every address of the range gets one small probe that all four families answer: a read of
 the digiLine sensor type and sub-type (0x010A..0x010B). A digiLine answers it with data; a
 tecLine or Reiss cell answers exception 02 (the address is not in its map), which still
-proves a device is there. Only then (or after a broken answer) does a second probe read
+proves a device is there. Only then (or after a broken answer, or an answer that names no
+digiLine: a tecLine may answer its undocumented 0x010A with 0) does a second probe read
 the tecLine/Reiss hardware and firmware versions (0x0308..0x0309): every manual says an
 unmapped address is answered with exception 02, so a silent address costs one short
 timeout (a broken frame earns a probe one more try); everything else about a device is
-read only once it has answered, with its family's processing time and one retry.
+read only once it has answered, with its family's processing time and one retry. Each
+device found says which registers identified it (``identified_by``).
 
 Identification, from the registers the manuals name for it (specs/README.md):
 
@@ -37,7 +39,7 @@ from __future__ import annotations
 import logging
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Final
 
 import yaml
@@ -88,6 +90,10 @@ _NEITHER_FAMILY: Final = (
     "answers, but neither the digiLine sensor type (0x010A) nor the tecLine device data "
     "(0x0308) can be read"
 )
+# The identity blocks, as ``identified_by`` names them (specs/README.md, "Identification").
+DIGILINE_BLOCK: Final = "digiLine sensor type"
+TECLINE_BLOCK: Final = "tecLine device data"
+REISS_BLOCK: Final = "Reiss sensor type"
 
 _RANGE = re.compile(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?")
 _FORMAT_LABEL = re.compile(r"8([neo])([12])")
@@ -179,6 +185,8 @@ class FoundDevice:
 
     ``profile`` is ``None`` for a device no profile fits (a digiLine pH sensor, a device of
     another make); ``guess`` says the profile could not be read from the device itself.
+    ``identified_by`` names the registers the family and profile were read from, e.g.
+    ``0x0308..0x0309 (tecLine device data)``; empty when none identified it.
     """
 
     address: int
@@ -186,6 +194,7 @@ class FoundDevice:
     family: str  # digiline, tecline, reiss or unknown: the stem of the generated name
     profile: str | None
     guess: bool = False
+    identified_by: str = ""
     details: Mapping[str, object] = field(default_factory=dict)
     notes: tuple[str, ...] = ()
 
@@ -195,8 +204,13 @@ class FoundDevice:
         return f"{self.family}_{self.address}"
 
     def details_text(self, sep: str = ", ") -> str:
-        """``key=value`` pairs of what the device told about itself, for tables and logs."""
-        return sep.join(f"{k}={v}" for k, v in self.details.items() if v is not None)
+        """What identified the device and ``key=value`` pairs of what it told about itself.
+
+        The identification column of the scan table, and logs.
+        """
+        told = [f"{k}={v}" for k, v in self.details.items() if v is not None]
+        by = [f"identified by {self.identified_by}"] if self.identified_by else []
+        return sep.join([*by, *told])
 
     def as_dict(self) -> dict[str, Any]:
         """The device as JSON-ready data."""
@@ -209,6 +223,7 @@ class FoundDevice:
             "family": self.family,
             "profile": self.profile,
             "guess": self.guess,
+            "identified_by": self.identified_by,
             "name": self.name,
             "details": dict(self.details),
             "notes": list(self.notes),
@@ -263,6 +278,8 @@ class ScanReport:
             "devices:",
         ]
         for device in on_bus:
+            if device.identified_by:
+                lines.append(f"  # identified by {device.identified_by}")  # the item below
             item = _yaml_item(
                 {
                     "name": device.name,
@@ -387,23 +404,48 @@ class Scanner:
         return found
 
     async def probe(self, address: int) -> FoundDevice | None:
-        """Find out whether ``address`` answers and what it is; ``None`` when silent."""
+        """Find out whether ``address`` answers and what it is; ``None`` when silent.
+
+        Every family's identity block is tried before a device is given up as unknown.
+        """
         first, count = self._families.digiline_probe()
         digiline = await self._probe_read(address, first, count)
         if digiline.registers is not None:
-            return await self._digiline(address, first, digiline.registers)
+            found = await self._digiline(address, first, digiline.registers)
+            if found.profile is not None:
+                return found
+            # Not necessarily a digiLine: the tecLine and Reiss manuals do not document
+            # 0x010A, and a real cell may answer it with 0 instead of exception 02.
+            return await self._not_digiline(address, digiline, unmatched=found)
         if not digiline.present and not digiline.garbled:
             return None  # silent: nothing is there
+        return await self._not_digiline(address, digiline)
+
+    async def _not_digiline(
+        self, address: int, digiline: _Answer, *, unmatched: FoundDevice | None = None
+    ) -> FoundDevice | None:
+        """Identify a device the digiLine probe did not: by the tecLine device data.
+
+        ``unmatched`` is what the digiLine codes it answered said (no profile has them).
+        """
+        first, count = self._families.digiline_probe()
         if digiline.exception not in {None, frames.ILLEGAL_ADDRESS}:
             _LOGGER.debug(
                 "address %d: exception %s to the digiLine probe", address, digiline.exception
             )
         hardware, firmware = self._families.tecline_probe()
-        tecline = await self._probe_read(
-            address, hardware.address, firmware.last - hardware.address + 1
-        )
+        tecline_count = firmware.last - hardware.address + 1
+        tecline = await self._probe_read(address, hardware.address, tecline_count)
         if tecline.registers is not None:
-            return await self._tecline(address, tecline.registers)
+            found = await self._tecline(address, tecline.registers)
+            if unmatched is None:
+                return found
+            shown = ", ".join(str(word) for word in digiline.registers or ())
+            note = f"answers {_span(first, count)} (not in its manual) with {shown}"
+            return replace(found, notes=(*found.notes, note))
+        if unmatched is not None:
+            why = f"the {TECLINE_BLOCK} ({_span(hardware.address, tecline_count)}) cannot be read"
+            return replace(unmatched, notes=(*unmatched.notes, why))
         if digiline.present or tecline.present:
             codes = sorted({a.exception for a in (digiline, tecline) if a.exception is not None})
             return FoundDevice(
@@ -439,6 +481,7 @@ class Scanner:
                 notes=(f"sensor type {label} (code {type_code} at 0x{first:04X}): no profile",),
             )
         profile = matches[0]
+        identified_by = f"{_span(first, len(registers))} ({DIGILINE_BLOCK})"
         for name in profile.identify:
             if name != _primary_identify(profile):
                 point = profile.point(name)
@@ -451,6 +494,7 @@ class Scanner:
             family=DIGILINE,
             profile=profile.id,
             guess=len(matches) > 1,
+            identified_by=identified_by,
             details=details,
             notes=(note,) if note else (),
         )
@@ -463,13 +507,17 @@ class Scanner:
             details[point.name] = _plain(
                 codec.decode(point.format, registers[offset : offset + point.count])
             )
+        block = firmware.last - hardware.address + 1
+        identified_by = f"{_span(hardware.address, block)} ({TECLINE_BLOCK})"
         reiss = self._families.reiss[0]
-        answer = await self._identify_read(address, reiss, reiss.point("sensor_type"))
-        sensor_type = _decoded(reiss, reiss.point("sensor_type"), answer)
+        type_point = reiss.point("sensor_type")
+        answer = await self._identify_read(address, reiss, type_point)
+        sensor_type = _decoded(reiss, type_point, answer)
         if isinstance(sensor_type, str) and sensor_type.strip():
             details["sensor_type"] = sensor_type
             profile, guess, notes = _reiss_variant(self._families.reiss, sensor_type, address)
             family = REISS
+            identified_by += f", {_span(type_point.address, type_point.count)} ({REISS_BLOCK})"
         else:
             profile, guess, notes = _tecline_variant(self._families.tecline, address)
             family = TECLINE
@@ -483,6 +531,7 @@ class Scanner:
             family=family,
             profile=profile.id,
             guess=guess,
+            identified_by=identified_by,
             details=details,
             notes=notes,
         )
@@ -548,6 +597,12 @@ class Scanner:
             return _Answer(garbled=True)
         assert exchange is not None  # noqa: S101 - only broadcasts return None
         return _Answer(registers=exchange.response.registers)
+
+
+def _span(first: int, count: int) -> str:
+    """Registers as ``0x0308..0x0309`` (one: ``0x0300``), as the manuals print them."""
+    last = first + count - 1
+    return f"0x{first:04X}" if count == 1 else f"0x{first:04X}..0x{last:04X}"
 
 
 def _plain(value: codec.Decoded) -> object:

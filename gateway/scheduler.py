@@ -26,6 +26,7 @@ from gateway.errors import (
     BusClosedError,
     BusTimeoutError,
     CrcError,
+    DecodeError,
     DeviceExceptionError,
     EncodeError,
     FrameError,
@@ -35,7 +36,7 @@ from gateway.errors import (
 )
 from gateway.plan import CostModel, Planner, ReadBlock
 from gateway.profiles import PollGroup
-from gateway.samples import DeviceEvent, Quality, Sample
+from gateway.samples import DeviceEvent, Quality, Sample, hex_registers
 from gateway.state import DeviceHealth
 
 if TYPE_CHECKING:
@@ -115,6 +116,7 @@ class DeviceState:
     not_before: float = 0.0
     split_before: set[int] = field(default_factory=set)
     unreadable: set[str] = field(default_factory=set)
+    undecodable: set[str] = field(default_factory=set)  # points whose registers did not decode
     missed_deadlines: int = 0
     fresh: set[str] = field(default_factory=set)  # not polled since (re)start: no lag yet
     lag_s: float = 0.0
@@ -212,6 +214,7 @@ class BusWorker:
         }
         self._port_failures_in_a_row = 0
         self._stopping = False
+        self._stop_requested = asyncio.Event()
 
     # --- public -----------------------------------------------------------------------
 
@@ -244,8 +247,17 @@ class BusWorker:
                 log = _LOGGER.warning if self._port_failures_in_a_row == 1 else _LOGGER.debug
                 log("%s: %s; retrying in %.1f s", self.name, exc, delay)
                 await self._all_offline(str(exc))
-                await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
+                await self._backoff(delay * self._rng.uniform(0.8, 1.2))
                 delay = min(delay * 2, self.reconnect_max_s)
+
+    async def _backoff(self, delay_s: float) -> None:
+        """Wait before reopening the port, or until a stop is asked for.
+
+        SIGTERM with the line gone must not wait out a backoff of up to ``reconnect_max_s``.
+        """
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(delay_s):
+                await self._stop_requested.wait()
 
     @property
     def running(self) -> bool:
@@ -383,6 +395,7 @@ class BusWorker:
     def request_stop(self) -> None:
         """Finish the transaction in flight, then leave :meth:`run` (SIGTERM, SIGINT)."""
         self._stopping = True
+        self._stop_requested.set()
         self._wake.set()
 
     def health(self) -> list[DeviceHealth]:
@@ -669,20 +682,41 @@ class BusWorker:
             offset = point.address - block.address
             chunk = registers[offset : offset + point.count]
             try:
-                value = codec.decode(point.format, chunk, float_order=order)
-            except GatewayError as exc:
-                fault = f"decode_error: {exc}"
-                samples.append(self._sample(state, point, fault=fault, comms_error=True, at=at))
-                continue
+                value: codec.Decoded = codec.decode(point.format, chunk, float_order=order)
+            except DecodeError as exc:
+                # The line and the device worked; the registers are not a value of the
+                # point's type (an S10 clock dated month 13). A fault of the value, with
+                # what was sent, and never a comms error that would blame the line.
+                value = codec.Fault.undecodable(chunk, exc)
+            self._note_undecodable(state, point, value)
             state.values[point.name] = value
             if point.name in state.identity_pending:
                 state.identity_pending.discard(point.name)
                 state.deadline_cache.clear()
             if isinstance(value, codec.Fault):
-                samples.append(self._sample(state, point, fault=value.name, at=at))
+                fault = self._sample(state, point, fault=value.name, raw=value.registers, at=at)
+                samples.append(fault)
             else:
                 samples.append(self._sample(state, point, value=value, at=at))
         return samples
+
+    def _note_undecodable(self, state: DeviceState, point: Point, value: codec.Decoded) -> None:
+        """Log why a point's registers do not decode: the first time loudly, then quietly."""
+        if not (isinstance(value, codec.Fault) and value.name == codec.UNDECODABLE):
+            if point.name in state.undecodable:
+                state.undecodable.discard(point.name)
+                _LOGGER.info("%s/%s: %s decodes again", self.name, state.target.name, point.name)
+            return
+        log = _LOGGER.debug if point.name in state.undecodable else _LOGGER.warning
+        state.undecodable.add(point.name)
+        log(
+            "%s/%s: %s cannot be decoded (%s): %s",
+            self.name,
+            state.target.name,
+            point.name,
+            " ".join(hex_registers(value.registers)),
+            value.reason,
+        )
 
     def _failed(self, state: DeviceState, block: ReadBlock, reason: str) -> list[Sample]:
         at = (time.monotonic(), datetime.now(tz=UTC))
@@ -698,10 +732,14 @@ class BusWorker:
         *,
         value: codec.Value = None,
         fault: str | None = None,
+        raw: tuple[int, ...] = (),
         comms_error: bool = False,
         at: tuple[float, datetime],
     ) -> Sample:
-        """A good value, a sensor fault, or (``comms_error``) no value at all."""
+        """A good value, a sensor fault, or (``comms_error``) no value at all.
+
+        ``raw`` carries the registers of a value that could not be decoded.
+        """
         if comms_error:
             quality = Quality.COMMS_ERROR
         elif fault is not None:
@@ -720,6 +758,7 @@ class BusWorker:
             monotonic=at[0],
             time=at[1],
             group=point.group.value,
+            raw=raw,
         )
 
     def _advance(self, state: DeviceState, names: Sequence[str], now: float) -> None:

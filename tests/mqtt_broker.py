@@ -41,7 +41,7 @@ class TlsFiles:
     @classmethod
     def make(cls, directory: Path) -> TlsFiles:
         openssl = shutil.which("openssl")
-        assert openssl, "openssl is missing: .ci/run installs it"
+        assert openssl, "openssl is missing: scripts/setup installs it (as root)"
 
         def run(*args: str) -> None:
             subprocess.run([openssl, *args], cwd=directory, check=True, capture_output=True)
@@ -112,7 +112,7 @@ class Broker:
     process: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
-        assert shutil.which(MOSQUITTO), "mosquitto is missing: .ci/run installs it"
+        assert shutil.which(MOSQUITTO), "mosquitto is missing: scripts/setup installs it (as root)"
         config = self.directory / "mosquitto.conf"
         # Persistence keeps the recorder's session (and what is queued for it) across a
         # broker restart, so the outage test sees every message whatever reconnects first.

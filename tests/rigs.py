@@ -22,6 +22,7 @@ from gateway.profiles import PollGroup, get_profile
 from gateway.scheduler import BusWorker, DeviceTarget
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.timing import LineFormat
+from tests.unretrieved import reported_in
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator, Sequence
@@ -219,7 +220,8 @@ def simulate_process(directory: Path, config: str) -> Iterator[tuple[Path, Path]
         assert simulator.stdout.readline().startswith("simulating")
         yield port, stats
         simulator.send_signal(signal.SIGINT)
-        simulator.communicate(timeout=10)
+        _, stderr = simulator.communicate(timeout=10)
+    assert not reported_in(stderr), stderr
 
 
 def stats_of(stats: Path) -> dict[str, Any]:
@@ -230,14 +232,17 @@ def stats_of(stats: Path) -> dict[str, Any]:
 
 
 def run_gateway(
-    *args: str, cwd: Path, stdin: str = "", tz: str | None = None
+    *args: str, cwd: Path, stdin: str = "", tz: str | None = None, columns: int = 200
 ) -> subprocess.CompletedProcess[str]:
     """``gateway ARGS`` as a user runs it, in ``cwd`` (a command without --config keeps
-    its ``state/`` there), with a wide terminal and, if given, a time zone."""
-    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"}
+    its ``state/`` there), with a wide terminal (``columns``) and, if given, a time zone.
+
+    Whatever the command's outcome, an asyncio exception nobody retrieved fails the test.
+    """
+    env = {"COLUMNS": str(columns), "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"}
     if tz is not None:
         env["TZ"] = tz
-    return subprocess.run(
+    result = subprocess.run(
         [sys.executable, "-m", "gateway", *args],
         capture_output=True,
         text=True,
@@ -247,3 +252,5 @@ def run_gateway(
         env=env,
         cwd=cwd,
     )
+    assert not reported_in(result.stderr), result.stderr
+    return result

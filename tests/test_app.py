@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import json
+import urllib.request
 from typing import TYPE_CHECKING
+
+from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import run
 from gateway.config import parse_config
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from tests.mqtt_broker import Broker, free_port, recording
 from tests.rigs import ListSink
 
 if TYPE_CHECKING:
@@ -75,3 +80,77 @@ async def test_two_buses_poll_in_parallel_one_over_tcp(tmp_path: Path) -> None:
     assert [s.value for s in sink.good("basin_chlorine", "concentration")][:1] == [0.168]
     assert [s.value for s in sink.good("aeration_oxygen", "temperature")][:1] == [20.25]
     assert {s.bus for s in sink.samples} == {"basin", "aeration"}
+
+
+# An S10 clock block (6.9: year, month ... second, time-zone offset) dated month 13.
+MONTH_13 = (2025, 13, 1, 12, 0, 0, 0)
+MONTH_13_HEX = ["0x07E9", "0x000D", "0x0001", "0x000C", "0x0000", "0x0000", "0x0000"]
+
+
+async def test_an_undecodable_value_is_a_fault_of_the_value_not_of_the_line(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """The S10 answers, but its clock says month 13: MQTT and /metrics show a fault of that
+    value (``undecodable``, with its registers in the state document), never a number, and
+    the device and line stay healthy."""
+    sensor = {
+        "profile": "jumo-digiline-odo-s10",
+        "address": 1,
+        "animate": False,
+        "values": {"temperature": 20.25},
+        "registers": {0x2840 + offset: word for offset, word in enumerate(MONTH_13)},
+    }
+    server = SimulatorServer(build_bus(parse_settings({"devices": [sensor]})))
+    port = tmp_path / "ttySIM"
+    server.open_pty(port)
+    metrics_port = free_port()
+    config = parse_config(
+        f"buses:\n  - {{name: line1, port: {port}}}\n"
+        "devices:\n"
+        "  - {name: aeration, bus: line1, address: 1, profile: jumo-digiline-odo-s10,"
+        " poll_interval: 0.3, points: {clock: {interval: 0.3}}}\n"
+        f"mqtt: {{host: 127.0.0.1, port: {broker.port}, base_topic: gw}}\n"
+        f"prometheus: {{host: 127.0.0.1, port: {metrics_port}}}\n"
+        f"state_dir: {tmp_path / 'state'}\n",
+        environ={},
+    )
+    stop = asyncio.Event()
+    try:
+        async with recording(broker.port, "gw/#") as seen:
+            task = asyncio.create_task(run(config, [], stop=stop))
+            await seen.wait_for("gw/aeration/temperature", "20.25")
+            for _ in range(50):  # settings are first read a little after the process values
+                if any("undecodable" in p for p in seen.on("gw/aeration/state")):
+                    break
+                await asyncio.sleep(0.1)
+            metrics = await asyncio.to_thread(scrape, metrics_port)
+            stop.set()
+            await asyncio.wait_for(task, timeout=15)
+    finally:
+        await server.close()
+    state = json.loads(seen.on("gw/aeration/state")[-1])
+    assert state["faults"]["clock"] == "undecodable"
+    assert state["quality"]["clock"] == "fault"
+    assert state["raw"] == {"clock": MONTH_13_HEX}
+    assert "clock" not in state["values"]
+    assert state["quality"]["temperature"] == "good"
+    assert set(seen.on("gw/aeration/clock")) == {""}  # cleared, never a made-up date
+    assert seen.on("gw/aeration/availability")[-1] == "online"
+    device = {"bus": "line1", "device": "aeration", "profile": "jumo-digiline-odo-s10"}
+    faults = metrics["gateway_value_fault"]
+    assert faults == [({**device, "point": "clock", "fault": "undecodable"}, 1.0)]
+    assert metrics["gateway_device_online"] == [(device, 1.0)]
+    assert not any(
+        labels.get("point") == "clock" for labels, _ in metrics["gateway_value_age_seconds"]
+    )
+
+
+def scrape(port: int) -> dict[str, list[tuple[dict[str, str], float]]]:
+    """``/metrics`` parsed: each sample's labels and value, by sample name."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as reply:
+        text = reply.read().decode()
+    samples: dict[str, list[tuple[dict[str, str], float]]] = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            samples.setdefault(sample.name, []).append((dict(sample.labels), float(sample.value)))
+    return samples

@@ -9,19 +9,23 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import shutil
+import subprocess
 import time
 import tty
 from typing import TYPE_CHECKING
 
+import pytest
 import serial
 
 from gateway import frames
 from gateway.bus import ErrorKind, Line
 from gateway.errors import BusClosedError
 from gateway.timing import LineFormat
+from tests import unretrieved
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator
+    from collections.abc import AsyncIterator, Iterator
     from pathlib import Path
 
 LINE = LineFormat(baudrate=9600, parity="N", stopbits=1)
@@ -45,8 +49,9 @@ async def hand_wired(tmp_path: Path) -> AsyncIterator[tuple[Line, int]]:
     finally:
         with contextlib.suppress(serial.SerialException):  # a test may close it behind its back
             await line.close()
-        os.close(master)
-        os.close(slave)
+        for end in (master, slave):
+            with contextlib.suppress(OSError):  # a test may have unplugged it (closed the master)
+                os.close(end)
 
 
 async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: Path) -> None:
@@ -106,3 +111,61 @@ async def test_a_port_closed_under_the_line_is_not_an_unexpected_error(tmp_path:
         transport.get_extra_info("serial").close()
         with contextlib.suppress(BusClosedError):
             await line.wait_gap(0.0)
+
+
+async def test_closing_a_line_whose_port_went_away_leaves_no_failed_task(tmp_path: Path) -> None:
+    """The port vanishes (the pty's other end closes, as an unplugged adapter), the
+    transport closes itself, then the bus owner closes the line: no task may fail.
+
+    Aborting the transport a second time made pyserial-asyncio-fast run its closing task
+    twice; the second called ``connection_lost`` on the protocol the first had cleared,
+    and asyncio logged "Task exception was never retrieved" at every unplug.
+    """
+    with unretrieved.guard():
+        async with hand_wired(tmp_path) as (line, master):
+            receiver = line._receiver
+            assert receiver is not None
+            os.close(master)  # unplugged
+            await asyncio.wait_for(receiver.lost.wait(), timeout=2)
+            assert not line.is_open
+            with pytest.raises(BusClosedError, match="went away"):
+                line.flush_input(1)
+            await line.close()
+            await asyncio.sleep(0.2)  # any closing task of the transport has finished
+        assert receiver.lost_reason is not None  # the transport said why, once
+
+
+@pytest.fixture
+def pty_bound_elsewhere(tmp_path: Path) -> Iterator[Path]:
+    """A pty's slave bind-mounted at ``tmp_path/ttyUSB0``, as a container binds an adapter."""
+    assert os.geteuid() == 0, "a bind mount needs root (scripts/test runs as root in CI)"
+    mount, umount = shutil.which("mount"), shutil.which("umount")
+    assert mount is not None, "mount is missing (util-linux)"
+    assert umount is not None, "umount is missing (util-linux)"
+    master, slave = os.openpty()
+    port = tmp_path / "ttyUSB0"
+    port.touch()
+    subprocess.run([mount, "--bind", os.ttyname(slave), str(port)], check=True)
+    try:
+        yield port
+    finally:
+        subprocess.run([umount, "--lazy", str(port)], check=True)  # lazy: a failed open may hold it
+        os.close(master)
+        os.close(slave)
+
+
+async def test_a_pseudo_terminal_bound_at_another_path_opens_with_parity(
+    pty_bound_elsewhere: Path,
+) -> None:
+    """A pty reached through a bind mount (``/dev/ttyUSB0`` in the systemd test's container)
+    is still a pty: parity stays off, which this kernel refuses on one with EINVAL.
+
+    The path alone said "not a pty"; ``tcsetattr`` then raised ``termios.error`` (no
+    OSError), which ended the whole gateway instead of the bus's retry.
+    """
+    line = Line(
+        port=str(pty_bound_elsewhere), line=LineFormat(baudrate=9600, parity="E", stopbits=1)
+    )
+    await line.open()
+    assert line.is_open
+    await line.close()

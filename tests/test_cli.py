@@ -14,6 +14,7 @@ import pytest
 
 from tests.rigs import run_gateway, simulate_process, stats_of
 from tests.test_profiles import PROFILE_IDS
+from tests.unretrieved import reported_in
 
 
 def gateway(*args: str) -> subprocess.CompletedProcess[str]:
@@ -26,6 +27,14 @@ def test_profiles_lists_every_id() -> None:
     for profile_id in PROFILE_IDS:
         assert profile_id in result.stdout
     assert "JUMO digiLine O-DO H20" in result.stdout
+
+
+def test_profiles_lists_whole_ids_on_a_narrow_terminal() -> None:
+    # `docker run --rm rs485-gateway profiles` has no terminal: rich takes 80 columns.
+    result = run_gateway("profiles", cwd=Path(__file__).parent, columns=80)
+    assert result.returncode == 0, result.stderr
+    for profile_id in PROFILE_IDS:
+        assert profile_id in result.stdout
 
 
 def test_profiles_json_list() -> None:
@@ -159,6 +168,34 @@ def test_read_of_a_silent_address_fails_clearly(simulated_line: tuple[Path, Path
     assert "1 of 1 points could not be read" in result.stderr
 
 
+# An S10 clock block (6.9: year, month ... second, time-zone offset) dated month 13.
+MONTH_13 = (2025, 13, 1, 12, 0, 0, 0)
+MONTH_13_HEX = ["0x07E9", "0x000D", "0x0001", "0x000C", "0x0000", "0x0000", "0x0000"]
+
+
+def test_read_reports_an_undecodable_value_as_a_fault_of_the_value(tmp_path: Path) -> None:
+    """The line worked and the S10 answered: the date it sent is not a date. That is a
+    fault of the value, with its registers, not a failed read: exit status 0."""
+    clock = {0x2840 + offset: word for offset, word in enumerate(MONTH_13)}
+    with simulate_process(
+        tmp_path,
+        "devices:\n"
+        "  - {profile: jumo-digiline-odo-s10, address: 1, animate: false,"
+        f" values: {{temperature: 20.25}}, registers: {json.dumps(clock)}}}\n",
+    ) as (port, _):
+        options = ["--port", str(port), "--address", "1", "--profile", "jumo-digiline-odo-s10"]
+        result = gateway("read", *options, "clock", "temperature", "--json")
+        table = gateway("read", *options, "clock", "temperature")
+    assert result.returncode == 0, result.stderr
+    data = json.loads(result.stdout)
+    assert data["clock"] == {"fault": "undecodable", "raw": MONTH_13_HEX, "unit": None}
+    assert data["temperature"] == {"value": 20.25, "unit": "°C"}
+    assert "month must be in 1..12" in result.stderr  # why, said once
+    assert "could not be read" not in result.stderr
+    assert table.returncode == 0, table.stderr
+    assert "!undecodable" in table.stdout
+
+
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -210,6 +247,7 @@ def test_run_polls_until_ctrl_c(simulated_line: tuple[Path, Path], tmp_path: Pat
         process.send_signal(signal.SIGINT)
         out, err = process.communicate(timeout=10)
     assert process.returncode == 0, err
+    assert not reported_in(err), err
     assert "line1/basin_oxygen online" in out
     assert "temperature=20.25 °C" in out
     assert "oxygen=!overrange" in out
@@ -289,6 +327,7 @@ def test_sigterm_stops_cleanly_and_sighup_does_not_kill(
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=10)
     assert process.returncode == 0, err
+    assert not reported_in(err), err
     assert time.monotonic() - started < 5
     assert "config is not reloaded" in err
     assert "basin concentration=0.168 ppm" in out

@@ -3,27 +3,55 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import ipaddress
 import json
 import signal
+import socket
 import sys
+import urllib.error
 import urllib.request
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import aiomqtt
 
 from tests.mqtt_broker import free_port
 
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator
 
-async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None:
-    mqtt_port, metrics_port = free_port(), free_port()
+# On the loopback interface (127.0.0.0/8) but not the address the demo listens on by
+# default: reaching the demo here shows it listens beyond 127.0.0.1, as a container's
+# published port needs, on any machine (no other interface required).
+OTHER_ADDRESS = "127.0.0.2"
+LISTEN = "0A"  # TCP_LISTEN in /proc/net/tcp
+# The demo as a user without the ``demo`` extra runs it: amqtt cannot be imported.
+WITHOUT_AMQTT = (
+    "import runpy, sys; sys.modules['amqtt'] = None; "
+    "runpy.run_module('gateway', run_name='__main__', alter_sys=True)"
+)
+
+
+@contextlib.asynccontextmanager
+async def demo(
+    *args: str, mqtt_port: int, metrics_port: int, without_amqtt: bool = False
+) -> AsyncIterator[str]:
+    """Run ``gateway demo --no-live ARGS``; yield its banner; Ctrl-C must end it cleanly.
+
+    Yields once ``/metrics`` answers: the gateway is running then, and Ctrl-C stops it
+    (before, it interrupts the start-up, exit status 130).
+    """
+    entry = ("-c", WITHOUT_AMQTT) if without_amqtt else ("-m", "gateway")
     process = await asyncio.create_subprocess_exec(
         sys.executable,
-        "-m",
-        "gateway",
+        *entry,
         "demo",
         "--mqtt-port",
         str(mqtt_port),
         "--metrics-port",
         str(metrics_port),
+        *args,
         "--no-live",
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
@@ -32,9 +60,68 @@ async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None
         assert process.stdout is not None
         banner = ""
         while "Ctrl-C" not in banner:
-            banner += (await asyncio.wait_for(process.stdout.readline(), timeout=30)).decode()
+            line = await asyncio.wait_for(process.stdout.readline(), timeout=30)
+            assert line, f"the demo ended before its banner: {banner}"
+            banner += line.decode()
+        await get_when_up(f"http://127.0.0.1:{metrics_port}/healthz")
+        yield banner
+    finally:
+        if process.returncode is None:
+            process.send_signal(signal.SIGINT)
+        _, err = await asyncio.wait_for(process.communicate(), timeout=15)
+    assert process.returncode == 0, err.decode()
+
+
+def listening_addresses(port: int) -> set[str]:
+    """The addresses sockets listen on at ``port``, from the kernel's own tables."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with contextlib.suppress(FileNotFoundError):
+            for row in Path(table).read_text(encoding="ascii").splitlines()[1:]:
+                local, state = row.split()[1], row.split()[3]
+                host, port_hex = local.split(":")
+                if state == LISTEN and int(port_hex, 16) == port:
+                    raw = bytes.fromhex(host)  # 32-bit words, each in host (little-endian) order
+                    words = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+                    found.add(str(ipaddress.ip_address(words)))
+    return found
+
+
+def refused(host: str, port: int) -> bool:
+    try:
+        socket.create_connection((host, port), timeout=2).close()
+    except ConnectionRefusedError:
+        return True
+    return False
+
+
+def get(url: str) -> str:
+    """The body of a GET; errors (a 503 health while MQTT connects) are answers too."""
+    try:
+        with urllib.request.urlopen(url, timeout=5) as response:  # noqa: S310 - a local http URL
+            return str(response.read().decode())
+    except urllib.error.HTTPError as exc:
+        with exc:
+            return str(exc.read().decode())
+
+
+async def get_when_up(url: str, *, timeout_s: float = 15) -> str:
+    """GET ``url`` once the gateway serves it (it starts after the banner)."""
+    async with asyncio.timeout(timeout_s):
+        while True:
+            try:
+                return await asyncio.to_thread(get, url)
+            except OSError:
+                await asyncio.sleep(0.2)
+
+
+async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None:
+    mqtt_port, metrics_port = free_port(), free_port()
+    async with demo(mqtt_port=mqtt_port, metrics_port=metrics_port) as banner:
         assert f"embedded broker on 127.0.0.1:{mqtt_port}" in banner
         assert f"mosquitto_sub -h 127.0.0.1 -p {mqtt_port} -t 'demo/#' -v" in banner
+        # The line the banner names is the one the simulated sensors say they are set to.
+        assert "(19200 8E1), 6 sensors" in banner
         received: dict[str, str] = {}
         async with aiomqtt.Client("127.0.0.1", mqtt_port) as client:
             await client.subscribe("demo/#", qos=1)
@@ -67,10 +154,7 @@ async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None
             outcome = await asyncio.wait_for(result(), timeout=15)
             assert (outcome["status"], outcome["value"]) == ("ok", 1003.5)
         assert float(received["demo/aeration_oxygen/temperature"]) > 0
-        url = f"http://127.0.0.1:{metrics_port}/metrics"
-        metrics = (
-            await asyncio.to_thread(lambda: urllib.request.urlopen(url, timeout=5).read())
-        ).decode()
+        metrics = await get_when_up(f"http://127.0.0.1:{metrics_port}/metrics")
         assert 'gateway_temperature_celsius{bus="demo",device="aeration_oxygen"' in metrics
         assert 'gateway_value_fault{bus="demo",device="fermenter_oxygen"' in metrics
         # The demo's feed keeps the S10's compensation temperature from the tecLine's.
@@ -79,7 +163,36 @@ async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None
         assert (
             'gateway_writes_total{device="digester_oxygen",kind="set",outcome="ok"} 1.0' in metrics
         )
-    finally:
-        process.send_signal(signal.SIGINT)
-        _, err = await asyncio.wait_for(process.communicate(), timeout=15)
-    assert process.returncode == 0, err.decode()
+        # By default nothing of the demo is reachable from another machine.
+        assert listening_addresses(metrics_port) == {"127.0.0.1"}
+        assert listening_addresses(mqtt_port) == {"127.0.0.1"}
+        assert refused(OTHER_ADDRESS, metrics_port)
+        assert refused(OTHER_ADDRESS, mqtt_port)
+
+
+async def test_bind_serves_metrics_and_mqtt_to_other_machines() -> None:
+    # A container's ``-p 9108:9108 -p 1883:1883`` reaches only what listens beyond loopback.
+    mqtt_port, metrics_port = free_port(), free_port()
+    bind = "0.0.0.0"  # noqa: S104 - every interface: the point of the test
+    async with demo("--bind", bind, mqtt_port=mqtt_port, metrics_port=metrics_port) as banner:
+        assert f"embedded broker on 0.0.0.0:{mqtt_port}" in banner
+        assert "listening on 0.0.0.0 (every interface)" in banner
+        # The commands shown still work on this machine.
+        assert f"curl http://127.0.0.1:{metrics_port}/metrics" in banner
+        assert f"mosquitto_sub -h 127.0.0.1 -p {mqtt_port}" in banner
+        metrics = await get_when_up(f"http://{OTHER_ADDRESS}:{metrics_port}/metrics")
+        assert "gateway_up 1.0" in metrics
+        # The gateway's own client reaches the broker, and so does one from elsewhere.
+        async with aiomqtt.Client(OTHER_ADDRESS, mqtt_port) as client:
+            await client.subscribe("demo/aeration_oxygen/availability", qos=1)
+            message = await asyncio.wait_for(anext(aiter(client.messages)), timeout=15)
+            assert message.payload == b"online"
+        assert listening_addresses(metrics_port) == {"0.0.0.0"}  # noqa: S104
+        assert listening_addresses(mqtt_port) == {"0.0.0.0"}  # noqa: S104
+
+
+async def test_without_the_demo_extra_the_hint_shows_the_extra() -> None:
+    # rich markup took ``[demo]`` for a tag: the hint read ``pip install '.'``.
+    async with demo(mqtt_port=free_port(), metrics_port=free_port(), without_amqtt=True) as banner:
+        assert "install the demo extra (pip install '.[demo]'); running without MQTT" in banner
+        assert "mosquitto_sub" not in banner  # no broker: no MQTT commands to copy

@@ -77,7 +77,7 @@ def require(tool: str | None, what: str) -> str:
 
 
 def promtool() -> str:
-    return require(PROMTOOL, "promtool (Debian package 'prometheus', installed by .ci/run)")
+    return require(PROMTOOL, "promtool (Debian package 'prometheus', installed by scripts/setup)")
 
 
 def assert_ok(result: subprocess.CompletedProcess[str]) -> None:
@@ -625,7 +625,7 @@ def verifiable_unit(directory: Path) -> Path:
 
 def systemd_analyze() -> str:
     return require(
-        SYSTEMD_ANALYZE, "systemd-analyze (Debian package 'systemd', installed by .ci/run)"
+        SYSTEMD_ANALYZE, "systemd-analyze (Debian package 'systemd', installed by scripts/setup)"
     )
 
 

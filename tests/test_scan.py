@@ -31,6 +31,7 @@ from gateway.scan import (
 )
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.timing import LineFormat
+from tests.unretrieved import reported_in
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
@@ -221,6 +222,48 @@ async def test_digiline_codes_without_an_exact_profile(tmp_path: Path) -> None:
     assert "# address 3: no profile fits" in text
 
 
+async def test_a_tecline_answering_the_digiline_sensor_type_is_still_identified(
+    tmp_path: Path,
+) -> None:
+    """A tecLine or Reiss cell may answer 0 at 0x010A..0x010B (not in its manual) instead
+    of exception 02: that answer names no digiLine, so the tecLine device data decides.
+
+    Each device says which registers identified it; a cell that answers 02 there, as its
+    manual says, costs no more reads than before.
+    """
+    undocumented_zeros = {0x010A: 0, 0x010B: 0}
+    devices = [
+        {"profile": "jumo-tecline-cl2", "address": 21, "registers": undocumented_zeros},
+        {"profile": "jumo-tecline-cl2", "address": 22},  # exception 02 at 0x010A
+        {"profile": "reiss-m0c", "address": 23, "registers": undocumented_zeros},
+    ]
+    async with simulated(tmp_path, devices) as (server, port):
+        report = await scan(
+            str(port), formats=[FAST_LINE], addresses=(21, 22, 23), timeout_s=SHORT_TIMEOUT_S
+        )
+        sent = requests_per_address(server)
+        assert server.bus.stats()["timing_violations"] == 0
+    found = by_address(report)
+    tecline = "0x0308..0x0309 (tecLine device data)"
+    for address in (21, 22):
+        cell = found[address]
+        assert (cell.family, cell.profile, cell.guess) == ("tecline", "jumo-tecline-cl2", True)
+        assert cell.identified_by == tecline
+        assert cell.details["hardware_version"] == 1130
+        assert cell.details["serial_number"] == f"01047146010000000{address}"
+    assert "0x010A" in "; ".join(found[21].notes)  # what it answered there is said
+    reiss = found[23]
+    assert (reiss.family, reiss.profile, reiss.guess) == ("reiss", "reiss-m0c", False)
+    assert reiss.identified_by == f"{tecline}, 0x0300..0x0307 (Reiss sensor type)"
+    # Two probes, the Reiss sensor type, serial and part number; no more.
+    assert sent == {21: 5, 22: 5, 23: 5}
+    assert all(n <= MAX_REQUESTS_FOUND for n in sent.values())
+    # The table, the JSON and the config snippet say it.
+    assert found[21].details_text().startswith(f"identified by {tecline}")
+    assert report.as_dict()["devices"][0]["identified_by"] == tecline
+    assert f"  # identified by {tecline}\n  - name: tecline_21\n" in report.config_yaml()
+
+
 async def test_a_device_answering_only_exceptions_is_reported_unknown(tmp_path: Path) -> None:
     devices = [{"profile": "reiss-m0c", "address": 8, "unmapped": [0x0308]}]
     async with simulated(tmp_path, devices) as (server, port):
@@ -367,6 +410,7 @@ async def gateway(*args: str) -> tuple[int, str, str]:
     )
     stdout, stderr = await asyncio.wait_for(process.communicate(), timeout=90)
     assert process.returncode is not None
+    assert not reported_in(stderr.decode()), stderr.decode()
     return process.returncode, stdout.decode(), stderr.decode()
 
 
@@ -396,6 +440,7 @@ async def test_scan_command_json(tmp_path: Path) -> None:
     devices = {d["address"]: d for d in data["devices"]}
     assert {a: (d["family"], d["profile"], d["guess"]) for a, d in devices.items()} == EXPECTED
     assert devices[7]["format"] == "19200 8E1"
+    assert devices[7]["identified_by"] == "0x010A..0x010B (digiLine sensor type)"
     assert devices[7]["name"] == "digiline_7"
     assert devices[160]["details"]["sensor_type"] == "CP4.0N-M3"
     assert "baudrate: 19200" in data["config"]

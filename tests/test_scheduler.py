@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from gateway import codec
+from gateway.link import DeviceLink
 from gateway.profiles import PollGroup, get_profile
 from gateway.samples import Quality
 from gateway.scheduler import DeviceTarget
@@ -342,6 +344,23 @@ async def test_unplugged_port_is_reopened_without_a_restart(tmp_path: Path) -> N
     assert_no_wrong_value(r.sink)
 
 
+async def test_a_stop_does_not_wait_out_the_port_backoff(tmp_path: Path) -> None:
+    # SIGTERM with the line gone took the whole backoff (seconds, up to reconnect_max_s).
+    async with rig(tmp_path, STATIC, static_targets()) as r:
+        task = asyncio.create_task(r.worker.run())
+        await asyncio.sleep(0.5)
+        r.server.unplug_pty()
+        while r.line.stats.port_failures < 4:  # noqa: ASYNC110 - backoffs 0.5, 1, 2, then ~4 s
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.2)
+        asked = asyncio.get_running_loop().time()
+        r.worker.request_stop()
+        await asyncio.wait_for(task, timeout=10)
+        stopped = asyncio.get_running_loop().time()
+        r.server.replug_pty()
+    assert stopped - asked < 0.5, f"the stop waited {stopped - asked:.1f} s for the backoff"
+
+
 async def test_broadcast_write_has_no_answer_then_the_turnaround(tmp_path: Path) -> None:
     devices = [
         {"profile": "jumo-digiline-odo-h10", "address": 2},
@@ -371,3 +390,35 @@ async def test_broadcast_write_has_no_answer_then_the_turnaround(tmp_path: Path)
     first_s10 = next(rec for rec in after if rec.device == 1)
     assert first_h10.start - broadcast.start >= 0.25  # H10/H20 6.1.5 after every write
     assert first_s10.start - broadcast.start >= 0.1  # the broadcast turnaround delay
+
+
+# An S10 clock block (6.9: year, month ... second, time-zone offset) dated month 13.
+MONTH_13 = (2025, 13, 1, 12, 0, 0, 0)
+
+
+async def test_an_undecodable_value_is_a_fault_of_the_value_not_of_the_line(
+    tmp_path: Path,
+) -> None:
+    """The S10 answers every read, but its clock is not a date: the clock's samples are
+    faults (``undecodable``) carrying the registers, the line and the device are fine, and
+    a read through the device's link gets the fault as a value, as for 2.0e37."""
+    clock = {0x2840 + offset: word for offset, word in enumerate(MONTH_13)}
+    devices = [{**STATIC[0], "registers": clock}]
+    profile = get_profile("jumo-digiline-odo-s10")
+    s10 = DeviceTarget(
+        name="s10", address=1, profile=profile, intervals={"temperature": 0.3, "clock": 0.3}
+    )
+    async with rig(tmp_path, devices, [s10]) as r:
+        await r.run_for(1.5)
+        value = await DeviceLink(r.worker, "s10").read_value("clock")  # inline, line still open
+    clocks = [s for s in r.sink.samples if s.point == "clock"]
+    assert len(clocks) >= 3
+    assert {(s.quality, s.fault, s.value, s.raw) for s in clocks} == {
+        (Quality.FAULT, "undecodable", None, MONTH_13)
+    }
+    assert isinstance(value, codec.Fault)
+    assert (value.name, value.registers) == ("undecodable", MONTH_13)
+    assert "month must be in 1..12" in value.reason
+    assert [s.value for s in r.sink.good("s10", "temperature")][:1] == [20.25]
+    assert [e.online for e in r.sink.events] == [True]
+    assert not r.line.stats.errors

@@ -383,9 +383,7 @@ class AmperometricBehaviour:
         device.put("measuring_range", 20.0)
         device.put("x_zero", 0.0)
         device.put("x_span", self.nominal_slope)
-        serial = profile.serial
-        if serial is not None and serial.address is not None:
-            device.put("modbus_address", device.address)
+        # modbus_address, baud_rate and parity_stop_bits: the device reports its line.
         self.tick(device, now)
 
     def tick(self, device: SimulatedDevice, now: float) -> None:

@@ -121,7 +121,7 @@ class SimulatedBus:
         """Bring every device up: nameplate, configuration, first values."""
         self.started = now
         for device in self.devices.values():
-            device.start(now)
+            device.start(now, line=self.line)
 
     # --- referee -----------------------------------------------------------------------
 

@@ -46,6 +46,12 @@ class DeviceSettings(_Model):
     values: dict[str, Any] = {}
     faults: FaultSettings = FaultSettings()
     unmapped: list[Annotated[int, Field(ge=0, le=0xFFFF)]] = []  # answer 02 for these
+    # Raw words by register address, held from start: what no encoder writes (an S10 clock
+    # with month 13), or registers the manual does not document that a real unit answers
+    # anyway (a tecLine that reads 0 at the digiLine sensor type 0x010A).
+    registers: dict[
+        Annotated[int, Field(ge=0, le=0xFFFF)], Annotated[int, Field(ge=0, le=0xFFFF)]
+    ] = {}
 
 
 class LineSettings(_Model):
@@ -134,6 +140,7 @@ def build_bus(settings: SimulationSettings) -> SimulatedBus:
             animate=entry.animate,
             initial={name: _value(value) for name, value in entry.values.items()},
             unmapped=set(entry.unmapped),
+            raw=dict(entry.registers),
         )
         devices[entry.address] = device
         faults[entry.address] = FaultPlan(**entry.faults.model_dump())

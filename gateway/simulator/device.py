@@ -7,6 +7,7 @@ switching the order on the simulated sensor behaves as on the real one.
 
 from __future__ import annotations
 
+import logging
 import struct
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
@@ -16,14 +17,25 @@ from gateway.codec import DataType, Decoded, WordOrder
 from gateway.errors import CodecError
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator, Sequence
+    from collections.abc import Iterator, Mapping, Sequence
 
     from gateway.profiles import Point, Profile
     from gateway.simulator.behaviour import Behaviour
+    from gateway.timing import LineFormat
+
+_LOGGER = logging.getLogger(__name__)
 
 ILLEGAL_VALUE: Final = 3  # digiLine: value out of range; tecLine/Reiss: data format
 WRITE_PROTECTED: Final = 8  # digiLine only
 MAX_READ: Final = 125
+
+# The interface registers, by the names every profile gives them (digiLine 0x0300-0x0302,
+# S10 6.4 and H10 6.1.4; tecLine and Reiss 0x0400-0x0402, "Device data Modbus"), and what
+# of the line each holds. Their enum labels say the line in one form across the families
+# (``baud_19200``, ``8e1``), so the line's own labels find the codes.
+_ADDRESS: Final = ("device_address", "modbus_address")
+_BAUD_RATE: Final = ("baud_rate",)
+_FRAMING: Final = ("data_format", "parity_stop_bits")
 
 
 class SlaveExceptionError(Exception):
@@ -63,6 +75,7 @@ class SimulatedDevice:
     held: dict[str, Decoded] = field(default_factory=dict)  # values pinned by tests or config
     write_log: list[WriteRecord] = field(default_factory=list)
     unmapped: set[int] = field(default_factory=set)  # registers this unit does not implement
+    raw: dict[int, int] = field(default_factory=dict)  # words held from start, maybe unmapped
     silent_until: float = 0.0
     last_write_end: float = float("-inf")
     last_write_wait_s: float = 0.0
@@ -175,9 +188,10 @@ class SimulatedDevice:
         """Registers as the sensor sends them, or a :class:`SlaveExceptionError`."""
         if not 1 <= count <= min(MAX_READ, self.profile.limits.max_read):
             raise SlaveExceptionError(frames.ILLEGAL_ADDRESS, f"read of {count} registers")
-        if not self._in_readable_runs(address, count) or self.unmapped.intersection(
-            range(address, address + count)
-        ):
+        span = range(address, address + count)
+        # Raw words outside the map: a unit that answers more than its manual documents.
+        answered = self._in_readable_runs(address, count) or all(a in self.raw for a in span)
+        if not answered or self.unmapped.intersection(span):
             raise SlaveExceptionError(
                 frames.ILLEGAL_ADDRESS, f"read {address:#06x}+{count} crosses unmapped registers"
             )
@@ -319,11 +333,54 @@ class SimulatedDevice:
             )
         )
 
-    def start(self, now: float) -> None:
-        """Power up: the behaviour's nameplate and values, then the configured ones."""
+    def start(self, now: float, *, line: LineFormat | None = None) -> None:
+        """Power up: the behaviour's nameplate and values, the line, then the configured values.
+
+        A sensor answers only on the line its interface registers are set to, so they say
+        ``line`` (the simulated line, or the format given for RTU over TCP); a configured
+        value still wins, to simulate a sensor that reports something else.
+        """
         self.behaviour.start(self, now)
+        if line is not None:
+            self._report_line(line)
         for name, value in self.initial.items():
             self.hold(name, value)
+        self.hold_registers(self.raw)
+
+    def hold_registers(self, words: Mapping[int, int]) -> None:
+        """Pin raw words (by address) and the points they touch; animation leaves them alone.
+
+        For what a value cannot say: words that do not decode (an S10 clock with month
+        13) or registers the profile does not map.
+        """
+        for address, word in words.items():
+            self.registers[address] = word
+            point = self._point_at.get(address)
+            if point is not None:
+                self.held[point.name] = None  # held as raw words: they may not decode
+
+    def _report_line(self, line: LineFormat) -> None:
+        framing = f"8{line.parity}{line.stopbits}".lower()
+        settings: Mapping[tuple[str, ...], object] = {
+            _ADDRESS: self.address,
+            _BAUD_RATE: f"baud_{line.baudrate}",
+            _FRAMING: framing,
+        }
+        for names, value in settings.items():
+            for point in (self.profile.point(n) for n in names if self.profile.has_point(n)):
+                if point.format.enum and value not in point.format.enum.values():
+                    # A real sensor cannot be set to this line (tests run faster ones): say
+                    # so, and leave the register as the behaviour set it.
+                    _LOGGER.warning(
+                        "%s at %d: %s has no code for %s (codes: %s)",
+                        self.profile.id,
+                        self.address,
+                        point.name,
+                        value,
+                        ", ".join(point.format.enum.values()),
+                    )
+                    continue
+                self.put(point.name, value)
 
     def tick(self, now: float) -> None:
         """Let the behaviour move values up to ``now`` (called before every request)."""

@@ -32,7 +32,7 @@ from gateway.codec import BitfieldValue
 from gateway.config import PublishMode, PublishSettings
 from gateway.errors import PublishError
 from gateway.profiles import get_profile
-from gateway.samples import Quality, json_value
+from gateway.samples import Quality, hex_registers, json_value
 from gateway.sinks.discovery import discovery_messages
 from gateway.sinks.message import Message
 from gateway.store import MessageStore
@@ -225,11 +225,16 @@ class MqttSink:
         return value != previous
 
     def _state_document(self, bus: str, device: str, when: datetime) -> Message:
-        """Every point's latest value, unit, fault and quality, as the gateway sees them now."""
+        """Every point's latest value, unit, fault and quality, as the gateway sees them now.
+
+        A value that could not be decoded also has its registers under ``raw`` (a key
+        present only then), so a subscriber sees what the sensor sent.
+        """
         values: dict[str, object] = {}
         units: dict[str, str | None] = {}
         faults: dict[str, str] = {}
         quality: dict[str, str] = {}
+        raw: dict[str, list[str]] = {}
         for point, sample in sorted(self.state.device_samples(bus, device).items()):
             units[point] = sample.unit
             if sample.quality is Quality.GOOD:
@@ -238,6 +243,8 @@ class MqttSink:
             else:
                 faults[point] = sample.fault or sample.quality.value
                 quality[point] = sample.quality.value
+            if sample.raw:
+                raw[point] = hex_registers(sample.raw)
         seq = self._sequence[device] = self._sequence.get(device, 0) + 1
         document = {
             "time": when.isoformat(),
@@ -247,6 +254,8 @@ class MqttSink:
             "faults": faults,
             "quality": quality,
         }
+        if raw:
+            document["raw"] = raw
         return self._message(
             f"{device}/state", json.dumps(document, ensure_ascii=False), retain=False
         )

@@ -14,7 +14,9 @@ unit in the name where the profile fixes it (``gateway_temperature_celsius``) an
 ``unit`` label where a unit register selects it (``gateway_oxygen{unit="mg/l"}``) or the
 unit has no conventional name (``gateway_nominal_slope{unit="nA/ppm"}``). Faults are
 never numbers: a point whose latest sample is a fault has no value sample, and
-``gateway_value_fault{fault="overrange"}`` says why.
+``gateway_value_fault{fault="overrange"}`` says why. Identity is not a measurement: serial,
+firmware and hardware are labels of one info series per device,
+``gateway_device_info{serial="...",firmware="1503",hardware="1130"} 1``.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from prometheus_client.metrics_core import (
     CounterMetricFamily,
     GaugeMetricFamily,
     HistogramMetricFamily,
+    InfoMetricFamily,
     Metric,
 )
 from prometheus_client.registry import Collector
@@ -97,9 +100,24 @@ ERROR_KINDS: Final = (
     ErrorKind.MALFORMED,
 )
 
-# Identity points that name a device's serial number and firmware, first found wins.
-SERIAL_POINTS: Final = ("serial_number",)
-FIRMWARE_POINTS: Final = ("software_version", "firmware_version")
+# The identity labels of ``gateway_device_info`` and the points that fill each, first one
+# read wins; the points of one choice are joined with dots (digiLine hardware major.minor,
+# S10 6.1 and H10 6.1.1). tecLine and Reiss send versions as plain integers ("Device data":
+# Hardware 1130, Firmware 1503): they stay as sent, no decimal point guessed into them.
+IDENTITY_LABELS: Final[Mapping[str, tuple[tuple[str, ...], ...]]] = {
+    "serial": (("serial_number",),),
+    "firmware": (("software_version",), ("firmware_version",)),
+    "hardware": (("hardware_version_major", "hardware_version_minor"), ("hardware_version",)),
+}
+# Identity numbers that were gauges before they were labels of ``gateway_device_info``
+# (``gateway_firmware_version 1503``). Still exported for one release, marked deprecated in
+# their HELP and in docs/metrics.md; removed in the next release.
+DEPRECATED_IDENTITY_GAUGES: Final = frozenset(
+    {"firmware_version", "hardware_version", "hardware_version_major", "hardware_version_minor"}
+)
+DEPRECATION_NOTE: Final = (
+    " (deprecated: a label of gateway_device_info now; this gauge goes in the next release)"
+)
 
 _NUMERIC_POINT_TYPES: Final = NUMERIC_TYPES | {DataType.BOOL}
 _DEVICE: Final = ("bus", "device")
@@ -206,7 +224,8 @@ def _profile_naming(profile_id: str, point_name: str) -> tuple[ValueNaming, str]
     except ConfigError:
         return None
     naming = value_naming(point.name, point.unit, unit_from=point.unit_from is not None)
-    return naming, point.description
+    deprecated = point.name in DEPRECATED_IDENTITY_GAUGES
+    return naming, point.description + (DEPRECATION_NOTE if deprecated else "")
 
 
 @functools.cache
@@ -385,37 +404,40 @@ def _ages(snapshot: GatewayState, now: float) -> Metric:
     return ages
 
 
-def _identity_text(snapshot: GatewayState, bus: str, device: str, points: Iterable[str]) -> str:
-    for point in points:
-        sample = snapshot.last_good.get((bus, device, point))
-        if sample is None or sample.value is None:
-            continue
-        value = sample.value
-        text = value.isoformat() if isinstance(value, datetime) else str(value)
-        if text:
-            return text
+def _identity_text(
+    snapshot: GatewayState, bus: str, device: str, choices: Iterable[tuple[str, ...]]
+) -> str:
+    """The first choice whose points have all been read, joined with dots; else ``""``."""
+    for points in choices:
+        parts = [_point_text(snapshot, bus, device, point) for point in points]
+        if all(parts):
+            return ".".join(parts)
     return ""
+
+
+def _point_text(snapshot: GatewayState, bus: str, device: str, point: str) -> str:
+    sample = snapshot.last_good.get((bus, device, point))
+    if sample is None or sample.value is None:
+        return ""
+    value = sample.value
+    return (value.isoformat() if isinstance(value, datetime) else str(value)).strip()
 
 
 def _devices(snapshot: GatewayState, health: list[DeviceHealth]) -> Iterator[Metric]:
     """Identity and availability of every configured device."""
-    info_family = GaugeMetricFamily(
-        "gateway_device_info",
+    # An info family: ``gateway_device_info{...} 1``, the Prometheus way to export text
+    # that names rather than measures (a ``gauge`` in the 0.0.4 text format).
+    info_family = InfoMetricFamily(
+        "gateway_device",
         "A configured device, its address and identity as last read; always 1",
-        labels=[*_VALUE, "address", "serial", "firmware"],
+        labels=[*_VALUE, "address"],
     )
     for (bus, name), info in snapshot.devices.items():
-        info_family.add_metric(
-            [
-                bus,
-                name,
-                info.profile,
-                str(info.address),
-                _identity_text(snapshot, bus, name, SERIAL_POINTS),
-                _identity_text(snapshot, bus, name, FIRMWARE_POINTS),
-            ],
-            1.0,
-        )
+        identity = {
+            label: _identity_text(snapshot, bus, name, choices)
+            for label, choices in IDENTITY_LABELS.items()
+        }
+        info_family.add_metric([bus, name, info.profile, str(info.address)], identity)
     yield info_family
     online = GaugeMetricFamily(
         "gateway_device_online",

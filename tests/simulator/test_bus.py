@@ -88,6 +88,21 @@ def _raw_read(device: int, address: int, count: int) -> bytes:
     return body + frames.crc16(body)
 
 
+def test_raw_registers_are_held_and_answered_outside_the_map() -> None:
+    """``registers``: raw words no encoder writes (an S10 clock dated month 13), held
+    against the clock's ticking, and words a unit answers beyond its manual (a tecLine
+    that reads 0 at the digiLine sensor type 0x010A) while the rest stays unmapped."""
+    bus = make_bus({**S10, "registers": {0x2841: 13}}, {**TECLINE, "registers": {0x010A: 0}})
+    master = ClockedMaster(bus)
+    master.now += 5.0  # the sensor's clock would have ticked on
+    clock = master.ask(frames.read_request(1, 0x2840, 7)).registers
+    assert clock[1] == 13
+    assert master.ask(frames.read_request(20, 0x010A, 1)).registers == (0,)
+    with pytest.raises(DeviceExceptionError) as beyond:
+        master.ask(frames.read_request(20, 0x010A, 2))  # 0x010B: not given, not in its map
+    assert beyond.value.code == 2
+
+
 def test_write_to_read_only_is_08_on_digiline_and_02_on_tecline() -> None:
     master = ClockedMaster(make_bus(S10, TECLINE))
     with pytest.raises(DeviceExceptionError) as digiline:

@@ -71,7 +71,9 @@ def test_simulate_serves_until_ctrl_c_and_writes_stats(tmp_path: Path) -> None:
         assert "reiss-m0c@10" in line
         assert "jumo-digiline-odo-s10@1" in line
         assert "19200 8E1" in line
-        assert MBPOLL is not None, "mbpoll is missing: .ci/run installs the Debian package"
+        assert MBPOLL is not None, (
+            "mbpoll is missing: scripts/setup installs the Debian package (as root)"
+        )
         result = subprocess.run(
             [
                 MBPOLL,

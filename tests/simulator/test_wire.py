@@ -52,7 +52,9 @@ async def serving(devices: list[dict[str, Any]], **settings: Any) -> AsyncIterat
 
 
 async def mbpoll(*args: str) -> tuple[int, str]:
-    assert MBPOLL is not None, "mbpoll is missing: .ci/run installs the Debian package"
+    assert MBPOLL is not None, (
+        "mbpoll is missing: scripts/setup installs the Debian package (as root)"
+    )
     process = await asyncio.create_subprocess_exec(
         MBPOLL, *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
     )

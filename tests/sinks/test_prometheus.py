@@ -2,7 +2,7 @@
 
 The exposition is always read over HTTP from a started :class:`MetricsServer` and parsed
 with prometheus-client's own parser; the last test runs the Debian ``prometheus`` server
-(installed by ``.ci/run``) against the gateway polling a simulated S10.
+(installed by ``scripts/setup``) against the gateway polling a simulated S10.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from gateway.sinks.prometheus import MetricsServer, value_naming
 from gateway.state import DeviceHealth, DeviceInfo, GatewayState, MqttStatus
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Iterator
+    from collections.abc import AsyncIterator, Callable, Iterator
 
     from gateway.codec import Value
 
@@ -112,6 +112,18 @@ def scrape(server: MetricsServer) -> Exposition:
     assert reply.status == 200
     assert reply.content_type.startswith("text/plain; version=0.0.4")
     return Exposition.parse(reply.body)
+
+
+async def scrape_until(
+    server: MetricsServer, until: Callable[[Exposition], bool], *, timeout_s: float = 10
+) -> Exposition:
+    """Scrape every 250 ms until ``until`` holds; the last scrape either way."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        metrics = await asyncio.to_thread(scrape, server)
+        if until(metrics) or time.monotonic() > deadline:
+            return metrics
+        await asyncio.sleep(0.25)
 
 
 # --- a hand-filled gateway state -----------------------------------------------------------
@@ -344,6 +356,7 @@ def test_status_bits_enums_and_identity(server: MetricsServer) -> None:
         "address": "1",
         "serial": "S10-0042",
         "firmware": "291.01.02",
+        "hardware": "",  # not read: no hardware_version_major and _minor in this state
     }
     assert info["basin_chlorine"]["firmware"] == "263"
     assert info["tank2_oxygen"]["serial"] == ""  # not read yet
@@ -542,33 +555,32 @@ def test_a_failing_scrape_answers_500_and_the_server_keeps_serving(
 # --- the gateway polling a simulated S10 ---------------------------------------------------
 
 
+@dataclass(frozen=True)
+class Polled:
+    """The gateway polling simulated sensors, and its metrics server."""
+
+    metrics: MetricsServer
+    simulator: SimulatorServer
+
+
 @contextlib.asynccontextmanager
-async def polled_s10(tmp_path: Path) -> AsyncIterator[MetricsServer]:
-    """The gateway polling a simulated S10 (temperature held at 20.25 °C), with metrics."""
+async def polled(tmp_path: Path, devices: dict[str, dict[str, Any]]) -> AsyncIterator[Polled]:
+    """The gateway polling simulated sensors (by name: profile, address, values)."""
     simulator = SimulatorServer(
-        build_bus(
-            parse_settings(
-                {
-                    "devices": [
-                        {
-                            "profile": S10,
-                            "address": 1,
-                            "animate": False,
-                            "values": {"temperature": 20.25},
-                        }
-                    ]
-                }
-            )
-        )
+        build_bus(parse_settings({"devices": [d | {"animate": False} for d in devices.values()]}))
     )
-    port = tmp_path / "ttyS10"
+    port = tmp_path / "ttySIM"
     simulator.open_pty(port)
     config = parse_config(
         f"buses:\n"
         f"  - {{name: line1, port: {port}}}\n"
         "devices:\n"
-        f"  - {{name: tank1_oxygen, bus: line1, address: 1, profile: {S10}, poll_interval: 0.5}}\n"
-        "mqtt: {enabled: false}\n"
+        + "".join(
+            f"  - {{name: {name}, bus: line1, address: {d['address']}, profile: {d['profile']},"
+            " poll_interval: 0.5}\n"
+            for name, d in devices.items()
+        )
+        + "mqtt: {enabled: false}\n"
         "prometheus: {enabled: false}\n",  # served below, on a free port
         environ={},
     )
@@ -578,12 +590,20 @@ async def polled_s10(tmp_path: Path) -> AsyncIterator[MetricsServer]:
     metrics = MetricsServer(state, host="127.0.0.1", port=0)
     metrics.start()
     try:
-        yield metrics
+        yield Polled(metrics, simulator)
     finally:
         metrics.stop()
         stop.set()
         await asyncio.wait_for(gateway, timeout=10)
         await simulator.close()
+
+
+@contextlib.asynccontextmanager
+async def polled_s10(tmp_path: Path) -> AsyncIterator[MetricsServer]:
+    """The gateway polling a simulated S10 (temperature held at 20.25 °C), with metrics."""
+    s10 = {"profile": S10, "address": 1, "values": {"temperature": 20.25}}
+    async with polled(tmp_path, {"tank1_oxygen": s10}) as rig:
+        yield rig.metrics
 
 
 async def test_gateway_polling_the_simulator_is_scraped(tmp_path: Path) -> None:
@@ -604,6 +624,51 @@ async def test_gateway_polling_the_simulator_is_scraped(tmp_path: Path) -> None:
     assert not re.search(r"\de\+?3[7-9]\b", metrics.text)
 
 
+async def test_identity_is_one_info_series_with_the_sensors_own_values(tmp_path: Path) -> None:
+    devices = {
+        "tank1_oxygen": {"profile": S10, "address": 1},
+        "basin_chlorine": {"profile": CL2, "address": 20},
+    }
+    async with polled(tmp_path, devices) as rig:
+        # Identity is read once, at start: wait for every device's serial.
+        metrics = await scrape_until(
+            rig.metrics,
+            lambda m: (
+                {x["device"] for x, _ in m.find("gateway_device_info") if x["serial"]}
+                == set(devices)
+            ),
+        )
+        s10, cl2 = rig.simulator.bus.devices[1], rig.simulator.bus.devices[20]
+    info = {labels["device"]: labels for labels, _ in metrics.find("gateway_device_info")}
+    assert info["tank1_oxygen"] == {
+        "bus": "line1",
+        "device": "tank1_oxygen",
+        "profile": S10,
+        "address": "1",
+        "serial": s10.get("serial_number"),
+        "firmware": s10.get("software_version"),  # S10 6.1: a string, "312.01.02"
+        "hardware": f"{s10.get('hardware_version_major')}.{s10.get('hardware_version_minor')}",
+    }
+    assert info["basin_chlorine"] == {
+        "bus": "line1",
+        "device": "basin_chlorine",
+        "profile": CL2,
+        "address": "20",
+        "serial": cl2.get("serial_number"),
+        "firmware": str(cl2.get("firmware_version")),  # tecLine "Device data": 1503, as sent
+        "hardware": str(cl2.get("hardware_version")),
+    }
+    assert info["basin_chlorine"]["firmware"] == "1503"
+    assert {value for _, value in metrics.find("gateway_device_info")} == {1.0}
+    # The identity gauges stay for one release, marked deprecated.
+    assert metrics.value("gateway_firmware_version", device="basin_chlorine") == 1503
+    assert metrics.value("gateway_hardware_version", device="basin_chlorine") == 1130
+    assert metrics.value("gateway_hardware_version_major", device="tank1_oxygen") == 1
+    for name in ("gateway_firmware_version", "gateway_hardware_version_major"):
+        (help_line,) = re.findall(rf"^# HELP {name} (.*)$", metrics.text, re.MULTILINE)
+        assert "deprecated" in help_line
+
+
 # --- a real Prometheus server --------------------------------------------------------------
 
 
@@ -619,7 +684,7 @@ def prometheus_server(tmp_path: Path, target_port: int) -> Iterator[str]:
     """Run Prometheus scraping ``127.0.0.1:target_port`` every second; yield its URL."""
     if not Path(PROMETHEUS).is_file():
         pytest.fail(
-            f"{PROMETHEUS} is missing: .ci/run installs the Debian package 'prometheus' "
+            f"{PROMETHEUS} is missing: scripts/setup installs the Debian package (as root) 'prometheus' "
             "(apt-get install prometheus)"
         )
     config = tmp_path / "prometheus.yml"

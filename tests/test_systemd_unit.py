@@ -1,0 +1,77 @@
+"""The systemd unit under a real systemd, by ``deploy/test-systemd``.
+
+``tests/test_deploy.py`` verifies the unit file (``systemd-analyze verify`` and
+``security``); whether its sandbox still lets the gateway open a serial port, keep its
+state, restart and stop can only be seen by running it. The script does that: a container
+with systemd as PID 1, the gateway installed as deploy/README.md says, a simulated line on
+a pseudo-terminal bound at ``/dev/ttyUSB0`` and one over TCP, a broker with a password
+(its header lists every check). This module runs it with the other tests, so that a
+hardening change that breaks the service fails CI, not a plant's first boot.
+
+Without podman the script exits non-zero with the ``apt-get install`` line, and this test
+fails with it: a skipped check would pass CI unseen (the rule of ``tests/test_deploy.py``).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+SCRIPT = ROOT / "deploy" / "test-systemd"
+
+# A warm run takes under a minute. A cold one first builds the base image with systemd and
+# Mosquitto from Debian packages (deploy/standin-base, over a minute) and downloads the
+# gateway's dependencies; a failing one waits out its checks' deadlines (about four
+# minutes). The script gets the time left after its clean-up allowance, so that it removes
+# its container before pytest gives up.
+TIMEOUT_S = 900
+CLEANUP_S = 60
+
+
+def run_script() -> tuple[int, str]:
+    """Run the script in its own process group; its exit code and its output (merged)."""
+    with subprocess.Popen(
+        [str(SCRIPT)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,  # SIGTERM reaches the script and its podman commands alone
+    ) as process:
+        try:
+            output, _ = process.communicate(timeout=TIMEOUT_S - CLEANUP_S)
+        except subprocess.TimeoutExpired:
+            # SIGTERM: the script's trap removes its container.
+            os.killpg(process.pid, signal.SIGTERM)
+            try:
+                output, _ = process.communicate(timeout=CLEANUP_S / 2)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                output, _ = process.communicate()
+            output += f"\n(test_systemd_unit: stopped after {TIMEOUT_S - CLEANUP_S} s)\n"
+    return process.returncode, output
+
+
+@pytest.mark.timeout(TIMEOUT_S)
+def test_unit_runs_under_systemd() -> None:
+    code, output = run_script()
+    sys.stdout.write(output)  # pytest shows it when the test fails: every ok/FAIL line
+    failed = [line for line in output.splitlines() if line.startswith("FAIL: ")]
+    assert code == 0, "\n".join(failed) or output[-3000:]
+    assert "deploy/test-systemd: every check passed" in output
+    assert not failed
+    # The checks that make it a test of the unit, not of a container that merely started.
+    for check in (
+        "ok: systemd is PID 1",
+        "ok: control: with DevicePolicy=strict the open is refused",
+        "ok: serial port: the gateway holds /dev/ttyUSB0 open",
+        "ok: SIGKILL: active again",
+        "ok: systemctl stop: exit status 0",
+    ):
+        assert check in output, check
