@@ -1,0 +1,629 @@
+"""Side by side with a peer: modbus2mqtt 0.73 and our gateway on the same simulated line.
+
+Five sensors of three families (S10, H10, two tecLine, Reiss M0c) on one simulated line
+(9600 8E1 by default; frames take their wire time, a referee judges every gap), every
+process and status point asked for each second, values held still so that the truth of
+each is known. Each master runs as its users run it (``gateway run --config``; the peer's
+``modbus2mqtt`` command from a venv the bench makes, see ``bench/peer_modbus2mqtt.py``) and
+publishes to one local mosquitto under its own prefix, which the bench subscribes to.
+
+Two phases, each master in turn: a clean line, then one with 2 % of the answers corrupted
+(one bit flipped) and 2 % dropped. After a warm-up (start-up reads are not measured), for
+--seconds:
+
+- frames per cycle: the different requests one poll of every point takes (frame log);
+- transactions/s: answered requests per second; values/s: the compared values published
+  per second, against the ones asked (a master that drifts polls less often than asked);
+- CPU µs per transaction and CPU % of one core: utime + stime of the master and its
+  children from /proc over the window; RSS: resident memory, its peak;
+- the gap from the end of an answer to the next request (minimum and median), against
+  the 3.5 characters the line requires, and the referee's timing violations;
+- with faults: published values that differ from the truth, of all published.
+
+Printed as a table and written to bench/results/peers.json.
+
+Run from the repository root: .venv/bin/python -m bench.peers [--seconds 20]
+[--format 9600-E-1] [--keep DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import getpass
+import json
+import math
+import os
+import shutil
+import signal
+import socket
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Final
+
+import aiomqtt
+
+from bench import peer_modbus2mqtt as peer
+from bench.peer_line import wire_figures
+from gateway.profiles import PollGroup, get_profile
+from gateway.timing import LineFormat, Parity
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
+
+    from gateway.profiles import Point, Profile
+
+ROOT: Final = Path(__file__).resolve().parents[1]
+RESULTS: Final = ROOT / "bench" / "results"
+INTERVAL_S: Final = 1.0
+WARM_UP_S: Final = 12.0  # start-up reads (identity, configuration, diagnostics) take ~8 s at 9600
+STOP_S: Final = 10.0  # a process that has not stopped by then is killed
+GATEWAY_PREFIX: Final = "gw"
+PARITIES: Final[dict[str, Parity]] = {"N": "N", "E": "E", "O": "O"}
+# Unbuffered, so that a master's log is complete however it is stopped.
+CHILD_ENV: Final = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+Figures = dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True)
+class Sensor:
+    """One simulated sensor and the values it holds: the truth published values must meet."""
+
+    name: str
+    profile_id: str
+    address: int
+    values: Mapping[str, float]
+
+    @property
+    def profile(self) -> Profile:
+        """The sensor's register map."""
+        return get_profile(self.profile_id)
+
+    def points(self) -> tuple[Point, ...]:
+        """The points both masters read: every process and status point of the profile."""
+        polled = self.profile.points_in(PollGroup.PROCESS, PollGroup.STATUS)
+        return tuple(p for p in polled if not p.view)
+
+
+# No value equals another device's, so one attributed to the wrong device or request
+# cannot pass; the floats are exact in float32. The status words carry a flag that is no
+# error (S10 bit 10 cap replacement recommended, H10 bit 15 new values, H10 measurement
+# status bit 0 continuous measurement), so a word read from the wrong place shows.
+PLANT: Final = (
+    Sensor(
+        "s10", "jumo-digiline-odo-s10", 1, {"oxygen": 8.25, "temperature": 21.5, "status": 1024}
+    ),
+    Sensor(
+        "h10",
+        "jumo-digiline-odo-h10",
+        2,
+        {
+            "oxygen": 3.125,
+            "temperature": 18.75,
+            "error_register": 0,
+            "measurement_status": 1,
+            "status": 32768,
+        },
+    ),
+    Sensor(
+        "cl2",
+        "jumo-tecline-cl2",
+        20,
+        {"concentration": 0.625, "cell_current": 137.5, "temperature": 24.25},
+    ),
+    Sensor(
+        "clo2",
+        "jumo-tecline-clo2",
+        80,
+        {"concentration": 0.375, "cell_current": 52.0, "temperature": 23.75},
+    ),
+    Sensor(
+        "m0c", "reiss-m0c", 10, {"concentration": 1.125, "cell_current": 210.5, "temperature": 24.5}
+    ),
+)
+POINTS: Final = sum(len(s.values) for s in PLANT)
+
+
+@dataclass(frozen=True, slots=True)
+class Phase:
+    """What the line does to the answers: a probability per answer of each fault."""
+
+    name: str
+    title: str
+    crc: float = 0.0
+    drop: float = 0.0
+
+
+PHASES: Final = (
+    Phase("clean", "clean line"),
+    Phase("faults", "2 % corrupted + 2 % dropped answers", crc=0.02, drop=0.02),
+)
+
+
+# --- configurations ----------------------------------------------------------------------
+
+
+def check_plant() -> None:
+    """Every point read has a truth, and nothing else has one: a changed profile shows."""
+    for sensor in PLANT:
+        names = {p.name for p in sensor.points()}
+        if names != set(sensor.values):
+            raise SystemExit(
+                f"{sensor.name}: points {sorted(names)}, truths {sorted(sensor.values)}"
+            )
+
+
+def simulator_config(line: LineFormat, phase: Phase) -> dict[str, Any]:
+    """The simulated line: values held still, the phase's faults on every sensor."""
+    return {
+        "line": {"baudrate": line.baudrate, "parity": line.parity, "stopbits": line.stopbits},
+        "pace": True,
+        "seed": 1,
+        "devices": [
+            {
+                "profile": s.profile_id,
+                "address": s.address,
+                "animate": False,
+                "values": dict(s.values),
+                "faults": {"crc": phase.crc, "drop": phase.drop},
+            }
+            for s in PLANT
+        ],
+    }
+
+
+def gateway_config(port: Path, line: LineFormat, broker: int, work: Path) -> dict[str, Any]:
+    """Our gateway as a user sets it up for these sensors: defaults but the slow groups.
+
+    Diagnostics and configuration are read at start only (intervals of a day), so that
+    both masters read the same points while measured. Timeouts, retries, publishing
+    (every poll, values at QoS 1, a state document per device) and the Prometheus
+    endpoint are the defaults.
+    """
+    day = 86_400
+    return {
+        "buses": [
+            {
+                "name": "line",
+                "port": str(port),
+                "baudrate": line.baudrate,
+                "parity": line.parity,
+                "stopbits": line.stopbits,
+            }
+        ],
+        "devices": [
+            {
+                "name": s.name,
+                "bus": "line",
+                "address": s.address,
+                "profile": s.profile_id,
+                "poll_interval": INTERVAL_S,
+                "diagnostics_interval": day,
+                "configuration_interval": day,
+            }
+            for s in PLANT
+        ],
+        "mqtt": {"host": "127.0.0.1", "port": broker, "base_topic": GATEWAY_PREFIX},
+        "prometheus": {"host": "127.0.0.1", "port": free_port()},
+        "state_dir": str(work / "state"),
+        "logging": {"level": "WARNING"},
+    }
+
+
+def peer_devices() -> list[peer.PeerDevice]:
+    """The plant as the peer's configuration holds it."""
+    return [
+        peer.PeerDevice(
+            name=s.name,
+            address=s.address,
+            profile=s.profile,
+            blocks=tuple(peer.hand_blocks(s.profile, s.points())),
+        )
+        for s in PLANT
+    ]
+
+
+# --- the masters -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Master:
+    """A master under test: how it starts on a line, and where its values appear."""
+
+    name: str
+    command: Callable[[Path, LineFormat, int, Path], list[str]]  # port, line, broker, work
+    parse_topic: Callable[[str], tuple[str, str] | None]  # (device, point) of a value topic
+    subscription: str
+
+
+def gateway_command(port: Path, line: LineFormat, broker: int, work: Path) -> list[str]:
+    config = work / "gateway.yaml"  # JSON is YAML
+    config.write_text(json.dumps(gateway_config(port, line, broker, work)), encoding="utf-8")
+    script = Path(sys.executable).parent / "gateway"
+    program = [str(script)] if script.exists() else [sys.executable, "-m", "gateway"]
+    return [*program, "run", "--config", str(config)]
+
+
+def gateway_topic(topic: str) -> tuple[str, str] | None:
+    """``(device, point)`` of a plain value topic ``gw/{device}/{point}``, else None."""
+    parts = topic.split("/")
+    if len(parts) == 3 and parts[0] == GATEWAY_PREFIX:  # noqa: PLR2004
+        return parts[1], parts[2]
+    return None
+
+
+GATEWAY: Final = Master("gateway", gateway_command, gateway_topic, f"{GATEWAY_PREFIX}/#")
+
+
+def peer_master(executable: Path) -> Master:
+    def command(port: Path, line: LineFormat, broker: int, work: Path) -> list[str]:
+        config = work / "modbus2mqtt.csv"
+        config.write_text(peer.config_csv(peer_devices(), interval_s=INTERVAL_S), encoding="utf-8")
+        return peer.command(executable, port=port, line=line, broker=broker, config=config)
+
+    return Master(peer.PEER, command, peer.parse_topic, f"{peer.TOPIC}/#")
+
+
+# --- processes ---------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@contextlib.asynccontextmanager
+async def child(
+    argv: Sequence[str], *, log: Path, ready: bytes | None = None
+) -> AsyncIterator[asyncio.subprocess.Process]:
+    """A process that is stopped (SIGTERM, then SIGKILL) however the block ends.
+
+    With ``ready``, its first line of output must start with it before the block runs.
+    """
+    with log.open("wb") as sink:
+        process = await asyncio.create_subprocess_exec(
+            *argv,
+            stdout=asyncio.subprocess.PIPE if ready else sink,
+            stderr=sink,
+            cwd=ROOT,
+            env=CHILD_ENV,
+            start_new_session=True,  # a Ctrl-C of the bench reaches it only through us
+        )
+        try:
+            if ready is not None:
+                assert process.stdout is not None
+                first = await asyncio.wait_for(process.stdout.readline(), 30)
+                if not first.startswith(ready):
+                    raise RuntimeError(f"{argv[0]} did not start:\n{_tail(log)}")
+            yield process
+        finally:
+            await stop(process)
+
+
+async def stop(process: asyncio.subprocess.Process) -> None:
+    """SIGTERM, a bounded wait, then SIGKILL: no process is left behind."""
+    if process.returncode is not None:
+        return
+    process.terminate()
+    try:
+        await asyncio.wait_for(asyncio.shield(process.wait()), STOP_S)
+    except TimeoutError:
+        process.kill()
+        await process.wait()
+
+
+def _tail(log: Path, lines: int = 15) -> str:
+    return "\n".join(log.read_text(encoding="utf-8", errors="replace").splitlines()[-lines:])
+
+
+@contextlib.asynccontextmanager
+async def mosquitto(work: Path) -> AsyncIterator[int]:
+    """A broker of our own on a free local port."""
+    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    port = free_port()
+    config = work / "mosquitto.conf"
+    config.write_text(
+        f"user {getpass.getuser()}\nlistener {port} 127.0.0.1\nallow_anonymous true\n",
+        encoding="utf-8",
+    )
+    async with child([binary, "-c", str(config)], log=work / "mosquitto.log"):
+        for _ in range(100):
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
+                break
+            await asyncio.sleep(0.05)
+        yield port
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessSample:
+    """CPU seconds so far and memory of a process with its children."""
+
+    cpu_s: float
+    rss_mib: float
+    peak_rss_mib: float
+
+
+def _stat_fields(pid: int) -> list[str]:
+    # The fields after the command name, which may hold spaces: ppid is [1], utime [11],
+    # stime [12], cutime [13], cstime [14] (proc(5) numbers them from 3: fields 4, 14-17).
+    return Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()
+
+
+def process_tree(pid: int) -> list[int]:
+    """The process and every live descendant (the peer's paho runs a thread, not a child)."""
+    parents: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            with contextlib.suppress(OSError, IndexError):
+                parents[int(entry.name)] = int(_stat_fields(int(entry.name))[1])
+    tree, frontier = [pid], [pid]
+    while frontier:
+        frontier = [p for p, parent in parents.items() if parent in frontier]
+        tree.extend(frontier)
+    return tree
+
+
+def sample_process(pid: int) -> ProcessSample:
+    """CPU (utime + stime, waited-for children too) and VmRSS/VmHWM over the tree."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu = rss = peak = 0.0
+    for member in process_tree(pid):
+        with contextlib.suppress(OSError):
+            cpu += sum(int(f) for f in _stat_fields(member)[11:15]) / ticks
+            status = Path(f"/proc/{member}/status").read_text(encoding="utf-8")
+            for line in status.splitlines():
+                if line.startswith("VmRSS:"):
+                    rss += int(line.split()[1]) / 1024
+                elif line.startswith("VmHWM:"):
+                    peak += int(line.split()[1]) / 1024
+    return ProcessSample(cpu_s=cpu, rss_mib=rss, peak_rss_mib=peak)
+
+
+# --- what reaches the broker -------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class Received:
+    """Messages published while the bench listened: (monotonic time, topic, payload)."""
+
+    messages: list[tuple[float, str, str]] = field(default_factory=list)
+    lost: str | None = None  # why the subscription ended early: the figures would be short
+
+
+@contextlib.asynccontextmanager
+async def listen(broker: int, subscription: str) -> AsyncIterator[Received]:
+    """Subscribe before the master starts; retained copies from an earlier run are skipped."""
+    received = Received()
+    identifier = f"bench-peers-{os.getpid()}"
+    async with aiomqtt.Client("127.0.0.1", broker, identifier=identifier) as client:
+        await client.subscribe(subscription, qos=1)
+
+        async def collect() -> None:
+            try:
+                async for message in client.messages:
+                    if not message.retain and isinstance(message.payload, bytes):
+                        text = message.payload.decode(errors="replace")
+                        received.messages.append((time.monotonic(), message.topic.value, text))
+            except aiomqtt.MqttError as exc:
+                received.lost = str(exc)
+
+        task = asyncio.create_task(collect(), name="bench.peers.listen")
+        try:
+            yield received
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+
+def value_figures(received: Received, master: Master, t0: float, t1: float) -> Figures:
+    """The compared values published in the window: how many, and how many are wrong.
+
+    An empty payload is a value withdrawn after a failed read (our gateway clears the
+    retained value so no stale number lingers): no value, and not a wrong one.
+    """
+    if received.lost is not None:
+        raise RuntimeError(f"the bench's subscription ended early: {received.lost}")
+    truth = {(s.name, name): value for s in PLANT for name, value in s.values.items()}
+    seen = wrong = withdrawn = 0
+    examples: list[str] = []
+    for at, topic, payload in received.messages:
+        key = master.parse_topic(topic)
+        if not t0 <= at <= t1 or key not in truth:
+            continue
+        if not payload:
+            withdrawn += 1
+        elif _matches(payload, truth[key]):
+            seen += 1
+        else:
+            seen += 1
+            wrong += 1
+            examples.append(f"{topic}={payload} (true {truth[key]})")
+    return {
+        "values": seen,
+        "values_asked": round(POINTS * (t1 - t0) / INTERVAL_S),
+        "values_per_s": seen / (t1 - t0),
+        "wrong_values": wrong,
+        "withdrawn_values": withdrawn,
+        "wrong_examples": examples[:5],
+    }
+
+
+def _matches(payload: str, truth: float) -> bool:
+    try:
+        value = float(payload)
+    except ValueError:
+        return False
+    return math.isclose(value, truth, rel_tol=1e-6, abs_tol=1e-9)
+
+
+# --- runs --------------------------------------------------------------------------------
+
+
+async def one_run(
+    master: Master, phase: Phase, *, line: LineFormat, seconds: float, broker: int, work: Path
+) -> Figures:
+    """One master on one phase of the line: start everything, measure, stop everything."""
+    run = work / f"{master.name.split()[0]}-{phase.name}"
+    run.mkdir()
+    port, out, config = run / "tty", run / "line.json", run / "line.yaml"
+    config.write_text(json.dumps(simulator_config(line, phase)), encoding="utf-8")
+    simulate = [sys.executable, "-m", "bench.peer_line", "--config", str(config)]
+    simulate += ["--pty", str(port), "--out", str(out)]
+    async with contextlib.AsyncExitStack() as stack:
+        await stack.enter_async_context(child(simulate, log=run / "line.log", ready=b"ready"))
+        received = await stack.enter_async_context(listen(broker, master.subscription))
+        argv = master.command(port, line, broker, run)
+        process = await stack.enter_async_context(child(argv, log=run / "master.log"))
+        await asyncio.sleep(WARM_UP_S)
+        if process.returncode is not None:
+            raise RuntimeError(f"{master.name} stopped:\n{_tail(run / 'master.log')}")
+        t0, before = time.monotonic(), sample_process(process.pid)
+        await asyncio.sleep(seconds)
+        t1, after = time.monotonic(), sample_process(process.pid)
+    document = json.loads(out.read_text(encoding="utf-8"))
+    required = {s.address: line.frame_gap_s(s.profile.timing.min_gap_s) for s in PLANT}
+    wire = wire_figures(document, line, required_gap_s=required, t0=t0, t1=t1)
+    cpu_s = after.cpu_s - before.cpu_s
+    return {
+        **wire,
+        **value_figures(received, master, t0, t1),
+        "window_s": t1 - t0,
+        "cpu_s": cpu_s,
+        "cpu_share": cpu_s / (t1 - t0),
+        "cpu_us_per_transaction": 1e6 * cpu_s / max(wire["transactions"], 1),
+        "rss_mib": after.rss_mib,
+        "peak_rss_mib": after.peak_rss_mib,
+    }
+
+
+@contextlib.contextmanager
+def workspace(keep: Path | None) -> Iterator[Path]:
+    """Where runs put their configurations, logs and frame logs: ``keep``, or a temporary one."""
+    if keep is not None:
+        keep.mkdir(parents=True, exist_ok=True)
+        yield Path(tempfile.mkdtemp(prefix="bench-peers-", dir=keep))
+        return
+    with tempfile.TemporaryDirectory(prefix="bench-peers-") as tmp:
+        yield Path(tmp)
+
+
+async def run_all(
+    masters: Sequence[Master], line: LineFormat, seconds: float, *, keep: Path | None
+) -> dict[str, dict[str, Figures]]:
+    """Every phase with every master in turn, on one broker; SIGTERM stops it all cleanly."""
+    task = asyncio.current_task()
+    assert task is not None
+    asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, task.cancel)
+    results: dict[str, dict[str, Figures]] = {m.name: {} for m in masters}
+    with workspace(keep) as work:
+        async with mosquitto(work) as broker:
+            for phase in PHASES:
+                for master in masters:
+                    print(f"{master.name}, {phase.title}: {seconds:g} s", flush=True)
+                    results[master.name][phase.name] = await one_run(
+                        master, phase, line=line, seconds=seconds, broker=broker, work=work
+                    )
+    return results
+
+
+# --- report ------------------------------------------------------------------------------
+
+
+def _number(key: str, fmt: str, scale: float = 1.0) -> Callable[[Figures], str]:
+    return lambda figures: format(figures[key] * scale, fmt)
+
+
+def _wrong(figures: Figures) -> str:
+    return f"{figures['wrong_values']} of {figures['values']}"
+
+
+def _injected(figures: Figures) -> str:
+    injected = figures["faults_injected"]
+    return f"{injected.get('crc', 0)} crc, {injected.get('drop', 0)} drop"
+
+
+ROWS: Final[tuple[tuple[str, str, Callable[[Figures], str]], ...]] = (
+    ("clean", "frames per cycle", _number("frames_per_cycle", ".0f")),
+    ("clean", "transactions/s", _number("transactions_per_s", ".2f")),
+    ("clean", f"values/s ({POINTS} asked)", _number("values_per_s", ".2f")),
+    ("clean", "CPU µs per transaction", _number("cpu_us_per_transaction", ".0f")),
+    ("clean", "CPU % of one core", _number("cpu_share", ".2f", 100)),
+    ("clean", "RSS MiB (peak)", _number("peak_rss_mib", ".1f")),
+    ("clean", "min gap ms", _number("min_gap_ms", ".2f")),
+    ("clean", "median gap ms", _number("median_gap_ms", ".2f")),
+    ("clean", "timing violations", _number("timing_violations", ".0f")),
+    ("faults", "faults injected (run)", _injected),
+    ("faults", "wrong values of published", _wrong),
+    ("faults", f"values/s ({POINTS} asked)", _number("values_per_s", ".2f")),
+    ("faults", "values withdrawn", _number("withdrawn_values", ".0f")),
+    ("faults", "timing violations", _number("timing_violations", ".0f")),
+)
+
+
+def table(results: Mapping[str, Mapping[str, Figures]], line: LineFormat) -> str:
+    """The figures side by side, one column per master."""
+    names = list(results)
+    lines = [f"{f'{line}, every {INTERVAL_S:g} s':<28}" + "".join(f"{n:>20}" for n in names)]
+    for phase in PHASES:
+        lines.append(f"-- {phase.title}")
+        lines.extend(
+            f"{label:<28}" + "".join(f"{show(results[n][phase.name]):>20}" for n in names)
+            for which, label, show in ROWS
+            if which == phase.name
+        )
+    blocks = sum(len(d.blocks) for d in peer_devices())
+    lines.append(f"3.5 characters at {line}: {1000 * line.frame_gap_s():.2f} ms")
+    lines.append(f"the peer's {blocks} poll blocks are written by hand (one per point: {POINTS})")
+    return "\n".join(lines)
+
+
+def parse_format(text: str) -> LineFormat:
+    """``9600-E-1`` as a line format; anything else ends the bench with a usage error."""
+    baudrate, parity, stopbits = [*text.split("-"), "", "", ""][:3]
+    if not baudrate.isdigit() or parity not in PARITIES or stopbits not in {"1", "2"}:
+        raise SystemExit(f"--format {text!r}: expected BAUD-PARITY-STOPBITS, e.g. 9600-E-1")
+    return LineFormat(baudrate=int(baudrate), parity=PARITIES[parity], stopbits=int(stopbits))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--seconds", type=float, default=20.0, help="measured per run")
+    parser.add_argument("--format", default="9600-E-1", help="the line, BAUD-PARITY-STOPBITS")
+    parser.add_argument(
+        "--keep", type=Path, metavar="DIR", help="keep each run's configs and logs under DIR"
+    )
+    args = parser.parse_args()
+    line = parse_format(args.format)
+    check_plant()
+    masters = [peer_master(peer.ensure_venv()), GATEWAY]
+    try:
+        results = asyncio.run(run_all(masters, line, args.seconds, keep=args.keep))
+    except (asyncio.CancelledError, KeyboardInterrupt):
+        raise SystemExit(
+            "stopped: every process it started is stopped, no figures written"
+        ) from None
+    RESULTS.mkdir(exist_ok=True)
+    document = {
+        "line": str(line),
+        "interval_s": INTERVAL_S,
+        "seconds": args.seconds,
+        "warm_up_s": WARM_UP_S,
+        "peer": {"package": peer.PACKAGE, "dependencies": list(peer.DEPENDENCIES)},
+        "peer_config": peer.config_csv(peer_devices(), interval_s=INTERVAL_S),
+        "results": results,
+    }
+    (RESULTS / "peers.json").write_text(json.dumps(document, indent=2), encoding="utf-8")
+    print(table(results, line))
+
+
+if __name__ == "__main__":
+    main()
