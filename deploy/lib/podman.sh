@@ -8,9 +8,9 @@
 #   nproc by default, and a sandbox that caps them (nofile 20000 here) refuses the
 #   container ("error setting rlimit type 7: operation not permitted").
 # Each limit is the lower of this shell's hard limit and a generous default.
-# One folder per user, rewritten each time: nothing is left behind per call.
-podman_conf_dir="${TMPDIR:-/tmp}/rs485-gateway-podman-$(id -u)"
-mkdir -p "$podman_conf_dir"
+# A folder of this process's own (scripts running at once must not share it): the caller
+# removes "$podman_conf_dir" when it ends.
+podman_conf_dir=$(mktemp -d)
 podman_nofile=$(ulimit -Hn)
 [ "$podman_nofile" = unlimited ] || [ "$podman_nofile" -gt 65536 ] && podman_nofile=65536
 podman_nproc=4096
