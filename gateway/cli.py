@@ -413,7 +413,11 @@ def demo(
         ),
     ] = LOCAL_BIND,
     live: Annotated[
-        bool, typer.Option("--live/--no-live", help="The live table (on a terminal).")
+        bool,
+        typer.Option(
+            "--live/--no-live",
+            help="The live table (on a terminal); without it, one line per poll cycle.",
+        ),
     ] = True,
 ) -> None:
     """Try it all with no hardware: simulated sensors, MQTT, metrics and a live table."""

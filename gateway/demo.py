@@ -35,7 +35,7 @@ from gateway.config import parse_config
 from gateway.errors import ConfigError
 from gateway.samples import Quality
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.sinks.console import format_sample
+from gateway.sinks.console import ConsoleSink, format_sample
 from gateway.state import GatewayState
 from gateway.timing import LineFormat
 
@@ -314,8 +314,12 @@ async def run_demo(
                     metrics_port=metrics_port,
                 )
                 state = GatewayState()
-                gateway = asyncio.create_task(run(config, state=state), name="demo.gateway")
-                if live and console.is_terminal:
+                table = live and console.is_terminal
+                # Without the live table (--no-live, a pipe, a container's log) each poll
+                # cycle is printed as a line, as `gateway run --print` does.
+                sinks = [] if table else [ConsoleSink()]
+                gateway = asyncio.create_task(run(config, sinks, state=state), name="demo.gateway")
+                if table:
                     with Live(_table(state), console=console, refresh_per_second=2) as screen:
                         while not gateway.done():
                             await asyncio.sleep(REFRESH_S)

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import ipaddress
 import json
+import re
 import signal
 import socket
 import sys
@@ -36,8 +37,9 @@ WITHOUT_AMQTT = (
 @contextlib.asynccontextmanager
 async def demo(
     *args: str, mqtt_port: int, metrics_port: int, without_amqtt: bool = False
-) -> AsyncIterator[str]:
-    """Run ``gateway demo --no-live ARGS``; yield its banner; Ctrl-C must end it cleanly.
+) -> AsyncIterator[tuple[str, asyncio.StreamReader]]:
+    """Run ``gateway demo --no-live ARGS``; yield its banner and the rest of its output;
+    Ctrl-C must end it cleanly.
 
     Yields once ``/metrics`` answers: the gateway is running then, and Ctrl-C stops it
     (before, it interrupts the start-up, exit status 130).
@@ -64,7 +66,7 @@ async def demo(
             assert line, f"the demo ended before its banner: {banner}"
             banner += line.decode()
         await get_when_up(f"http://127.0.0.1:{metrics_port}/healthz")
-        yield banner
+        yield banner, process.stdout
     finally:
         if process.returncode is None:
             process.send_signal(signal.SIGINT)
@@ -117,7 +119,7 @@ async def get_when_up(url: str, *, timeout_s: float = 15) -> str:
 
 async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None:
     mqtt_port, metrics_port = free_port(), free_port()
-    async with demo(mqtt_port=mqtt_port, metrics_port=metrics_port) as banner:
+    async with demo(mqtt_port=mqtt_port, metrics_port=metrics_port) as (banner, _):
         assert f"embedded broker on 127.0.0.1:{mqtt_port}" in banner
         assert f"mosquitto_sub -h 127.0.0.1 -p {mqtt_port} -t 'demo/#' -v" in banner
         # The line the banner names is the one the simulated sensors say they are set to.
@@ -174,7 +176,7 @@ async def test_bind_serves_metrics_and_mqtt_to_other_machines() -> None:
     # A container's ``-p 9108:9108 -p 1883:1883`` reaches only what listens beyond loopback.
     mqtt_port, metrics_port = free_port(), free_port()
     bind = "0.0.0.0"  # noqa: S104 - every interface: the point of the test
-    async with demo("--bind", bind, mqtt_port=mqtt_port, metrics_port=metrics_port) as banner:
+    async with demo("--bind", bind, mqtt_port=mqtt_port, metrics_port=metrics_port) as (banner, _):
         assert f"embedded broker on 0.0.0.0:{mqtt_port}" in banner
         assert "listening on 0.0.0.0 (every interface)" in banner
         # The commands shown still work on this machine.
@@ -193,6 +195,20 @@ async def test_bind_serves_metrics_and_mqtt_to_other_machines() -> None:
 
 async def test_without_the_demo_extra_the_hint_shows_the_extra() -> None:
     # rich markup took ``[demo]`` for a tag: the hint read ``pip install '.'``.
-    async with demo(mqtt_port=free_port(), metrics_port=free_port(), without_amqtt=True) as banner:
+    async with demo(mqtt_port=free_port(), metrics_port=free_port(), without_amqtt=True) as (
+        banner,
+        _,
+    ):
         assert "install the demo extra (pip install '.[demo]'); running without MQTT" in banner
         assert "mosquitto_sub" not in banner  # no broker: no MQTT commands to copy
+
+
+async def test_without_a_live_table_the_demo_prints_its_values() -> None:
+    # In a container's log or a pipe there is no live table: each poll cycle is a line.
+    async with demo(mqtt_port=free_port(), metrics_port=free_port()) as (_, output):
+        seen = ""
+        cycle = re.compile(r"demo/basin_chlorine concentration=[0-9.]+ ppm")
+        while not cycle.search(seen) or "demo/aeration_oxygen oxygen=" not in seen:
+            line = await asyncio.wait_for(output.readline(), timeout=15)
+            assert line, f"the demo's output ended: {seen}"
+            seen += line.decode()
