@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -254,3 +255,30 @@ def run_gateway(
     )
     assert not reported_in(result.stderr), result.stderr
     return result
+
+
+def run_deploy_script(script: Path, *, timeout_s: float, cleanup_s: float) -> tuple[int, str]:
+    """Run a script of ``deploy/`` in its own process group: its exit code and its output.
+
+    Near ``timeout_s`` it gets SIGTERM, so that its trap removes its containers before
+    pytest gives up on the test; ``cleanup_s`` is the allowance for that.
+    """
+    with subprocess.Popen(
+        [str(script)],
+        cwd=script.parent.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,  # SIGTERM reaches the script and its podman commands alone
+    ) as process:
+        try:
+            output, _ = process.communicate(timeout=timeout_s - cleanup_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGTERM)
+            try:
+                output, _ = process.communicate(timeout=cleanup_s / 2)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                output, _ = process.communicate()
+            output += f"\n({script.name}: stopped after {timeout_s - cleanup_s:.0f} s)\n"
+    return process.returncode, output

@@ -14,13 +14,12 @@ fails with it: a skipped check would pass CI unseen (the rule of ``tests/test_de
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.rigs import run_deploy_script
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "deploy" / "test-systemd"
@@ -34,33 +33,9 @@ TIMEOUT_S = 900
 CLEANUP_S = 60
 
 
-def run_script() -> tuple[int, str]:
-    """Run the script in its own process group; its exit code and its output (merged)."""
-    with subprocess.Popen(
-        [str(SCRIPT)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,  # SIGTERM reaches the script and its podman commands alone
-    ) as process:
-        try:
-            output, _ = process.communicate(timeout=TIMEOUT_S - CLEANUP_S)
-        except subprocess.TimeoutExpired:
-            # SIGTERM: the script's trap removes its container.
-            os.killpg(process.pid, signal.SIGTERM)
-            try:
-                output, _ = process.communicate(timeout=CLEANUP_S / 2)
-            except subprocess.TimeoutExpired:
-                os.killpg(process.pid, signal.SIGKILL)
-                output, _ = process.communicate()
-            output += f"\n(test_systemd_unit: stopped after {TIMEOUT_S - CLEANUP_S} s)\n"
-    return process.returncode, output
-
-
 @pytest.mark.timeout(TIMEOUT_S)
 def test_unit_runs_under_systemd() -> None:
-    code, output = run_script()
+    code, output = run_deploy_script(SCRIPT, timeout_s=TIMEOUT_S, cleanup_s=CLEANUP_S)
     sys.stdout.write(output)  # pytest shows it when the test fails: every ok/FAIL line
     failed = [line for line in output.splitlines() if line.startswith("FAIL: ")]
     assert code == 0, "\n".join(failed) or output[-3000:]
