@@ -33,9 +33,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from gateway.line.devices import DeviceTarget
 from gateway.line.plan import CostModel, plan_reads
 from gateway.line.port import Line
-from gateway.line.scheduler import BusWorker, DeviceTarget
+from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 

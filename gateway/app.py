@@ -18,8 +18,9 @@ from gateway.control.feeds import FeedEngine
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.control.link import DeviceLink
 from gateway.control.writes import SafeWriter
+from gateway.line.devices import DeviceTarget
 from gateway.line.port import Line
-from gateway.line.scheduler import BusWorker, DeviceTarget
+from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink

@@ -17,8 +17,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from gateway.control.link import DeviceLink
+from gateway.line.devices import DeviceTarget
 from gateway.line.port import Line
-from gateway.line.scheduler import BusWorker, DeviceTarget
+from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat

@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from gateway.control.link import DeviceLink
+from gateway.line.devices import DeviceTarget
 from gateway.line.samples import Quality
-from gateway.line.scheduler import DeviceTarget
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat

@@ -21,7 +21,7 @@ from tests.rigs import PLANT, link_rig, link_target
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.line.scheduler import DeviceTarget
+    from gateway.line.devices import DeviceTarget
     from tests.rigs import LinkRig
 
 DAY = date(2026, 11, 22)

@@ -26,7 +26,7 @@ from gateway.config import DEFAULT_FLASH_WRITE_BUDGET, FlashPolicy, load_config
 from gateway.control.flash import LEDGER_FILE, FlashLedger
 from gateway.control.link import DeviceLink, open_link
 from gateway.errors import ConfigError, GatewayError
-from gateway.line.scheduler import DeviceTarget
+from gateway.line.devices import DeviceTarget
 from gateway.profiles import get_profile
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat

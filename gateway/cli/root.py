@@ -32,10 +32,10 @@ from gateway.cli.demo import LOCAL_BIND, run_demo
 from gateway.config import check_config, load_config
 from gateway.control.link import open_link
 from gateway.errors import ConfigError, GatewayError
+from gateway.line.devices import DeviceTarget
 from gateway.line.samples import Quality, Sample, hex_registers, json_value
 from gateway.line.scan import parse_addresses, scan_formats
 from gateway.line.scan import scan as scan_bus
-from gateway.line.scheduler import DeviceTarget
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.publish.console import ConsoleSink, format_sample
 from gateway.simulator import (

@@ -1,7 +1,7 @@
 """One device on a line, as commands, feeds, operations and calibrations see it.
 
 A :class:`DeviceLink` reads and writes points by name through the line's
-:class:`~gateway.line.scheduler.BusWorker`, so every timing rule (gaps, post-write waits,
+:class:`~gateway.line.worker.BusWorker`, so every timing rule (gaps, post-write waits,
 late-answer windows) still holds: while the gateway polls, its reads and writes queue
 ahead of due polls; from the command line, with no poll running, they run at once.
 
@@ -19,13 +19,13 @@ from gateway.control.commands import validate_write
 from gateway.errors import BusError, CommandRejectedError
 from gateway.line.port import Line
 from gateway.line.samples import Quality
-from gateway.line.scheduler import BusWorker
+from gateway.line.worker import BusWorker
 from gateway.wire.codec import DataType
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
-    from gateway.line.scheduler import DeviceTarget
+    from gateway.line.devices import DeviceTarget
     from gateway.profiles import Profile
     from gateway.wire import codec
     from gateway.wire.timing import LineFormat
