@@ -33,16 +33,17 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from gateway.bus import Line
-from gateway.plan import CostModel, plan_reads
+from gateway.line.devices import DeviceTarget
+from gateway.line.plan import CostModel, plan_reads
+from gateway.line.port import Line
+from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
-from gateway.scheduler import BusWorker, DeviceTarget
-from gateway.timing import TYPICAL_PROCESSING_S, LineFormat
+from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from gateway.samples import DeviceEvent, Sample
+    from gateway.line.samples import DeviceEvent, Sample
 
 PLANT = [
     ("s10", "jumo-digiline-odo-s10", 1),

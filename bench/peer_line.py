@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from gateway.timing import LineFormat
+    from gateway.wire.timing import LineFormat
 
 
 async def serve(config: Path, pty: Path, out: Path) -> None:

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from collections.abc import Sequence
 
     from gateway.profiles import Point, Profile
-    from gateway.timing import LineFormat
+    from gateway.wire.timing import LineFormat
 
 PEER: Final = "modbus2mqtt 0.73"
 # Installed with --no-deps, then its real needs pinned: its metadata asks for `pymodbus`

@@ -50,7 +50,7 @@ import aiomqtt
 from bench import peer_modbus2mqtt as peer
 from bench.peer_line import wire_figures
 from gateway.profiles import PollGroup, get_profile
-from gateway.timing import LineFormat, Parity
+from gateway.wire.timing import LineFormat, Parity
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence

@@ -37,11 +37,11 @@ from prometheus_client import CollectorRegistry, generate_latest
 
 from gateway.app import run
 from gateway.config import MqttConfig, parse_config
+from gateway.line.samples import Quality, Sample
 from gateway.profiles import get_profile
-from gateway.samples import Quality, Sample
-from gateway.sinks.mqtt import MqttSink
-from gateway.sinks.prometheus import GatewayCollector
-from gateway.state import DeviceInfo, GatewayState, StateSink
+from gateway.publish.mqtt import MqttSink
+from gateway.publish.prometheus import GatewayCollector
+from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator

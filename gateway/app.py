@@ -12,17 +12,18 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from gateway.bus import Line
-from gateway.command_router import CommandRouter
 from gateway.config import Cadence
-from gateway.feeds import FeedEngine
-from gateway.flash import LEDGER_FILE, FlashLedger, utc_today
-from gateway.link import DeviceLink
-from gateway.scheduler import BusWorker, DeviceTarget
-from gateway.sinks.mqtt import MqttSink
-from gateway.sinks.prometheus import MetricsServer
-from gateway.state import DeviceInfo, GatewayState, StateSink
-from gateway.writes import SafeWriter
+from gateway.control.command_router import CommandRouter
+from gateway.control.feeds import FeedEngine
+from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
+from gateway.control.link import DeviceLink
+from gateway.control.writes import SafeWriter
+from gateway.line.devices import DeviceTarget
+from gateway.line.port import Line
+from gateway.line.worker import BusWorker
+from gateway.publish.mqtt import MqttSink
+from gateway.publish.prometheus import MetricsServer
+from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -34,7 +35,7 @@ if TYPE_CHECKING:
         LoggingConfig,
         PublishSettings,
     )
-    from gateway.samples import Sink
+    from gateway.line.samples import Sink
 
 _LOGGER = logging.getLogger(__name__)
 SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports

@@ -19,7 +19,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
-from gateway import frames
+from gateway.wire import frames
 
 if TYPE_CHECKING:
     from collections.abc import Callable

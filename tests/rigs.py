@@ -17,19 +17,20 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from gateway.bus import Line
-from gateway.link import DeviceLink
+from gateway.control.link import DeviceLink
+from gateway.line.devices import DeviceTarget
+from gateway.line.port import Line
+from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
-from gateway.scheduler import BusWorker, DeviceTarget
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.timing import LineFormat
+from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator, Sequence
     from pathlib import Path
 
-    from gateway.samples import DeviceEvent, Sample
+    from gateway.line.samples import DeviceEvent, Sample
     from gateway.simulator.device import SimulatedDevice, WriteRecord
 
 

@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 import pytest
 import serial
 
-from gateway import frames
-from gateway.bus import ErrorKind, Line
 from gateway.errors import BusClosedError
-from gateway.timing import LineFormat
+from gateway.line.port import ErrorKind, Line
+from gateway.wire import frames
+from gateway.wire.timing import LineFormat
 from tests import unretrieved
 
 if TYPE_CHECKING:

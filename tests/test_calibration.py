@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.calibration import (
+from gateway.config import FlashPolicy
+from gateway.control.calibration import (
     HistoryEffect,
     HistoryEntry,
     Status,
@@ -37,10 +38,10 @@ from gateway.calibration import (
     slope_from,
     stamp_number,
 )
+from gateway.control.flash import FlashLedger, utc_today
+from gateway.control.writes import SafeWriter
 from gateway.errors import CalibrationInterruptedError, CommandRejectedError
-from gateway.flash import FlashLedger, FlashPolicy, utc_today
 from gateway.simulator.device import SlaveExceptionError
-from gateway.writes import SafeWriter
 from tests.rigs import LinkRig, link_rig, link_target
 
 if TYPE_CHECKING:
@@ -48,8 +49,7 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from gateway.profiles import Point
-    from gateway.simulator.behaviour import Behaviour
-    from gateway.simulator.device import SimulatedDevice
+    from gateway.simulator.device import Behaviour, SimulatedDevice
 
 
 # --- the pure part ---------------------------------------------------------------------------

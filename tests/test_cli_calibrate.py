@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.flash import FlashLedger
+from gateway.control.flash import FlashLedger
 from tests.rigs import run_gateway, simulate_process, stats_of
 
 if TYPE_CHECKING:

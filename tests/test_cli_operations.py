@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.flash import LEDGER_FILE, FlashLedger
+from gateway.control.flash import LEDGER_FILE, FlashLedger
 from tests.rigs import run_gateway, simulate_process, stats_of
 
 if TYPE_CHECKING:

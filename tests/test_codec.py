@@ -10,7 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway.codec import (
+from gateway.errors import DecodeError, EncodeError
+from gateway.wire.codec import (
     BitfieldValue,
     DataType,
     EnumValue,
@@ -21,7 +22,6 @@ from gateway.codec import (
     encode,
     float_to_registers,
 )
-from gateway.errors import DecodeError, EncodeError
 
 FLOAT = Format(dtype=DataType.FLOAT32, count=2)
 FLOAT_WITH_FAULTS = Format(dtype=DataType.FLOAT32, count=2, float_faults=True)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.command_router import COMMAND, SET, Route, parse_topic
+from gateway.control.command_router import COMMAND, SET, Route, parse_topic
 
 
 @pytest.mark.parametrize(

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.codec import WordOrder
-from gateway.commands import (
+from gateway.control.commands import (
     SetCommand,
     function_for,
     parse_set_payload,
@@ -14,6 +13,7 @@ from gateway.commands import (
 from gateway.errors import CommandRejectedError
 from gateway.profiles import get_profile
 from gateway.profiles.model import Profile
+from gateway.wire.codec import WordOrder
 
 CDAB = WordOrder.CDAB
 

@@ -19,7 +19,6 @@ from typing import TYPE_CHECKING
 
 import pytest
 
-from gateway.codec import WordOrder
 from gateway.config import (
     BusConfig,
     Cadence,
@@ -35,7 +34,8 @@ from gateway.config import (
 from gateway.errors import ConfigError
 from gateway.profiles import PollGroup, builtin_profiles, get_profile
 from gateway.simulator import load_settings
-from gateway.timing import LineFormat
+from gateway.wire.codec import WordOrder
+from gateway.wire.timing import LineFormat
 
 if TYPE_CHECKING:
     from collections.abc import Mapping

@@ -39,8 +39,8 @@ import pytest
 import yaml
 
 from gateway.config import check_config, load_config
-from gateway.sinks.prometheus import MetricsServer
-from gateway.state import GatewayState, MqttStatus
+from gateway.publish.prometheus import MetricsServer
+from gateway.publish.state import GatewayState, MqttStatus
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"

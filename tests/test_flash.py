@@ -7,12 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from gateway.codec import WordOrder
-from gateway.commands import validate_write
+from gateway.config import FlashPolicy
+from gateway.control.commands import validate_write
+from gateway.control.flash import Action, Decision, FlashLedger, check_flash_write
 from gateway.errors import CommandRejectedError, ConfigError
-from gateway.flash import Action, Decision, FlashLedger, FlashPolicy, check_flash_write
 from gateway.profiles import get_profile
 from gateway.profiles.model import Profile
+from gateway.wire.codec import WordOrder
 
 DAY = date(2025, 2, 10)
 NEXT_DAY = date(2025, 2, 11)

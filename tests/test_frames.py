@@ -6,7 +6,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway import frames
 from gateway.errors import (
     CrcError,
     DeviceExceptionError,
@@ -14,6 +13,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
+from gateway.wire import frames
 
 TEMPERATURE_READ = frames.read_request(1, 0x2620, 2)
 TEMPERATURE_ANSWER = bytes.fromhex("01 03 04 00 00 41 A2 4B DA")  # S10 manual 2.6.2

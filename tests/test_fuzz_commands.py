@@ -43,28 +43,36 @@ import pytest
 from hypothesis import currently_in_test_context, event, given
 from hypothesis import strategies as st
 
-from gateway import codec, frames
-from gateway.codec import BITFIELD_TYPES, ENUM_TYPES, NUMERIC_TYPES, DataType, Format, WordOrder
-from gateway.command_router import COMMAND, SET, CommandRouter, Route, parse_topic
-from gateway.commands import parse_set_payload
+from gateway.config import FlashPolicy
+from gateway.control.command_router import COMMAND, SET, CommandRouter, Route, parse_topic
+from gateway.control.commands import parse_set_payload
+from gateway.control.flash import FlashLedger
+from gateway.control.operations import CALIBRATION_LOG, OPERATION_NAMES, operations_for
+from gateway.control.writes import SafeWriter
 from gateway.errors import BusError, CommandRejectedError, EncodeError
-from gateway.flash import FlashLedger, FlashPolicy
-from gateway.operations import CALIBRATION_LOG, OPERATION_NAMES, operations_for
 from gateway.profiles import get_profile
 from gateway.profiles.model import Storage
-from gateway.state import GatewayState
-from gateway.writes import SafeWriter
+from gateway.publish.state import GatewayState
+from gateway.wire import codec, frames
+from gateway.wire.codec import (
+    BITFIELD_TYPES,
+    ENUM_TYPES,
+    NUMERIC_TYPES,
+    DataType,
+    Format,
+    WordOrder,
+)
 from tests.fuzzing import fuzz
 from tests.rigs import PLANT, link_rig, link_target
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from gateway.link import DeviceLink
+    from gateway.control.link import DeviceLink
     from gateway.profiles import Profile
+    from gateway.publish.message import Message
     from gateway.simulator.bus import FrameRecord
     from gateway.simulator.device import WriteRecord
-    from gateway.sinks.message import Message
     from tests.rigs import LinkRig
 
 BASE: Final = "gw"

@@ -1,6 +1,6 @@
 """Fuzzing the frame parser, master and slave side, against an oracle written from the manuals.
 
-:mod:`gateway.frames` leans on pymodbus's decoders, which swallow their own
+:mod:`gateway.wire.frames` leans on pymodbus's decoders, which swallow their own
 ``IndexError``/``struct.error`` on garbage (a log line and ``None``) and ignore bytes after
 what they decode. These tests throw random bytes and mutated valid frames
 (bit flips, truncation, extension, inserted and deleted bytes, another device, another
@@ -24,7 +24,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway import frames
 from gateway.errors import (
     CrcError,
     DeviceExceptionError,
@@ -33,6 +32,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
+from gateway.wire import frames
 from tests.fuzzing import FUNCTIONS, fuzz, good_answers, mutations, requests
 
 MASTER_ERRORS: Final = (CrcError, UnexpectedDeviceError, MalformedFrameError, DeviceExceptionError)

@@ -1,4 +1,4 @@
-"""Fuzzing :class:`gateway.bus.Line` on a real pseudo-terminal: any answer, any timing.
+"""Fuzzing :class:`gateway.line.port.Line` on a real pseudo-terminal: any answer, any timing.
 
 The device end of the pty plays a sensor that answers each request with a random script:
 garbage, the right answer, a mutated one, another device's answer, an exception, a late
@@ -31,8 +31,6 @@ from typing import TYPE_CHECKING, Final
 from hypothesis import given
 from hypothesis import strategies as st
 
-from gateway import frames
-from gateway.bus import ErrorKind, Exchange, Line, LineStats
 from gateway.errors import (
     BusTimeoutError,
     CrcError,
@@ -41,7 +39,9 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
-from gateway.timing import LineFormat
+from gateway.line.port import ErrorKind, Exchange, Line, LineStats
+from gateway.wire import frames
+from gateway.wire.timing import LineFormat
 from tests.fuzzing import fuzz, good_answers, mutations, requests
 
 if TYPE_CHECKING:

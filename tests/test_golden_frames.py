@@ -15,9 +15,9 @@ from typing import Any
 import pytest
 import yaml
 
-from gateway import codec, frames
 from gateway.errors import DeviceExceptionError
 from gateway.profiles import Point, Profile, get_profile
+from gateway.wire import codec, frames
 
 CASES: list[dict[str, Any]] = yaml.safe_load(
     (Path(__file__).parent / "golden" / "frames.yaml").read_text(encoding="utf-8")

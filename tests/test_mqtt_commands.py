@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING, Any
 import aiomqtt
 import pytest
 
-from gateway.sinks.message import Message
-from gateway.sinks.prometheus import GatewayCollector
-from gateway.store import MessageStore
+from gateway.publish.message import Message
+from gateway.publish.prometheus import GatewayCollector
+from gateway.publish.store import MessageStore
 from tests.mqtt_broker import recording
 from tests.sinks.test_mqtt import gateway, simulated
 

@@ -12,10 +12,9 @@ from typing import TYPE_CHECKING
 
 import pytest
 
-from gateway import codec
-from gateway.errors import CommandRejectedError, OperationTimeoutError
-from gateway.flash import FlashLedger, FlashPolicy
-from gateway.operations import (
+from gateway.config import FlashPolicy
+from gateway.control.flash import FlashLedger
+from gateway.control.operations import (
     OPERATION_NAMES,
     calibration_log,
     measure,
@@ -23,15 +22,17 @@ from gateway.operations import (
     run_operation,
     set_clock,
 )
+from gateway.control.writes import SafeWriter
+from gateway.errors import CommandRejectedError, OperationTimeoutError
 from gateway.profiles import builtin_profiles, get_profile
 from gateway.simulator.behaviour import SINGLE_MEASUREMENT_S
-from gateway.writes import SafeWriter
+from gateway.wire import codec
 from tests.rigs import PLANT, link_rig, link_target, target
 
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.scheduler import DeviceTarget
+    from gateway.line.devices import DeviceTarget
     from gateway.simulator.device import SimulatedDevice
     from tests.rigs import LinkRig
 

@@ -11,9 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway.codec import DataType, Format, WordOrder
 from gateway.errors import ConfigError
-from gateway.plan import TIE_S, CostModel, Planner, ReadBlock, plan_reads
+from gateway.line.plan import TIE_S, CostModel, Planner, ReadBlock, plan_reads
 from gateway.profiles import (
     Access,
     Limits,
@@ -25,7 +24,8 @@ from gateway.profiles import (
     builtin_profiles,
     get_profile,
 )
-from gateway.timing import LineFormat
+from gateway.wire.codec import DataType, Format, WordOrder
+from gateway.wire.timing import LineFormat
 
 LINE_9600_8E1 = LineFormat(baudrate=9600, parity="E", stopbits=1)
 CHARACTER_S = 11 / 9600

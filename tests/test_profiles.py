@@ -15,8 +15,6 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway import codec
-from gateway.codec import DataType, EnumValue
 from gateway.errors import ConfigError, ProfileError
 from gateway.profiles import (
     Access,
@@ -29,6 +27,8 @@ from gateway.profiles import (
     load_profiles,
 )
 from gateway.profiles.loader import DATA_DIR
+from gateway.wire import codec
+from gateway.wire.codec import DataType, EnumValue
 
 if TYPE_CHECKING:
     from pathlib import Path

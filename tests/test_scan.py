@@ -17,10 +17,10 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.bus import Line
 from gateway.config import check_config
 from gateway.errors import BusClosedError, ConfigError
-from gateway.scan import (
+from gateway.line.port import Line
+from gateway.line.scan import (
     FoundDevice,
     ScanReport,
     parse_addresses,
@@ -30,7 +30,7 @@ from gateway.scan import (
     supported_formats,
 )
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.timing import LineFormat
+from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
 
 if TYPE_CHECKING:

@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway import codec
-from gateway.link import DeviceLink
+from gateway.control.link import DeviceLink
+from gateway.line.devices import DeviceTarget
+from gateway.line.samples import Quality
 from gateway.profiles import PollGroup, get_profile
-from gateway.samples import Quality
-from gateway.scheduler import DeviceTarget
-from gateway.timing import LineFormat
+from gateway.wire import codec
+from gateway.wire.timing import LineFormat
 from tests.rigs import PLANT, ListSink, plant_targets, rig, target
 
 if TYPE_CHECKING:

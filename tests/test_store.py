@@ -7,8 +7,8 @@ from typing import TYPE_CHECKING
 import pytest
 
 from gateway.errors import PublishError
-from gateway.sinks.message import Message
-from gateway.store import MessageStore
+from gateway.publish.message import Message
+from gateway.publish.store import MessageStore
 
 if TYPE_CHECKING:
     from pathlib import Path

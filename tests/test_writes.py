@@ -12,15 +12,16 @@ from typing import TYPE_CHECKING
 
 import pytest
 
+from gateway.config import FlashPolicy
+from gateway.control.flash import FlashLedger
+from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError, DeviceExceptionError
-from gateway.flash import FlashLedger, FlashPolicy
-from gateway.writes import SafeWriter
 from tests.rigs import PLANT, link_rig, link_target
 
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.scheduler import DeviceTarget
+    from gateway.line.devices import DeviceTarget
     from tests.rigs import LinkRig
 
 DAY = date(2026, 11, 22)

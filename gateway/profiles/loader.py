@@ -19,15 +19,6 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from gateway.codec import (
-    BITFIELD_TYPES,
-    ENUM_TYPES,
-    NUMERIC_TYPES,
-    REGISTER_COUNT,
-    DataType,
-    Format,
-    WordOrder,
-)
 from gateway.errors import ConfigError, ProfileError
 from gateway.profiles.model import (
     Access,
@@ -41,6 +32,15 @@ from gateway.profiles.model import (
     Storage,
     Timing,
     WaitRule,
+)
+from gateway.wire.codec import (
+    BITFIELD_TYPES,
+    ENUM_TYPES,
+    NUMERIC_TYPES,
+    REGISTER_COUNT,
+    DataType,
+    Format,
+    WordOrder,
 )
 
 DATA_DIR = Path(__file__).parent / "data"

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
-from gateway.codec import BITFIELD_TYPES, ENUM_TYPES, DataType, Format, WordOrder
 from gateway.errors import ConfigError
+from gateway.wire.codec import BITFIELD_TYPES, ENUM_TYPES, DataType, Format, WordOrder
 
 if TYPE_CHECKING:
     from collections.abc import Mapping

@@ -11,33 +11,17 @@ import math
 import random
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
-from gateway import codec
+from gateway.wire import codec
 
 if TYPE_CHECKING:
     from gateway.profiles import Point
-    from gateway.simulator.device import SimulatedDevice
+    from gateway.simulator.device import Behaviour, SimulatedDevice
 
 STANDARD_PRESSURE_HPA = 1013.25
 OXYGEN_FRACTION = 0.2095  # of dry air
 SINGLE_MEASUREMENT_S = 0.3  # H10/H20: not documented; long enough to observe bit 1
-
-
-class Behaviour(Protocol):
-    """The family-specific part of a simulated sensor."""
-
-    def start(self, device: SimulatedDevice, now: float) -> None:
-        """Fill nameplate, configuration and first values."""
-
-    def tick(self, device: SimulatedDevice, now: float) -> None:
-        """Move values up to ``now``."""
-
-    def filter_write(self, device: SimulatedDevice, points: list[Point]) -> list[Point]:
-        """The points of an accepted write that the sensor really stores."""
-
-    def on_write(self, device: SimulatedDevice, points: list[Point], now: float) -> None:
-        """React to stored points (triggers, calibration)."""
 
 
 def saturation_mg_per_l(temperature_c: float, salinity: float = 0.0) -> float:

@@ -14,13 +14,13 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Final
 
-from gateway import frames
-from gateway.codec import DataType
 from gateway.errors import FrameError
 from gateway.simulator.device import SimulatedDevice, SlaveExceptionError
+from gateway.wire import frames
+from gateway.wire.codec import DataType
 
 if TYPE_CHECKING:
-    from gateway.timing import LineFormat
+    from gateway.wire.timing import LineFormat
 
 # A request that starts this soon after a late answer or noise began had been sent before
 # the master could hear it: a collision, not a gap the master failed to keep.

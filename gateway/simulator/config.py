@@ -7,13 +7,13 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from gateway.codec import Fault
 from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import get_profile
 from gateway.simulator.behaviour import behaviour_for
 from gateway.simulator.bus import FaultPlan, SimulatedBus
 from gateway.simulator.device import SimulatedDevice
-from gateway.timing import LineFormat
+from gateway.wire.codec import Fault
+from gateway.wire.timing import LineFormat
 
 if TYPE_CHECKING:
     from pathlib import Path

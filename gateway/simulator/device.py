@@ -10,18 +10,17 @@ from __future__ import annotations
 import logging
 import struct
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Final, Protocol
 
-from gateway import codec, frames
-from gateway.codec import DataType, Decoded, WordOrder
 from gateway.errors import CodecError
+from gateway.wire import codec, frames
+from gateway.wire.codec import DataType, Decoded, WordOrder
 
 if TYPE_CHECKING:
     from collections.abc import Iterator, Mapping, Sequence
 
     from gateway.profiles import Point, Profile
-    from gateway.simulator.behaviour import Behaviour
-    from gateway.timing import LineFormat
+    from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -59,6 +58,22 @@ class WriteRecord:
     values: tuple[int, ...]
     points: tuple[str, ...]
     exception: int | None = None
+
+
+class Behaviour(Protocol):
+    """The family-specific part of a simulated sensor (:mod:`gateway.simulator.behaviour`)."""
+
+    def start(self, device: SimulatedDevice, now: float) -> None:
+        """Fill nameplate, configuration and first values."""
+
+    def tick(self, device: SimulatedDevice, now: float) -> None:
+        """Move values up to ``now``."""
+
+    def filter_write(self, device: SimulatedDevice, points: list[Point]) -> list[Point]:
+        """The points of an accepted write that the sensor really stores."""
+
+    def on_write(self, device: SimulatedDevice, points: list[Point], now: float) -> None:
+        """React to stored points (triggers, calibration)."""
 
 
 @dataclass(slots=True)

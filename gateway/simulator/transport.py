@@ -18,8 +18,8 @@ import tty
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
-from gateway import frames
 from gateway.errors import GatewayError
+from gateway.wire import frames
 
 if TYPE_CHECKING:
     from collections.abc import Callable

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from gateway import frames
 from gateway.simulator import SimulatedBus, build_bus, parse_settings
+from gateway.wire import frames
 
 if TYPE_CHECKING:
     from gateway.simulator.bus import Reply

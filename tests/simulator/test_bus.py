@@ -6,12 +6,12 @@ from datetime import datetime, timedelta, timezone
 
 import pytest
 
-from gateway import codec, frames
-from gateway.codec import Fault, WordOrder
 from gateway.errors import ConfigError, DeviceExceptionError
 from gateway.profiles import get_profile
 from gateway.simulator import SimulatedDevice
 from gateway.simulator.bus import Reply
+from gateway.wire import codec, frames
+from gateway.wire.codec import Fault, WordOrder
 from tests.simulator.helpers import ClockedMaster, make_bus
 
 S10 = {"profile": "jumo-digiline-odo-s10", "address": 1, "animate": False}

@@ -6,18 +6,18 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.codec import EnumValue
-from gateway.link import open_link
+from gateway.control.link import open_link
+from gateway.line.devices import DeviceTarget
 from gateway.profiles import get_profile
-from gateway.scheduler import DeviceTarget
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.timing import LineFormat
+from gateway.wire.codec import EnumValue
+from gateway.wire.timing import LineFormat
 from tests.simulator.helpers import make_bus
 
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.codec import Decoded
+    from gateway.wire.codec import Decoded
 
 # Every family with line-setting registers, at addresses other than their factory ones
 # (Reiss M0c 10, M3c 20: reiss-m0c-m3c 2.3), so the address register cannot pass by chance.

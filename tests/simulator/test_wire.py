@@ -17,8 +17,8 @@ import pytest
 import serial
 from pymodbus.client import AsyncModbusSerialClient
 
-from gateway import frames
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from gateway.wire import frames
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator

@@ -10,13 +10,13 @@ import pytest
 
 from gateway.errors import ConfigError
 from gateway.profiles import PollGroup, Profile, get_profile
-from gateway.sinks.discovery import (
+from gateway.publish.discovery import (
     discovery_messages,
     entity_name,
     is_problem,
     removal_messages,
 )
-from gateway.sinks.message import Message
+from gateway.publish.message import Message
 
 BASE = "gateway"
 GATEWAY_ID = "gateway-pi"

@@ -18,8 +18,8 @@ import pytest
 from gateway.app import run
 from gateway.config import parse_config
 from gateway.errors import PublishError
+from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.state import GatewayState
 from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.rigs import ListSink
 
@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
     from pathlib import Path
 
-    from gateway.samples import Sample
+    from gateway.line.samples import Sample
 
 SENSORS = [
     {

@@ -28,19 +28,20 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import run
-from gateway.bus import LineStats
-from gateway.codec import BitfieldValue, EnumValue
 from gateway.config import parse_config
 from gateway.errors import PublishError
-from gateway.samples import Quality, Sample
+from gateway.line.health import DeviceHealth
+from gateway.line.port import LineStats
+from gateway.line.samples import Quality, Sample
+from gateway.publish.prometheus import MetricsServer, value_naming
+from gateway.publish.state import DeviceInfo, GatewayState, MqttStatus
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.sinks.prometheus import MetricsServer, value_naming
-from gateway.state import DeviceHealth, DeviceInfo, GatewayState, MqttStatus
+from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator
 
-    from gateway.codec import Value
+    from gateway.wire.codec import Value
 
 S10 = "jumo-digiline-odo-s10"
 H10 = "jumo-digiline-odo-h10"

@@ -1,0 +1,1 @@
+"""Writes the other way: commands, the flash guard, feeds, operations and calibrations."""

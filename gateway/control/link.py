@@ -1,0 +1,118 @@
+"""One device on a line, as commands, feeds, operations and calibrations see it.
+
+A :class:`DeviceLink` reads and writes points by name through the line's
+:class:`~gateway.line.worker.BusWorker`, so every timing rule (gaps, post-write waits,
+late-answer windows) still holds: while the gateway polls, its reads and writes queue
+ahead of due polls; from the command line, with no poll running, they run at once.
+
+Values are checked and encoded by :func:`gateway.control.commands.validate_write` before anything
+is queued, in the word order the device uses now (its format register is read first if
+need be), so a rejected value never reaches the bus.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import TYPE_CHECKING
+
+from gateway.control.commands import validate_write
+from gateway.errors import BusError, CommandRejectedError
+from gateway.line.port import Line
+from gateway.line.samples import Quality
+from gateway.line.worker import BusWorker
+from gateway.wire.codec import DataType
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator
+
+    from gateway.line.devices import DeviceTarget
+    from gateway.profiles import Profile
+    from gateway.wire import codec
+    from gateway.wire.timing import LineFormat
+
+
+class DeviceLink:
+    """Reads and writes of one device, by point name, through its line's worker."""
+
+    def __init__(self, worker: BusWorker, device: str) -> None:
+        """Link to ``device`` on ``worker``'s line (a :class:`GatewayError` if it is not there)."""
+        self.worker = worker
+        self.device = device
+        self.profile: Profile = worker.device_profile(device)
+        self.address = worker.device_address(device)
+
+    @property
+    def bus(self) -> str:
+        """The name of the line the device is on."""
+        return self.worker.name
+
+    async def float_order(self) -> codec.WordOrder:
+        """The device's float word order, reading its format register first if not yet known."""
+        if self.worker.needs_float_order(self.device):
+            selector = self.profile.float_order_register
+            assert selector is not None  # noqa: S101 - needs_float_order says there is one
+            await self.read(selector.point)
+        return self.worker.float_order(self.device)
+
+    async def read(self, *points: str) -> dict[str, codec.Decoded]:
+        """Read points now; a :class:`BusError` naming the points that could not be read.
+
+        A sensor fault (``2.0e37``...) is a value here (:class:`codec.Fault`), not an error.
+        """
+        samples = await self.worker.read_points(self.device, points)
+        failed = [s for s in samples if s.quality is Quality.COMMS_ERROR]
+        if failed:
+            what = ", ".join(f"{s.point} ({s.fault})" for s in failed)
+            raise BusError(f"{self.device}: could not read {what}")
+        if len(samples) != len(points):
+            missing = sorted(set(points) - {s.point for s in samples})
+            raise BusError(f"{self.device}: could not read {', '.join(missing)}")
+        # A fault sample carries the fault's name; the decoded value keeps it with its raw.
+        return {s.point: self.worker.last_value(self.device, s.point) for s in samples}
+
+    async def read_value(self, point: str) -> codec.Decoded:
+        """Read one point now."""
+        return (await self.read(point))[point]
+
+    async def encode(self, point: str, value: object) -> tuple[int, ...]:
+        """The registers that write ``value`` to ``point``, or a :class:`CommandRejectedError`.
+
+        The value is checked before anything is read: bad input never reaches the bus, not
+        even as the read of the float format register a float needs.
+        """
+        known = self.worker.float_order(self.device)
+        registers = validate_write(self.profile, point, value, float_order=known)
+        if self.profile.point(point).format.dtype is DataType.FLOAT32:
+            order = await self.float_order()
+            if order is not known:
+                registers = validate_write(self.profile, point, value, float_order=order)
+        return registers
+
+    async def write(self, point: str, value: object) -> tuple[int, ...]:
+        """Check, encode and write a value (06 or 16), keeping the post-write wait.
+
+        Returns the registers written. Flash protection is the caller's:
+        :class:`gateway.control.writes.SafeWriter` for commands and feeds.
+        """
+        registers = await self.encode(point, value)
+        await self.write_registers(point, registers)
+        return registers
+
+    async def write_registers(self, point: str, registers: tuple[int, ...]) -> None:
+        """Write registers already checked and encoded (see :meth:`encode`)."""
+        if not self.profile.point(point).writable:
+            raise CommandRejectedError("the point is read-only", point=point)
+        await self.worker.write_registers(self.device, point, registers)
+
+
+@contextlib.asynccontextmanager
+async def open_link(
+    port: str, line_format: LineFormat, target: DeviceTarget
+) -> AsyncIterator[DeviceLink]:
+    """Open the port for one device (the command line: no polling) and close it after."""
+    line = Line(port=port, line=line_format)
+    await line.open()
+    try:
+        yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)
+    finally:
+        await line.close()

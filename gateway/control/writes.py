@@ -1,0 +1,178 @@
+"""Writes that are safe: checked, flash-guarded, written with the rules, and read back.
+
+:class:`SafeWriter` is the one path by which commands (MQTT ``…/set``, ``gateway write``)
+and feeds change a device's registers:
+
+1. the value is checked and encoded for the point (:func:`gateway.control.commands.validate_write`);
+   a bit field given as an object of bit names changes those bits only: the word is read
+   and the other bits, named or not, are written back as the device holds them;
+2. a flash-backed point is read first and judged by :func:`gateway.control.flash.check_flash_write`
+   (allowed by name, unchanged values skipped, the daily budget), and an accepted flash
+   write is counted in the persistent ledger *before* it is sent;
+3. the registers go out with function 06 or 16, and the post-write wait is kept;
+4. the point is read back, so the caller sees what the device now holds.
+
+Anything refused in steps 1 and 2 raises :class:`CommandRejectedError` and nothing is sent.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from gateway.config import FlashPolicy
+from gateway.control.flash import Action, check_flash_write, utc_today
+from gateway.errors import BusError, CommandRejectedError, EncodeError
+from gateway.profiles.model import Storage
+from gateway.wire import codec
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from datetime import date
+
+    from gateway.control.flash import FlashLedger
+    from gateway.control.link import DeviceLink
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class WriteOutcome:
+    """What became of an accepted write.
+
+    ``written`` is false when a flash-backed point already held the value; ``value`` is
+    what the device holds afterwards (read back), ``None`` if the read-back failed, in
+    which case ``note`` says why.
+    """
+
+    device: str
+    point: str
+    written: bool
+    value: codec.Decoded
+    registers: tuple[int, ...]
+    flash: bool
+    note: str = ""
+
+
+class SafeWriter:
+    """The write path of one device, with its flash policy and the shared ledger."""
+
+    def __init__(
+        self,
+        link: DeviceLink,
+        *,
+        policy: FlashPolicy,
+        ledger: FlashLedger,
+        today: Callable[[], date] = utc_today,
+    ) -> None:
+        """Write to ``link``'s device under ``policy``, counting flash writes in ``ledger``."""
+        self.link = link
+        self.policy = policy
+        self.ledger = ledger
+        self._today = today
+
+    @property
+    def device(self) -> str:
+        """The device written to."""
+        return self.link.device
+
+    async def set(
+        self, point: str, value: object, *, explicit: bool = False, read_back: bool = True
+    ) -> WriteOutcome:
+        """Write ``value`` to ``point`` if every rule allows it; see the module docstring.
+
+        ``explicit`` is for an operator's deliberate step (a calibration, setting the
+        clock): a flash-backed point needs no place in the allow-list and is written even
+        if unchanged (writing the tecLine date stamp again is what activates a
+        calibration), but the daily budget still holds and the write is still counted.
+        ``read_back=False`` saves the read-back (feeds, which write often).
+        """
+        link = self.link
+        registers = await link.encode(point, value)  # refuses bad input before any read
+        target = link.profile.point(point)
+        if isinstance(value, Mapping) and target.format.dtype in codec.BITFIELD_TYPES:
+            registers = await link.encode(point, await self._merged_bits(point, value))
+        flash = target.storage is Storage.FLASH
+        current: codec.Decoded = None
+        held: tuple[int, ...] | None = None
+        policy = self.policy
+        if flash and explicit:
+            policy = FlashPolicy(allowed=policy.allowed | {point}, daily_budget=policy.daily_budget)
+        elif flash and point in policy.allowed:
+            current, held = await self._current(point)
+        decision = check_flash_write(
+            link.profile,
+            point,
+            link.device,
+            policy=policy,
+            ledger=self.ledger,
+            current=held,
+            registers=registers,
+            today=self._today(),
+        )
+        if decision.action is Action.REFUSE:
+            raise CommandRejectedError(decision.reason, point=point)
+        if decision.action is Action.SKIP:
+            return WriteOutcome(
+                device=link.device,
+                point=point,
+                written=False,
+                value=current,
+                registers=registers,
+                flash=flash,
+                note=decision.reason,
+            )
+        if decision.record:
+            self.ledger.record(link.device, point, self._today())
+        await link.write_registers(point, registers)
+        note = ""
+        after: codec.Decoded = None
+        if read_back:
+            try:
+                after = await link.read_value(point)
+            except BusError as exc:
+                note = f"written; the read-back failed: {exc}"
+        return WriteOutcome(
+            device=link.device,
+            point=point,
+            written=True,
+            value=after,
+            registers=registers,
+            flash=flash,
+            note=note,
+        )
+
+    async def _merged_bits(self, point: str, bits: Mapping[object, object]) -> int:
+        """The word the device holds with the named ``bits`` set or cleared.
+
+        A plant system that sends ``{"salinity_from_ram": true}`` means that bit, not "clear
+        every other": the rest of the word (the bits the profile does not name included,
+        e.g. the S10 control byte's bits 4-7) is kept as read.
+        """
+        try:
+            held = await self.link.read_value(point)
+        except BusError as exc:
+            raise CommandRejectedError(
+                f"could not read the bits to keep, so nothing was written: {exc}", point=point
+            ) from exc
+        if not isinstance(held, codec.BitfieldValue):
+            raise CommandRejectedError(
+                f"the bits to keep read as {held!r}, so nothing was written", point=point
+            )
+        return codec.with_bits(self.link.profile.point(point).format, held.raw, bits)
+
+    async def _current(self, point: str) -> tuple[codec.Decoded, tuple[int, ...] | None]:
+        """What a flash-backed point holds, decoded and as registers to compare with."""
+        try:
+            current = await self.link.read_value(point)
+        except BusError as exc:
+            raise CommandRejectedError(
+                f"could not read the current value before a flash write, so nothing was "
+                f"written: {exc}",
+                point=point,
+            ) from exc
+        fmt = self.link.profile.point(point).format
+        try:
+            held = codec.encode(fmt, current, float_order=await self.link.float_order())
+        except EncodeError:
+            held = None  # a fault value or an unknown code: compare nothing, write
+        return current, held

@@ -1,0 +1,107 @@
+"""The devices of one line: each as configured (a target) and as its worker knows it (a state)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Final
+
+from gateway.profiles import PollGroup
+from gateway.wire import codec
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from gateway.profiles import Point, Profile
+
+PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
+# Polled in the time process values leave free (the schedule's "slow" class).
+SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceTarget:
+    """One device to poll, with everything resolved from the config and its profile."""
+
+    name: str
+    address: int
+    profile: Profile
+    intervals: Mapping[str, float | None]  # point -> seconds; None: identity, read once
+    float_order: codec.WordOrder | None = None  # explicit override of the profile/register
+    timeout_s: float | None = None  # None: computed from the profile's timing
+    min_response_time_s: float = 0.0
+    extra_gap_s: float = 0.0
+    retries: int = 2
+    offline_after: int = 3
+    probe_max_s: float = PROBE_MAX_S
+
+    # Points of the diagnostics and configuration groups, polled in free line time; resolved
+    # once here, not looked up on every scheduling step.
+    slow_points: frozenset[str] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        """Resolve the slow points from the profile."""
+        slow = frozenset(n for n in self.intervals if self.profile.point(n).group in SLOW_GROUPS)
+        object.__setattr__(self, "slow_points", slow)
+
+    @property
+    def poll_interval_s(self) -> float:
+        """The shortest interval of its points: the pace of its probes when offline."""
+        return min((i for i in self.intervals.values() if i), default=1.0)
+
+
+@dataclass(slots=True)
+class DeviceState:
+    """What the worker knows about a device while running.
+
+    The schedule keeps the deadlines, the transactions the waits and retries, the
+    availability the failures and probes; the values are the last decoded.
+    """
+
+    target: DeviceTarget
+    next_due: dict[str, float] = field(default_factory=dict)
+    identity_pending: set[str] = field(default_factory=set)
+    # The earliest deadline of each class (slow: diagnostics), cleared whenever a deadline,
+    # the pending identity or the unreadable points change: asked for on every scheduling
+    # step of every device, it must not walk all points each time.
+    deadline_cache: dict[bool, float] = field(default_factory=dict)
+    values: dict[str, codec.Decoded] = field(default_factory=dict)
+    attempts: Counter[str] = field(default_factory=Counter)
+    online: bool | None = None  # None until the first answer or the first offline verdict
+    failures: int = 0
+    probe_at: float = 0.0
+    backoff_s: float = 0.0
+    not_before: float = 0.0
+    split_before: set[int] = field(default_factory=set)
+    unreadable: set[str] = field(default_factory=set)
+    undecodable: set[str] = field(default_factory=set)  # points whose registers did not decode
+    missed_deadlines: int = 0
+    fresh: set[str] = field(default_factory=set)  # not polled since (re)start: no lag yet
+    lag_s: float = 0.0
+    lag_reported: bool = False
+
+    @property
+    def profile(self) -> Profile:
+        """The device's register map."""
+        return self.target.profile
+
+    @property
+    def float_order(self) -> codec.WordOrder:
+        """Configured order, else the one the device's format register reports, else CDAB."""
+        if self.target.float_order is not None:
+            return self.target.float_order
+        selector = self.profile.float_order_register
+        if selector is not None:
+            value = self.values.get(selector.point)
+            if isinstance(value, codec.EnumValue) and value.code in selector.orders:
+                return selector.orders[value.code]
+        return self.profile.float_order
+
+    def unit_of(self, point: Point) -> str | None:
+        """The point's unit, looked up in the unit register it names if need be."""
+        if point.unit_from is None:
+            return point.unit
+        selected = self.values.get(point.unit_from)
+        if isinstance(selected, codec.EnumValue):
+            return self.profile.point(point.unit_from).enum_units.get(selected.code)
+        return None

@@ -1,0 +1,129 @@
+"""Device health on one line: which devices answer, the offline verdict and the probes.
+
+A device is online from its first answer (an exception is an answer too) and goes offline
+after ``offline_after`` failed transactions in a row; an offline device is probed on a
+capped, jittered backoff and polled in full again once it answers. Every change is an event
+to the sinks. :class:`DeviceHealth` is what the metrics and ``/healthz`` read of it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+if TYPE_CHECKING:
+    import random
+    from collections.abc import Mapping
+
+    from gateway.line.devices import DeviceState
+    from gateway.line.schedule import Schedule
+
+_LOGGER = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class DeviceHealth:
+    """A device as its bus task sees it: availability, poll lag, missed deadlines."""
+
+    bus: str
+    device: str
+    address: int
+    online: bool | None
+    failures_in_a_row: int
+    lag_s: float
+    missed_deadlines: int
+    unreadable_points: int
+
+
+class Announce(Protocol):
+    """Tells the sinks that a device came online or went offline, and why."""
+
+    async def __call__(self, state: DeviceState, *, online: bool, reason: str) -> None:
+        """Send the device's event to every sink."""
+
+
+class Availability:
+    """The online/offline verdicts of one line's devices, and the pace of their probes."""
+
+    def __init__(
+        self,
+        *,
+        bus: str,
+        devices: Mapping[str, DeviceState],
+        schedule: Schedule,
+        announce: Announce,
+        rng: random.Random,
+    ) -> None:
+        """Judge ``devices`` of the line ``bus``; ``announce`` tells the sinks of changes."""
+        self.bus = bus
+        self.devices = devices
+        self.schedule = schedule
+        self._announce = announce
+        self._rng = rng
+
+    async def answered(self, state: DeviceState, reason: str) -> None:
+        """The device answered: online (again, polled in full if it was offline)."""
+        state.failures = 0
+        state.backoff_s = 0.0
+        if state.online is not True:
+            was_offline = state.online is False
+            state.online = True
+            if was_offline:
+                _LOGGER.info("%s/%s is back online", self.bus, state.target.name)
+                self.schedule.restart_device(state, time.monotonic())
+            await self._announce(state, online=True, reason=reason)
+
+    async def failed(self, state: DeviceState, reason: str) -> None:
+        """One more failed transaction in a row; enough of them take the device offline."""
+        state.failures += 1
+        if state.failures >= state.target.offline_after and state.online is not False:
+            state.online = False
+            state.backoff_s = state.target.poll_interval_s
+            state.probe_at = time.monotonic() + state.backoff_s
+            _LOGGER.warning(
+                "%s/%s (address %d) is offline after %d failed requests: %s",
+                self.bus,
+                state.target.name,
+                state.target.address,
+                state.failures,
+                reason,
+            )
+            await self._announce(state, online=False, reason=reason)
+
+    def probe_unanswered(self, state: DeviceState, now: float) -> None:
+        """An offline device did not answer its probe: the next one later, jittered."""
+        cap = max(state.target.probe_max_s, state.target.poll_interval_s)
+        state.backoff_s = min(max(state.backoff_s, state.target.poll_interval_s) * 2, cap)
+        state.probe_at = now + state.backoff_s * self._rng.uniform(0.8, 1.2)
+
+    async def probe_answered(self, state: DeviceState) -> None:
+        """An offline device answered its probe: online, and polled in full again."""
+        state.online = None
+        await self.answered(state, "answered a probe")
+        self.schedule.restart_device(state, time.monotonic())
+
+    async def all_offline(self, reason: str) -> None:
+        """The port is gone: every device is offline, to be probed as soon as it is back."""
+        for state in self.devices.values():
+            if state.online is not False:
+                state.online = False
+                state.probe_at = 0.0
+                await self._announce(state, online=False, reason=reason)
+
+    def health(self) -> list[DeviceHealth]:
+        """Each device's availability, lag and missed deadlines (read by the metrics)."""
+        return [
+            DeviceHealth(
+                bus=self.bus,
+                device=name,
+                address=state.target.address,
+                online=state.online,
+                failures_in_a_row=state.failures,
+                lag_s=state.lag_s,
+                missed_deadlines=state.missed_deadlines,
+                unreadable_points=len(state.unreadable),
+            )
+            for name, state in self.devices.items()
+        ]

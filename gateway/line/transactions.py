@@ -1,0 +1,294 @@
+"""One line's transactions: each request and its answer under every timing rule of the manuals.
+
+The response timeout is the answer's wire time plus the device's processing time (t1); the
+inter-frame gap is 3.5 characters or the device's larger minimum; after a write the device's
+post-write wait holds, answered or not. After no answer of its own a device gets nothing for
+a late-answer window, so a late answer is flushed as stale rather than taken for the next
+request's. A failed read is retried later, not at once, so one bad device never holds up the
+others; a block the device refuses with exception 02 is read point by point, and a point it
+refuses alone is no longer polled.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from typing import TYPE_CHECKING, Final
+
+from gateway.errors import (
+    BusTimeoutError,
+    CrcError,
+    DeviceExceptionError,
+    FrameError,
+    MalformedFrameError,
+    UnexpectedDeviceError,
+)
+from gateway.line.plan import CostModel, Planner
+from gateway.wire import codec, frames
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from gateway.line.decode import Decoder
+    from gateway.line.devices import DeviceState, DeviceTarget
+    from gateway.line.health import Availability
+    from gateway.line.plan import ReadBlock
+    from gateway.line.port import Line
+    from gateway.line.samples import Sample
+    from gateway.profiles import Point
+
+_LOGGER = logging.getLogger(__name__)
+
+RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
+LATE_ANSWER_WINDOW_S: Final = 1.0  # after no answer of its own, a device's late one may come
+BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
+
+_FAILURE_NAMES: Final[dict[type[Exception], str]] = {
+    BusTimeoutError: "timeout",
+    CrcError: "crc_error",
+    UnexpectedDeviceError: "wrong_address",
+    MalformedFrameError: "malformed_answer",
+}
+
+
+def default_timeout_s(target: DeviceTarget, response_bytes: int, wire_s: float) -> float:
+    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + min. response time)."""
+    if target.timeout_s is not None:
+        return target.timeout_s
+    t1 = target.profile.timing.processing_time_s + target.min_response_time_s
+    return wire_s * response_bytes + t1 + RESPONSE_MARGIN_S
+
+
+class Transactions:
+    """Reads, writes, probes and broadcasts on one line, one transaction at a time."""
+
+    def __init__(
+        self,
+        *,
+        bus: str,
+        line: Line,
+        devices: Mapping[str, DeviceState],
+        availability: Availability,
+        decoder: Decoder,
+        late_answer_window_s: float = LATE_ANSWER_WINDOW_S,
+    ) -> None:
+        """Transact on ``line`` with ``devices``; answers and failures go to ``availability``."""
+        self.bus = bus
+        self.line = line
+        self.devices = devices
+        self.availability = availability
+        self.decoder = decoder
+        self.late_answer_window_s = late_answer_window_s
+        self._planners = {
+            name: Planner(
+                state.profile,
+                CostModel.for_device(
+                    state.profile, line.format, extra_gap_s=state.target.extra_gap_s
+                ),
+            )
+            for name, state in devices.items()
+        }
+
+    def timeout_for(self, state: DeviceState, response_bytes: int) -> float:
+        """How long to wait for an answer of ``response_bytes`` from the device."""
+        return default_timeout_s(state.target, response_bytes, self.line.format.character_s)
+
+    def gap_s(self, state: DeviceState) -> float:
+        """The silence the device needs before a request."""
+        return self.line.format.frame_gap_s(
+            max(state.profile.timing.min_gap_s, state.target.extra_gap_s)
+        )
+
+    async def transact(
+        self, state: DeviceState, request: frames.Request, response_bytes: int
+    ) -> frames.Response:
+        """One transaction with the device; after no answer of its own, its late-answer window.
+
+        A timeout, only noise, or only another device's frame: the device's own answer has
+        not come and may still come late. Nothing more goes to the device for the window, so
+        that answer is flushed as stale instead of taken for the next request's (the soak
+        found noise, then the answer 0.3 s late, taken as the immediate retry's answer, and
+        the next request sent over the retry's real answer). A corrupted answer of its own
+        (CRC) is the device's answer: nothing more is to come.
+        """
+        try:
+            exchange = await self.line.transact(
+                request,
+                timeout_s=self.timeout_for(state, response_bytes),
+                gap_s=self.gap_s(state),
+                not_before=state.not_before,
+                exceptions=state.profile.exceptions,
+                byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
+            )
+        except (BusTimeoutError, MalformedFrameError, UnexpectedDeviceError):
+            window_end = time.monotonic() + self.late_answer_window_s
+            state.not_before = max(state.not_before, window_end)
+            raise
+        assert exchange is not None  # noqa: S101 - unicast requests always have an answer
+        return exchange.response
+
+    def plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
+        """The reads of the named points of the device."""
+        points = [state.profile.point(name) for name in names]
+        planner = self._planners[state.target.name]
+        return planner.plan(points, split_before=frozenset(state.split_before))
+
+    def plan_slow(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
+        """The reads of due diagnostics: the blocks of their whole interval classes.
+
+        Diagnostics are read a block at a time and cut short whenever values fall due, so
+        the set still due is a different one after every interruption. Planning each such
+        set anew missed the plan cache nearly every time (an H10 has some 260 slow points)
+        and took a third of the gateway's CPU at 480 devices. The plan of every slow point
+        sharing an interval with a due one has a stable key; its blocks that hold a due
+        point are the ones to read, and points that come along were read in the same phase.
+        """
+        intervals = state.target.intervals
+        wanted = {intervals.get(name) for name in names}
+        members = [  # in any order: the planner keys its cache by the set
+            name
+            for name in state.target.slow_points
+            if intervals.get(name) in wanted
+            and name not in state.unreadable
+            and name not in state.identity_pending
+        ]
+        due = set(names)
+        return tuple(
+            block
+            for block in self.plan(state, members)
+            if any(point.name in due for point in block.points)
+        )
+
+    async def read_block(self, state: DeviceState, block: ReadBlock) -> list[Sample] | None:
+        """Read one block; ``None`` when it will be retried later.
+
+        Every failed transaction counts towards taking the device offline; any answer,
+        an exception included, shows it is there.
+        """
+        request = frames.read_request(state.target.address, block.address, block.count)
+        try:
+            response = await self.transact(state, request, 5 + 2 * block.count)
+        except DeviceExceptionError as exc:
+            await self.availability.answered(state, "answered")
+            if exc.code == frames.ILLEGAL_ADDRESS and len(block.points) > 1:
+                state.split_before.update(p.address for p in block.points[1:])
+                _LOGGER.info(
+                    "%s/%s: exception 02 for %d registers at %#06x; reading its points apart",
+                    self.bus,
+                    state.target.name,
+                    block.count,
+                    block.address,
+                )
+                return None
+            if exc.code == frames.ILLEGAL_ADDRESS:
+                point = block.points[0]
+                state.unreadable.add(point.name)
+                state.deadline_cache.clear()
+                _LOGGER.warning(
+                    "%s/%s: the device does not answer %s (%#06x): exception 02; no longer polled",
+                    self.bus,
+                    state.target.name,
+                    point.name,
+                    point.address,
+                )
+            return self.decoder.failed(state, block, f"exception_{exc.code:02d}")
+        except (BusTimeoutError, FrameError) as exc:
+            await self.availability.failed(state, str(exc))
+            if state.online is not False and self._retry(state, block):
+                return None
+            _LOGGER.debug("%s/%s: %s", self.bus, state.target.name, exc)
+            return self.decoder.failed(state, block, _FAILURE_NAMES.get(type(exc), "comms_error"))
+        await self.availability.answered(state, "answered")
+        for point in block.points:
+            state.attempts.pop(point.name, None)
+        return self.decoder.decode(state, block, response.registers)
+
+    def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
+        names = [p.name for p in block.points]
+        attempts = max(state.attempts[n] for n in names) + 1
+        if attempts > state.target.retries:
+            for name in names:
+                state.attempts.pop(name, None)
+            return False
+        for name in names:
+            state.attempts[name] = attempts
+        self.line.stats.retries[state.target.address] += 1
+        return True
+
+    async def read_now(self, state: DeviceState, names: Sequence[str]) -> list[Sample]:
+        """Read the named points, waiting out the device's waits and retrying inline."""
+        samples: dict[str, Sample] = {}
+        todo = list(names)
+        while todo:
+            blocks = self.plan(state, todo)
+            todo = []
+            for block in blocks:
+                delay = state.not_before - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                outcome = await self.read_block(state, block)
+                if outcome is None:
+                    todo.extend(p.name for p in block.points)
+                else:
+                    samples.update((s.point, s) for s in outcome)
+        return [samples[name] for name in names if name in samples]
+
+    async def read_all(self, state: DeviceState) -> list[Sample]:
+        """Read every point of the device, the unit and float-format registers first."""
+        names = list(state.target.intervals)
+        profile = state.profile
+        needed = {u for n in names if (u := profile.point(n).unit_from) is not None}
+        if profile.float_order_register is not None and state.target.float_order is None:
+            needed.add(profile.float_order_register.point)
+        if needed:
+            await self.read_now(state, sorted(needed))
+        return await self.read_now(state, names)
+
+    async def probe(self, state: DeviceState, now: float) -> None:
+        """One small read of an offline device; on success it is polled in full again."""
+        names = list(state.target.intervals) or [state.profile.points[0].name]
+        block = self.plan(state, names[:1])[0]
+        request = frames.read_request(state.target.address, block.address, block.count)
+        try:
+            await self.transact(state, request, 5 + 2 * block.count)
+        except DeviceExceptionError:
+            pass  # an exception is an answer: the device is there
+        except (BusTimeoutError, FrameError):
+            self.availability.probe_unanswered(state, now)
+            return
+        await self.availability.probe_answered(state)
+
+    @staticmethod
+    def write_request(
+        state: DeviceState, point: Point, *, value: object, registers: tuple[int, ...] | None
+    ) -> frames.Request:
+        """The request that writes ``registers``, or ``value`` encoded (an :class:`EncodeError`)."""
+        if registers is None:
+            registers = codec.encode(point.format, value, float_order=state.float_order)
+        return frames.write_request(state.target.address, point.address, registers)
+
+    async def write(
+        self, state: DeviceState, point: Point, request: frames.Request
+    ) -> frames.Response:
+        """Send a write; the device's post-write wait follows, answered or not."""
+        try:
+            return await self.transact(state, request, 8)
+        finally:
+            # H10/H20 6.1.5: the wait follows every write, answered or not.
+            wait = state.profile.post_write_wait(point.address, point.count)
+            state.not_before = max(state.not_before, time.monotonic() + wait)
+
+    async def broadcast(self, request: frames.Request) -> None:
+        """Send a broadcast; then every device waits the turnaround or its post-write wait."""
+        gap = max(
+            (self.gap_s(s) for s in self.devices.values()), default=self.line.format.frame_gap_s()
+        )
+        await self.line.transact(request, timeout_s=0.0, gap_s=gap)
+        sent = time.monotonic()
+        for state in self.devices.values():
+            wait = max(
+                BROADCAST_TURNAROUND_S,
+                state.profile.post_write_wait(request.address, request.count),
+            )
+            state.not_before = max(state.not_before, sent + wait)

@@ -1,0 +1,304 @@
+"""The bus owner: one task per line that polls its devices and runs the writes queued for them.
+
+At each step the worker serves pending writes and on-demand reads first, then broadcasts,
+then the device with the earliest due values, then diagnostics in the time left, as long as
+the device is not inside a post-write wait or a late-answer quarantine. What is due is the
+:class:`~gateway.line.schedule.Schedule`'s to say; each request and its answer are the
+:class:`~gateway.line.transactions.Transactions`'; registers become samples in
+:class:`~gateway.line.decode.Decoder`; who is online is
+:class:`~gateway.line.health.Availability`'s verdict. A port that fails is reopened on a
+capped, jittered backoff.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import random
+import time
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Final
+
+from gateway.errors import BusClosedError
+from gateway.line.decode import Decoder
+from gateway.line.devices import DeviceState
+from gateway.line.health import Availability
+from gateway.line.jobs import JobQueue
+from gateway.line.samples import DeviceEvent
+from gateway.line.schedule import Schedule
+from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from gateway.line.devices import DeviceTarget
+    from gateway.line.health import DeviceHealth
+    from gateway.line.plan import ReadBlock
+    from gateway.line.port import Line
+    from gateway.line.samples import Sample, Sink
+    from gateway.profiles import Profile
+    from gateway.wire import codec, frames
+
+_LOGGER = logging.getLogger(__name__)
+
+PORT_BACKOFF_FIRST_S: Final = 0.5
+
+
+class BusWorker:
+    """Polls the devices of one line for as long as it runs; owns the line exclusively."""
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        line: Line,
+        devices: Sequence[DeviceTarget],
+        sinks: Sequence[Sink] = (),
+        late_answer_window_s: float = LATE_ANSWER_WINDOW_S,
+        reconnect_max_s: float = 30.0,
+        rng: random.Random | None = None,
+    ) -> None:
+        """Prepare the schedule; :meth:`run` does the work."""
+        self.name = name
+        self.line = line
+        self.sinks = list(sinks)
+        self.devices = {d.name: DeviceState(target=d) for d in devices}
+        self.reconnect_max_s = reconnect_max_s
+        self._wake = asyncio.Event()
+        self._rng = rng or random.Random()  # noqa: S311 - jitter, nothing secret
+        self.schedule = Schedule(self.devices)
+        self.availability = Availability(
+            bus=name,
+            devices=self.devices,
+            schedule=self.schedule,
+            announce=self._event,
+            rng=self._rng,
+        )
+        self.transactions = Transactions(
+            bus=name,
+            line=line,
+            devices=self.devices,
+            availability=self.availability,
+            decoder=Decoder(name),
+            late_answer_window_s=late_answer_window_s,
+        )
+        self.jobs = JobQueue(
+            bus=name, devices=self.devices, transactions=self.transactions, wake=self._wake
+        )
+        self._port_failures_in_a_row = 0
+        self._stopping = False
+        self._stop_requested = asyncio.Event()
+
+    # --- running ----------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Open the port, poll, and on port failure reopen with capped jittered backoff."""
+        delay = PORT_BACKOFF_FIRST_S
+        self.jobs.running = True
+        try:
+            await self._run(delay)
+        finally:
+            self.jobs.running = False
+            self.jobs.fail_all(BusClosedError(f"bus {self.name} stopped"))
+
+    async def _run(self, delay: float) -> None:
+        while not self._stopping:
+            try:
+                if not self.line.is_open:
+                    await self.line.open()
+                    if self._port_failures_in_a_row:
+                        _LOGGER.info("%s: port %s is back", self.name, self.line.port)
+                    self._port_failures_in_a_row = 0
+                    delay = PORT_BACKOFF_FIRST_S
+                    self.schedule.restart(time.monotonic())
+                await self._poll_forever()
+            except BusClosedError as exc:
+                await self.line.close()
+                self._port_failures_in_a_row += 1
+                self.line.stats.port_failures += 1
+                self.jobs.fail_all(exc)  # a command waits for no reconnection: it says why now
+                log = _LOGGER.warning if self._port_failures_in_a_row == 1 else _LOGGER.debug
+                log("%s: %s; retrying in %.1f s", self.name, exc, delay)
+                await self.availability.all_offline(str(exc))
+                await self._backoff(delay * self._rng.uniform(0.8, 1.2))
+                delay = min(delay * 2, self.reconnect_max_s)
+
+    async def _backoff(self, delay_s: float) -> None:
+        """Wait before reopening the port, or until a stop is asked for.
+
+        SIGTERM with the line gone must not wait out a backoff of up to ``reconnect_max_s``.
+        """
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(delay_s):
+                await self._stop_requested.wait()
+
+    def request_stop(self) -> None:
+        """Finish the transaction in flight, then leave :meth:`run` (SIGTERM, SIGINT)."""
+        self._stopping = True
+        self.jobs.stopping = True
+        self._stop_requested.set()
+        self._wake.set()
+
+    @property
+    def running(self) -> bool:
+        """Whether :meth:`run` owns the line now (jobs queue) or not (they run inline)."""
+        return self.jobs.running
+
+    def health(self) -> list[DeviceHealth]:
+        """Each device's availability, lag and missed deadlines (read by the metrics)."""
+        return self.availability.health()
+
+    # --- the devices ------------------------------------------------------------------
+
+    def device_profile(self, device: str) -> Profile:
+        """The register map of a device of this line."""
+        return self._state(device).profile
+
+    def device_address(self, device: str) -> int:
+        """The Modbus address of a device of this line."""
+        return self._state(device).target.address
+
+    def float_order(self, device: str) -> codec.WordOrder:
+        """The float word order a device uses now (config, its format register, or CDAB)."""
+        return self._state(device).float_order
+
+    def needs_float_order(self, device: str) -> bool:
+        """Whether the device's format register must be read before floats are encoded."""
+        state = self._state(device)
+        selector = state.profile.float_order_register
+        return (
+            selector is not None
+            and state.target.float_order is None
+            and selector.point not in state.values
+        )
+
+    def last_value(self, device: str, point: str) -> codec.Decoded:
+        """The value last decoded for a point (a :class:`codec.Fault` included), or ``None``."""
+        return self._state(device).values.get(point)
+
+    def _state(self, device: str) -> DeviceState:
+        return self.jobs.state(device)
+
+    # --- queued work ------------------------------------------------------------------
+
+    def submit_write(
+        self, device: str, point: str, value: object
+    ) -> asyncio.Future[frames.Response | None]:
+        """Queue a write; it runs before pending reads but after any wait the rules require."""
+        return self.jobs.submit_write(device, point, value)
+
+    async def write_registers(
+        self, device: str, point: str, registers: tuple[int, ...]
+    ) -> frames.Response | None:
+        """Write registers already encoded and validated to a point, then keep its wait.
+
+        While :meth:`run` polls, the write queues ahead of due reads; otherwise (the command
+        line) it runs at once, after any wait still pending. Failures raise as the bus
+        reports them (:class:`DeviceExceptionError`, :class:`BusTimeoutError`, ...).
+        """
+        return await self.jobs.write_registers(device, point, registers)
+
+    async def read_points(self, device: str, points: Sequence[str]) -> list[Sample]:
+        """Read points of a device now (a command's check or read-back), with retries.
+
+        Queued ahead of due reads while :meth:`run` polls, else run at once. A point that
+        could not be read comes back with quality ``comms_error``; the samples are not
+        published.
+        """
+        return await self.jobs.read_points(device, points)
+
+    async def read_once(self, device: str) -> list[Sample]:
+        """Read every point of a device once, with all timing rules and retries inline.
+
+        The unit and float-format registers other points depend on are read first.
+        """
+        return await self.transactions.read_all(self.devices[device])
+
+    def submit_broadcast(self, address: int, registers: Sequence[int]) -> asyncio.Future[None]:
+        """Queue a write to every device (Modbus address 0); no device answers it.
+
+        After it, every device waits the turnaround delay, or its profile's post-write
+        wait for that register if longer, before the next request.
+        """
+        return self.jobs.submit_broadcast(address, registers)
+
+    # --- polling ----------------------------------------------------------------------
+
+    async def _poll_forever(self) -> None:
+        """Writes first, then due values (earliest deadline first), then diagnostics.
+
+        Diagnostics and configuration only fill the time values leave free, one read at a
+        time, so a long logbook read never delays a measured value.
+        """
+        while not self._stopping:
+            now = time.monotonic()
+            if await self.jobs.run_next(now):
+                continue
+            if (state := self.schedule.pick(now, slow=False)) is not None:
+                if state.online is False:
+                    await self.transactions.probe(state, now)
+                else:
+                    await self._poll(state, now, slow=False)
+                continue
+            if (state := self.schedule.pick(now, slow=True)) is not None:
+                await self._poll(state, now, slow=True)
+                continue
+            await self._sleep_until_next(now)
+
+    async def _sleep_until_next(self, now: float) -> None:
+        wake_at = self.jobs.wake_at(self.schedule.wake_at(now), now)
+        self._wake.clear()
+        timeout = max(0.0, wake_at - now)
+        if math.isinf(timeout):
+            timeout = 1.0
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        if not self.line.is_open:
+            raise BusClosedError(f"{self.line.port} went away")
+
+    async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
+        names = self.schedule.due_points(state, now, slow=slow)
+        samples: list[Sample] = []
+        reads = self.transactions
+        plan = reads.plan_slow(state, names) if slow else reads.plan(state, names)
+        # Oldest deadlines first, so a read cut short by due values resumes where it left.
+        blocks = sorted(plan, key=lambda b: self._block_deadline(state, b))
+        for block in blocks:
+            if state.not_before > time.monotonic() or state.online is False:
+                break  # a failure set a quarantine or took the device offline: others first
+            if samples and slow and self.schedule.pick(time.monotonic(), slow=False) is not None:
+                break  # values are due somewhere: the rest of the diagnostics waits
+            samples.extend(await reads.read_block(state, block) or ())
+        late = self.schedule.advance(state, [s.point for s in samples], now)
+        if late is not None:
+            _LOGGER.warning(
+                "%s/%s: the line cannot keep up: %s is %.2f s late (interval %.2f s); "
+                "see the poll lag metric",
+                self.name,
+                state.target.name,
+                late.point,
+                late.lag_s,
+                late.interval_s,
+            )
+        if samples:
+            for sink in self.sinks:
+                await sink.publish(samples)
+
+    @staticmethod
+    def _block_deadline(state: DeviceState, block: ReadBlock) -> float:
+        """The earliest deadline of a block's points (identity reads come first)."""
+        return min(state.next_due.get(p.name, 0.0) for p in block.points)
+
+    async def _event(self, state: DeviceState, *, online: bool, reason: str) -> None:
+        event = DeviceEvent(
+            bus=self.name,
+            device=state.target.name,
+            profile=state.profile.id,
+            online=online,
+            reason=reason,
+            time=datetime.now(tz=UTC),
+        )
+        for sink in self.sinks:
+            await sink.device_event(event)

@@ -1,1 +1,0 @@
-"""Where samples go: the console now; MQTT and Prometheus with the publishing release."""

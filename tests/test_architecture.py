@@ -1,0 +1,187 @@
+"""The house rules: imports only go down the floors of docs/ARCHITECTURE.md, and never in a circle.
+
+Every module of ``gateway/`` is parsed (not imported), and every import it holds is counted:
+at the top, inside functions, and under ``if TYPE_CHECKING:`` alike, since an annotation
+that points up is a dependency that points up.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).parent.parent / "gateway"
+
+# The floors, low to high: a module may import its own floor and the floors it lists.
+# The simulator stands beside the gateway, on the wire and the profiles only; the command
+# line is the one floor that starts it.
+_ORDER = ("root", "wire", "profiles", "config", "line", "publish", "control", "app", "cli")
+MAY_IMPORT: dict[str, frozenset[str]] = {
+    floor: frozenset(_ORDER[:rank]) for rank, floor in enumerate(_ORDER)
+}
+MAY_IMPORT["simulator"] = frozenset({"root", "wire", "profiles"})
+MAY_IMPORT["cli"] |= {"simulator"}
+MAY_IMPORT["entry"] = frozenset({*_ORDER, "simulator"})
+
+# Module (or package) -> floor; the longest matching name wins.
+FLOOR_OF = {
+    "gateway": "root",
+    "gateway.errors": "root",
+    "gateway.wire": "wire",
+    "gateway.profiles": "profiles",
+    "gateway.config": "config",
+    "gateway.line": "line",
+    "gateway.publish": "publish",
+    "gateway.control": "control",
+    "gateway.app": "app",
+    "gateway.cli": "cli",
+    "gateway.simulator": "simulator",
+    "gateway.__main__": "entry",
+}
+
+# Only the port touches the serial line (STYLE.md: pure core, I/O at the edges).
+PORT_LIBRARIES = ("serial", "serial_asyncio_fast", "pymodbus.client")
+PORT_OWNER = "gateway.line.port"
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+
+
+MODULES = _modules()
+
+
+def _imports(module: str, source: str | None = None) -> list[tuple[int, str]]:
+    """Every ``(line, imported name)`` in the module, wherever the import statement stands.
+
+    ``from X import Y`` imports the module ``X.Y`` if there is one, else (a name of) ``X``.
+    """
+    path = MODULES[module]
+    text = path.read_text(encoding="utf-8") if source is None else source
+    tree = ast.parse(text, filename=str(path))
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.extend((node.lineno, alias.name) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:  # relative: resolved against the module's package
+                package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+                anchor = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                base = ".".join([*anchor, base] if base else anchor)
+            for alias in node.names:
+                submodule = f"{base}.{alias.name}"
+                found.append((node.lineno, submodule if submodule in MODULES else base))
+    return found
+
+
+def _gateway_imports(module: str, source: str | None = None) -> list[tuple[int, str]]:
+    return [
+        (line, name)
+        for line, name in _imports(module, source)
+        if name == "gateway" or name.startswith("gateway.")
+    ]
+
+
+def _floor(module: str) -> str | None:
+    parts = module.split(".")
+    for end in range(len(parts), 0, -1):
+        floor = FLOOR_OF.get(".".join(parts[:end]))
+        if floor is not None:
+            return floor
+    return None
+
+
+def _graph() -> dict[str, set[str]]:
+    return {module: {name for _, name in _gateway_imports(module)} for module in MODULES}
+
+
+def test_every_module_stands_on_a_floor() -> None:
+    assert [module for module in MODULES if _floor(module) is None] == []
+
+
+def test_every_import_names_a_module_of_the_package() -> None:
+    unknown = [
+        f"{module}:{line} imports {name}"
+        for module in MODULES
+        for line, name in _gateway_imports(module)
+        if name not in MODULES
+    ]
+    assert unknown == []
+
+
+def test_imports_only_go_down() -> None:
+    wrong = []
+    for module in MODULES:
+        floor = _floor(module)
+        assert floor is not None
+        for line, name in _gateway_imports(module):
+            target = _floor(name)
+            if target != floor and target not in MAY_IMPORT[floor]:
+                wrong.append(f"{module}:{line} ({floor}) imports {name} ({target})")
+    assert wrong == []
+
+
+def _reachable(graph: dict[str, set[str]], start: str) -> set[str]:
+    seen: set[str] = set()
+    pending = list(graph.get(start, ()))
+    while pending:
+        name = pending.pop()
+        if name not in seen:
+            seen.add(name)
+            pending.extend(graph.get(name, ()))
+    return seen
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Groups of modules that reach each other through their imports (a module alone if it
+    imports itself)."""
+    reach = {module: _reachable(graph, module) for module in graph}
+    groups: list[list[str]] = []
+    for module in sorted(graph):
+        if module in reach[module] and not any(module in group for group in groups):
+            groups.append(sorted(n for n in reach[module] if module in reach.get(n, ())))
+    return groups
+
+
+def test_no_import_cycles() -> None:
+    assert _cycles(_graph()) == []
+
+
+def test_the_cycle_finder_finds_cycles() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"d"}, "e": {"a"}}
+    assert sorted(_cycles(graph)) == [["a", "b", "c"], ["d"]]
+
+
+@pytest.mark.parametrize(
+    ("module", "line_imports", "expected"),
+    [
+        ("gateway.control.writes", "from gateway.wire import codec", "gateway.wire.codec"),
+        ("gateway.control.writes", "from gateway.config import FlashPolicy", "gateway.config"),
+        ("gateway.control.writes", "from . import link", "gateway.control.link"),
+        ("gateway.control.writes", "from .flash import Action", "gateway.control.flash"),
+        ("gateway.cli", "from .root import main", "gateway.cli.root"),
+        ("gateway.cli.root", "from ..line import scan", "gateway.line.scan"),
+    ],
+)
+def test_imports_are_resolved_to_modules(module: str, line_imports: str, expected: str) -> None:
+    source = f"if TYPE_CHECKING:\n    {line_imports}\n"
+    assert _gateway_imports(module, source) == [(2, expected)]
+
+
+def test_only_the_port_touches_the_serial_line() -> None:
+    touching = [
+        f"{module}:{line} imports {name}"
+        for module in MODULES
+        if module != PORT_OWNER
+        for line, name in _imports(module)
+        if any(name == lib or name.startswith(f"{lib}.") for lib in PORT_LIBRARIES)
+    ]
+    assert touching == []
