@@ -38,7 +38,7 @@ from enum import StrEnum
 from typing import TYPE_CHECKING, Final, Protocol
 
 from gateway.config import FlashPolicy
-from gateway.control.commands import function_for
+from gateway.control.commands import function_for, writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today
 from gateway.errors import CalibrationInterruptedError, CommandRejectedError, GatewayError
 from gateway.line.samples import json_value
@@ -51,6 +51,7 @@ if TYPE_CHECKING:
     from gateway.control.link import DeviceLink
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
+    from gateway.profiles.model import Point
 
 # tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than 30 %
 # of the nominal slope (value at address 0x030A), follow the maintenance instructions".
@@ -309,6 +310,7 @@ class PlannedWrite:
     function: int  # 6 or 16
     flash: bool
     why: str
+    target: Point = field(repr=False, compare=False)  # the point, resolved once by its name
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready."""
@@ -470,8 +472,8 @@ class _Flow:
 
     async def plan(self, point: str, value: object, why: str) -> PlannedWrite:
         """Encode a write (the value checked against the point) without sending it."""
-        registers = await self.link.encode(point, value)
-        target = self.profile.point(point)
+        target = writable_point(self.profile, point)  # the one lookup by name of the step
+        registers = await self.link.encode(target, value)
         planned = PlannedWrite(
             point=point,
             address=target.address,
@@ -480,6 +482,7 @@ class _Flow:
             function=function_for(registers),
             flash=target.storage is Storage.FLASH,
             why=why,
+            target=target,
         )
         self.say(StepKind.PLAN, str(planned))
         return planned
@@ -496,8 +499,7 @@ class _Flow:
             if not planned.flash:
                 continue
             decision = check_flash_write(
-                self.profile,
-                planned.point,
+                planned.target,
                 self.link.device,
                 policy=FlashPolicy(
                     allowed=policy.allowed | {planned.point}, daily_budget=policy.daily_budget
@@ -529,7 +531,7 @@ class _Flow:
         done: list[str] = []
         for planned in plans:
             try:
-                await self.writer.set(planned.point, planned.value, explicit=True, read_back=False)
+                await self.writer.set(planned.target, planned.value, explicit=True, read_back=False)
             except GatewayError as exc:
                 before = ", ".join(done) if done else "nothing"
                 raise CalibrationInterruptedError(
