@@ -9,6 +9,7 @@ from gateway.control.commands import (
     function_for,
     parse_set_payload,
     validate_write,
+    writable_point,
 )
 from gateway.errors import CommandRejectedError
 from gateway.profiles import get_profile
@@ -35,7 +36,7 @@ def tecline() -> Profile:
 
 def rejected(profile: Profile, point: str, value: object) -> CommandRejectedError:
     with pytest.raises(CommandRejectedError) as info:
-        validate_write(profile, point, value, float_order=CDAB)
+        validate_write(profile, writable_point(profile, point), value, float_order=CDAB)
     assert info.value.point == point
     return info.value
 
@@ -130,9 +131,9 @@ def test_string_too_long_names_the_capacity(s10: Profile) -> None:
 def test_bool_words(s10: Profile) -> None:
     point = "analog_output_warning_active"
     for word in ("true", "ON", "1", 1, True):
-        assert validate_write(s10, point, word, float_order=CDAB) == (1,)
+        assert validate_write(s10, writable_point(s10, point), word, float_order=CDAB) == (1,)
     for word in ("false", "Off", "0", 0, False):
-        assert validate_write(s10, point, word, float_order=CDAB) == (0,)
+        assert validate_write(s10, writable_point(s10, point), word, float_order=CDAB) == (0,)
     assert "bool needs true/false" in rejected(s10, point, "yes").reason
     assert "bool needs true/false" in rejected(s10, point, 2).reason
 
@@ -141,10 +142,15 @@ def test_bitfield_names_and_rejections(s10: Profile) -> None:
     point = "compensation_control"
     # Encoded alone, bits not named are 0; the write path keeps them as the device holds them.
     assert validate_write(
-        s10, point, {"temperature_from_ram": True, "pressure_from_ram": True}, float_order=CDAB
+        s10,
+        writable_point(s10, point),
+        {"temperature_from_ram": True, "pressure_from_ram": True},
+        float_order=CDAB,
     ) == (0b101,)
-    assert validate_write(s10, point, {"salinity_from_ram": True}, float_order=CDAB) == (0b010,)
-    assert validate_write(s10, point, "3", float_order=CDAB) == (3,)
+    assert validate_write(
+        s10, writable_point(s10, point), {"salinity_from_ram": True}, float_order=CDAB
+    ) == (0b010,)
+    assert validate_write(s10, writable_point(s10, point), "3", float_order=CDAB) == (3,)
     assert "is not a bit of this field" in rejected(s10, point, {"ph_from_ram": True}).reason
     assert "needs true or false" in rejected(s10, point, {"salinity_from_ram": 1}).reason
     assert "JSON object of bit names" in rejected(s10, point, "temperature_from_ram").reason
@@ -168,46 +174,64 @@ def test_calibration_stamp_rejections(tecline: Profile) -> None:
 
 
 def test_float_from_text_and_json_in_the_device_order(s10: Profile) -> None:
-    assert validate_write(s10, "compensation_temperature", "20.25", float_order=CDAB) == (
+    assert validate_write(
+        s10, writable_point(s10, "compensation_temperature"), "20.25", float_order=CDAB
+    ) == (
         0x0000,
         0x41A2,
     )
-    assert validate_write(s10, "compensation_temperature", 20.25, float_order=WordOrder.ABCD) == (
+    assert validate_write(
+        s10, writable_point(s10, "compensation_temperature"), 20.25, float_order=WordOrder.ABCD
+    ) == (
         0x41A2,
         0x0000,
     )
-    assert validate_write(s10, "compensation_temperature", 20, float_order=CDAB) == (
+    assert validate_write(
+        s10, writable_point(s10, "compensation_temperature"), 20, float_order=CDAB
+    ) == (
         0x0000,
         0x41A0,
     )
 
 
 def test_enum_by_label_or_code(h10: Profile) -> None:
-    assert validate_write(h10, "calibration_mode", "wet", float_order=CDAB) == (1,)
-    assert validate_write(h10, "calibration_mode", "2", float_order=CDAB) == (2,)
-    assert validate_write(h10, "calibration_mode", 0, float_order=CDAB) == (0,)
+    assert validate_write(
+        h10, writable_point(h10, "calibration_mode"), "wet", float_order=CDAB
+    ) == (1,)
+    assert validate_write(h10, writable_point(h10, "calibration_mode"), "2", float_order=CDAB) == (
+        2,
+    )
+    assert validate_write(h10, writable_point(h10, "calibration_mode"), 0, float_order=CDAB) == (0,)
 
 
 def test_string_from_the_s10_manual(s10: Profile) -> None:
-    registers = validate_write(s10, "description", "Anlage Nord", float_order=CDAB)
+    registers = validate_write(
+        s10, writable_point(s10, "description"), "Anlage Nord", float_order=CDAB
+    )
     assert registers == (0x416E, 0x6C61, 0x6765, 0x204E, 0x6F72, 0x6400)
     assert function_for(registers) == 16
 
 
 def test_clock_with_offset(s10: Profile) -> None:
-    registers = validate_write(s10, "clock", "2025-02-10T14:30:05+01:00", float_order=CDAB)
+    registers = validate_write(
+        s10, writable_point(s10, "clock"), "2025-02-10T14:30:05+01:00", float_order=CDAB
+    )
     assert registers == (2025, 2, 10, 14, 30, 5, 60)
 
 
 def test_calibration_stamp_naive_from_the_tecline_manual(tecline: Profile) -> None:
-    assert validate_write(tecline, "calibration_stamp", "2019-03-08T13:10", float_order=CDAB) == (
+    assert validate_write(
+        tecline, writable_point(tecline, "calibration_stamp"), "2019-03-08T13:10", float_order=CDAB
+    ) == (
         0x716E,
         0xB75E,
     )
 
 
 def test_integer_from_text(tecline: Profile) -> None:
-    registers = validate_write(tecline, "modbus_address", "3", float_order=CDAB)
+    registers = validate_write(
+        tecline, writable_point(tecline, "modbus_address"), "3", float_order=CDAB
+    )
     assert registers == (3,)
     assert function_for(registers) == 6
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from gateway.config import FlashPolicy
-from gateway.control.commands import validate_write
+from gateway.control.commands import validate_write, writable_point
 from gateway.control.flash import Action, Decision, FlashLedger, check_flash_write
 from gateway.errors import CommandRejectedError, ConfigError
 from gateway.profiles import get_profile
@@ -31,7 +31,10 @@ def tecline() -> Profile:
 
 def span(value: float) -> tuple[int, ...]:
     return validate_write(
-        get_profile("jumo-tecline-cl2"), "x_span", value, float_order=WordOrder.CDAB
+        get_profile("jumo-tecline-cl2"),
+        writable_point(get_profile("jumo-tecline-cl2"), "x_span"),
+        value,
+        float_order=WordOrder.CDAB,
     )
 
 
@@ -46,8 +49,7 @@ def check(
     today: date = DAY,
 ) -> Decision:
     return check_flash_write(
-        profile,
-        point,
+        writable_point(profile, point),
         "pool",
         policy=policy,
         ledger=ledger,
@@ -117,13 +119,17 @@ def test_unchanged_value_is_skipped_and_not_counted(tecline: Profile, ledger: Fl
 
 def test_unchanged_string_compares_up_to_its_terminator(ledger: FlashLedger) -> None:
     s10 = get_profile("jumo-digiline-odo-s10")
-    text = validate_write(s10, "description", "Anlage Nord", float_order=WordOrder.CDAB)
+    text = validate_write(
+        s10, writable_point(s10, "description"), "Anlage Nord", float_order=WordOrder.CDAB
+    )
     read = text + (0,) * (96 - len(text))
     decision = check(
         s10, "description", ledger=ledger, policy=ALLOW_SPAN, registers=text, current=read
     )
     assert decision.action is Action.SKIP
-    other = validate_write(s10, "description", "Anlage", float_order=WordOrder.CDAB)
+    other = validate_write(
+        s10, writable_point(s10, "description"), "Anlage", float_order=WordOrder.CDAB
+    )
     assert (
         check(
             s10, "description", ledger=ledger, policy=ALLOW_SPAN, registers=other, current=read

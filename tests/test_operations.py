@@ -166,7 +166,7 @@ async def test_h10_calibration_date_is_set_keeps_the_250_ms_wait_and_stamps_the_
         assert frames[at].answer_at is not None
         assert frames[at + 1].start - frames[at].answer_at >= H10_POST_WRITE_WAIT_S
         # The sensor copies the date into the next logbook entry (manual 6.2.4).
-        await h10.set("zero_point_calibration_trigger", 1.0, explicit=True)
+        await h10.set(h10.point("zero_point_calibration_trigger"), 1.0, explicit=True)
         log = await calibration_log(rig.links["h10"])
         assert not log.entries[0].empty
         assert log.entries[0].values["date"] == result.written

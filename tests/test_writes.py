@@ -7,6 +7,7 @@ on timing, its referee.
 from __future__ import annotations
 
 import struct
+import sys
 from datetime import date
 from typing import TYPE_CHECKING
 
@@ -14,14 +15,16 @@ import pytest
 
 from gateway.config import FlashPolicy
 from gateway.control.flash import FlashLedger
-from gateway.control.writes import SafeWriter
+from gateway.control.writes import SafeWriter, WriteOutcome
 from gateway.errors import CommandRejectedError, DeviceExceptionError
+from gateway.profiles.model import Point, Profile
 from tests.rigs import PLANT, link_rig, link_target
 
 if TYPE_CHECKING:
     from pathlib import Path
 
     from gateway.line.devices import DeviceTarget
+    from gateway.wire import codec
     from tests.rigs import LinkRig
 
 DAY = date(2026, 11, 22)
@@ -48,6 +51,11 @@ def writer(
     return SafeWriter(rig.links[device], policy=policy, ledger=ledger, today=lambda: DAY)
 
 
+async def set_named(writer: SafeWriter, name: str, value: object, **options: bool) -> WriteOutcome:
+    """A write as a command enters it: the point looked up by name once, then written."""
+    return await writer.set(writer.point(name), value, **options)
+
+
 @pytest.fixture
 def ledger(tmp_path: Path) -> FlashLedger:
     return FlashLedger(tmp_path / "state" / "flash-writes.sqlite")
@@ -58,7 +66,7 @@ async def test_ram_write_goes_out_as_function_16_in_cdab_and_is_read_back(
     tmp_path: Path, ledger: FlashLedger, *, poll: bool
 ) -> None:
     async with link_rig(tmp_path, PLANT, targets(), poll=poll) as rig:
-        done = await writer(rig, "s10", ledger).set("compensation_temperature", "21.5")
+        done = await set_named(writer(rig, "s10", ledger), "compensation_temperature", "21.5")
         assert done.written
         assert done.value == 21.5
         assert not done.flash
@@ -75,7 +83,7 @@ async def test_float_word_order_follows_the_devices_format_register(
 ) -> None:
     devices = [{"profile": "jumo-digiline-odo-s10", "address": 1, "values": {"float_format": 2}}]
     async with link_rig(tmp_path, devices, targets()[:1]) as rig:
-        await writer(rig, "s10", ledger).set("compensation_temperature", 20.25)
+        await set_named(writer(rig, "s10", ledger), "compensation_temperature", 20.25)
         [record] = rig.writes(1)
         assert record.values == (0x41A2, 0x0000)  # ABCD, as 0x0307 = 2 selects
         assert rig.device(1).get("compensation_temperature") == 20.25
@@ -83,8 +91,10 @@ async def test_float_word_order_follows_the_devices_format_register(
 
 async def test_single_register_goes_out_as_function_06(tmp_path: Path, ledger: FlashLedger) -> None:
     async with link_rig(tmp_path, PLANT, targets()) as rig:
-        done = await writer(rig, "s10", ledger).set(
-            "compensation_control", {"temperature_from_ram": True, "pressure_from_ram": True}
+        done = await set_named(
+            writer(rig, "s10", ledger),
+            "compensation_control",
+            {"temperature_from_ram": True, "pressure_from_ram": True},
         )
         [record] = rig.writes(1)
         assert (record.function, record.address, record.values) == (6, 0x25AF, (0b101,))
@@ -102,14 +112,16 @@ async def test_named_bits_change_only_themselves_the_rest_of_the_word_is_kept(
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         # Bits 0 and 2 named and set; bit 4 is one the S10 profile does not name.
         rig.device(1).put("compensation_control", 0b1_0101)
-        done = await writer(rig, "s10", ledger).set(
-            "compensation_control", {"salinity_from_ram": True, "pressure_from_ram": False}
+        done = await set_named(
+            writer(rig, "s10", ledger),
+            "compensation_control",
+            {"salinity_from_ram": True, "pressure_from_ram": False},
         )
         [record] = rig.writes(1)
         assert (record.function, record.address, record.values) == (6, 0x25AF, (0b1_0011,))
         assert done.registers == (0b1_0011,)
         assert rig.device(1).get("compensation_control").raw == 0b1_0011  # type: ignore[union-attr]
-        raw = await writer(rig, "s10", ledger).set("compensation_control", 0b010)
+        raw = await set_named(writer(rig, "s10", ledger), "compensation_control", 0b010)
         assert raw.registers == (0b010,)  # a raw number is the whole word
         assert [r.values for r in rig.writes(1)] == [(0b1_0011,), (0b010,)]
 
@@ -120,7 +132,9 @@ async def test_a_bit_that_is_not_in_the_field_reads_nothing_and_writes_nothing(
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         frames_before = len(rig.rig.frames())
         with pytest.raises(CommandRejectedError, match="is not a bit of this field"):
-            await writer(rig, "s10", ledger).set("compensation_control", {"ph_from_ram": True})
+            await set_named(
+                writer(rig, "s10", ledger), "compensation_control", {"ph_from_ram": True}
+            )
         assert rig.writes(1) == []
         assert len(rig.rig.frames()) == frames_before
 
@@ -129,7 +143,7 @@ async def test_h10_volatile_write_keeps_the_250_ms_wait_on_the_wire(
     tmp_path: Path, ledger: FlashLedger
 ) -> None:
     async with link_rig(tmp_path, PLANT, targets()) as rig:
-        await writer(rig, "h10", ledger).set("compensation_pressure", 1000)
+        await set_named(writer(rig, "h10", ledger), "compensation_pressure", 1000)
         frames = [f for f in rig.rig.frames() if f.device == 2]
         write_at = next(i for i, f in enumerate(frames) if f.function == 16)
         write, read_back = frames[write_at], frames[write_at + 1]
@@ -149,7 +163,7 @@ async def test_flash_point_without_permission_is_refused_and_nothing_is_sent(
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         requests_before = len(rig.rig.frames())
         with pytest.raises(CommandRejectedError, match="flash-backed point not allowed"):
-            await writer(rig, "cl2", ledger).set("x_span", 55.0)
+            await set_named(writer(rig, "cl2", ledger), "x_span", 55.0)
         assert rig.writes(20) == []
         assert len(rig.rig.frames()) == requests_before  # not even a read
     assert ledger.totals() == {}
@@ -161,18 +175,18 @@ async def test_allowed_flash_write_is_counted_skipped_when_unchanged_and_budgete
     policy = FlashPolicy(allowed=frozenset({"x_span"}), daily_budget=2)
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         cl2 = writer(rig, "cl2", ledger, policy)
-        first = await cl2.set("x_span", 55.0)
+        first = await set_named(cl2, "x_span", 55.0)
         assert first.written
         assert first.flash
         assert first.value == 55.0
-        unchanged = await cl2.set("x_span", 55.0)
+        unchanged = await set_named(cl2, "x_span", 55.0)
         assert not unchanged.written
         assert unchanged.note == "unchanged, not written"
         assert unchanged.value == 55.0
-        second = await cl2.set("x_span", 56.0)
+        second = await set_named(cl2, "x_span", 56.0)
         assert second.written
         with pytest.raises(CommandRejectedError, match="budget of 2 writes per day"):
-            await cl2.set("x_span", 57.0)
+            await set_named(cl2, "x_span", 57.0)
         written = [(r.function, r.address, r.values) for r in rig.writes(20)]
         assert written == [(16, 0x0208, cdab(55.0)), (16, 0x0208, cdab(56.0))]
         assert rig.device(20).get("x_span") == 56.0
@@ -184,13 +198,13 @@ async def test_flash_counts_survive_a_restart(tmp_path: Path) -> None:
     policy = FlashPolicy(allowed=frozenset({"x_span"}), daily_budget=1)
     first = FlashLedger(path)
     async with link_rig(tmp_path, PLANT, targets()) as rig:
-        await writer(rig, "cl2", first, policy).set("x_span", 55.0)
+        await set_named(writer(rig, "cl2", first, policy), "x_span", 55.0)
     first.close()
     again = FlashLedger(path)  # the gateway started again
     assert again.totals() == {("cl2", "x_span"): 1}
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         with pytest.raises(CommandRejectedError, match="budget of 1 writes per day"):
-            await writer(rig, "cl2", again, policy).set("x_span", 56.0)
+            await set_named(writer(rig, "cl2", again, policy), "x_span", 56.0)
         assert rig.writes(20) == []
 
 
@@ -200,10 +214,10 @@ async def test_explicit_operator_write_needs_no_allow_list_but_keeps_the_budget(
     policy = FlashPolicy(allowed=frozenset(), daily_budget=1)
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         cl2 = writer(rig, "cl2", ledger, policy)
-        done = await cl2.set("x_zero", 0.0, explicit=True)
+        done = await set_named(cl2, "x_zero", 0.0, explicit=True)
         assert done.written  # written although unchanged: an operator's deliberate step
         with pytest.raises(CommandRejectedError, match="budget"):
-            await cl2.set("x_zero", 0.0, explicit=True)
+            await set_named(cl2, "x_zero", 0.0, explicit=True)
         assert len(rig.writes(20)) == 1
 
 
@@ -229,7 +243,7 @@ async def test_invalid_values_are_refused_before_the_bus(
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         before = len(rig.rig.frames())
         with pytest.raises(CommandRejectedError, match=reason):
-            await writer(rig, device, ledger, policy).set(point, value)
+            await set_named(writer(rig, device, ledger, policy), point, value)
         assert len(rig.rig.frames()) == before
         assert rig.writes(1) == rig.writes(2) == []
 
@@ -240,6 +254,57 @@ async def test_a_value_the_device_refuses_is_its_exception(tmp_path: Path) -> No
     async with link_rig(tmp_path, PLANT, targets()) as rig:
         link = rig.links["h10"]
         with pytest.raises(DeviceExceptionError, match="exception 03"):
-            await link.write_registers("compensation_temperature", cdab(120.0))
+            await link.write_registers(link.profile.point("compensation_temperature"), cdab(120.0))
         [record] = rig.writes(2)
         assert record.exception == 3
+
+
+@pytest.mark.parametrize(
+    ("device", "point", "value"),
+    [
+        ("s10", "compensation_temperature", 21.5),  # float32, function 16
+        (
+            "s10",
+            "compensation_control",
+            {"salinity_from_ram": True},
+        ),  # bits: the word is read first
+        ("cl2", "x_span", 55.0),  # flash-backed, explicit: the flash guard is asked
+    ],
+)
+async def test_a_write_looks_its_point_up_by_name_once(
+    tmp_path: Path,
+    ledger: FlashLedger,
+    monkeypatch: pytest.MonkeyPatch,
+    *,
+    device: str,
+    point: str,
+    value: object,
+) -> None:
+    # A spy on the profile's lookup by the gateway (the simulated devices, in the same
+    # process, look their points up too): the name becomes a Point where it comes in, and
+    # the encoding, the flash guard, the link and the job queue are handed the Point.
+    # (Reads, the bits to keep included, still go by name: the read path names what it reads.)
+    looked_up: list[str] = []
+    lookup = Profile.point
+
+    def counting(profile: Profile, name: str) -> Point:
+        caller = sys._getframe(1).f_globals["__name__"]
+        if not caller.startswith("gateway.simulator"):
+            looked_up.append(name)
+        return lookup(profile, name)
+
+    async with link_rig(tmp_path, PLANT, targets()) as rig:
+        w = writer(rig, device, ledger)
+        await w.link.float_order()  # the format register is read once per device, by name
+        reads = rig.links[device].read
+        monkeypatch.setattr(Profile, "point", counting)
+
+        async def read_unspied(*names: str) -> dict[str, codec.Decoded]:
+            with monkeypatch.context() as unspied:
+                unspied.setattr(Profile, "point", lookup)
+                return await reads(*names)
+
+        monkeypatch.setattr(rig.links[device], "read", read_unspied)
+        done = await w.set(w.point(point), value, explicit=True, read_back=False)
+    assert done.written
+    assert looked_up == [point]

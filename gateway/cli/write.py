@@ -33,12 +33,13 @@ async def _write(spec: DeviceSpec, point: str, value: object, *, allow_flash: bo
     policy = spec.policy
     if allow_flash:
         policy = FlashPolicy(allowed=policy.allowed | {point}, daily_budget=policy.daily_budget)
-    flash = spec.target.profile.point(point).storage is Storage.FLASH
+    target = spec.target.profile.point(point)  # the one lookup by name of a write
+    flash = target.storage is Storage.FLASH
     # Only a flash write needs the shared ledger on disk; anything else leaves no file.
     ledger = spec.ledger() if flash else FlashLedger(None)
     try:
         async with device_link(spec) as link:
-            return await SafeWriter(link, policy=policy, ledger=ledger).set(point, value)
+            return await SafeWriter(link, policy=policy, ledger=ledger).set(target, value)
     finally:
         ledger.close()
 

@@ -1,10 +1,15 @@
 """The gateway's configuration: a YAML file, ``GATEWAY_*`` overrides, every problem located.
 
-The models and the loading live in :mod:`gateway.config.model`; the flash-write permission
-they hand to the write guard in :mod:`gateway.config.flash_policy`. Import from here.
+The models live in :mod:`gateway.config.model`; reading a file in
+:mod:`gateway.config.loading` (YAML with lines in :mod:`~gateway.config.yaml_lines`, the
+environment in :mod:`~gateway.config.environment`, the cross-field checks in
+:mod:`~gateway.config.checks`, problems located by :mod:`~gateway.config.locate` as
+:mod:`~gateway.config.problems`); the flash-write permission the models hand to the write
+guard in :mod:`gateway.config.flash_policy`. Import from here.
 """
 
 from gateway.config.flash_policy import FlashPolicy
+from gateway.config.loading import check_config, load_config, parse_config
 from gateway.config.model import (
     BAUDRATES,
     DEFAULT_FLASH_WRITE_BUDGET,
@@ -18,7 +23,6 @@ from gateway.config.model import (
     BusName,
     Cadence,
     CommandsConfig,
-    ConfigProblems,
     DeviceConfig,
     DeviceName,
     DiscoveryConfig,
@@ -29,7 +33,6 @@ from gateway.config.model import (
     MqttConfig,
     PointSchedule,
     PointSettings,
-    Problem,
     PrometheusConfig,
     PublishMode,
     PublishSettings,
@@ -38,10 +41,8 @@ from gateway.config.model import (
     Seconds,
     TcpPort,
     TlsConfig,
-    check_config,
-    load_config,
-    parse_config,
 )
+from gateway.config.problems import ConfigProblems, Problem
 
 __all__ = [
     "BAUDRATES",

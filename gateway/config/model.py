@@ -1,40 +1,20 @@
-"""The gateway's configuration: a YAML file, ``GATEWAY_*`` overrides, every problem located.
+"""The models of the config file: buses, devices and their points, feeds and the sinks.
 
-A config is read in three steps, and each step collects problems rather than stopping at
-the first one:
-
-1. YAML, composed node by node so that every mapping key and sequence item keeps its line;
-2. validation by the models below, with ``GATEWAY_*`` environment variables layered over
-   the file by pydantic-settings (``GATEWAY_MQTT__PASSWORD`` sets ``mqtt.password``; the
-   environment wins over the file);
-3. cross-field checks that need the whole config: bus and device names unique, buses and
-   profiles known, one address per device on a bus, per-point settings that name points of
-   the device's profile, and response timeouts that fit in the device's poll interval.
-
-:func:`load_config` raises :class:`ConfigProblems` listing all of them, each with its key
-path and the line of the offending key; :func:`check_config` returns them instead.
-
-Example::
+Each model validates its own fields (``extra="forbid"``, bounds in the annotations); what
+needs the whole file (unique names, known buses and profiles, timeouts that fit) is
+:mod:`gateway.config.checks`, and reading a file with its lines is
+:mod:`gateway.config.loading`. Example::
 
     config = load_config(Path("config/plant.yaml"))
     for bus in config.buses:
         for device in config.devices_on(bus.name):
             device.interval_for("oxygen")  # PointSchedule.every(1.0)
             device.response_timeout(bus)  # None: computed from the profile's timing
-
-Environment variables: ``GATEWAY_`` + key path in capitals with ``__`` between levels
-(``GATEWAY_LOGGING__LEVEL=DEBUG``, ``GATEWAY_PROMETHEUS__PORT=9200``). A top-level key
-takes JSON (``GATEWAY_MQTT='{"host": "broker"}'``); the lists ``buses`` and ``devices`` can
-only be replaced whole that way, not entry by entry.
 """
 
 from __future__ import annotations
 
-import difflib
-import json
-import os
 import re
-import types
 from contextvars import ContextVar
 from dataclasses import dataclass
 from enum import StrEnum
@@ -42,20 +22,12 @@ from pathlib import Path  # noqa: TC003 - pydantic resolves annotations at run t
 from typing import (
     TYPE_CHECKING,
     Annotated,
-    Any,
     ClassVar,
     Final,
-    Generic,
     Literal,
-    TypeAlias,
-    TypeVar,
-    Union,
-    get_args,
-    get_origin,
 )
 from urllib.parse import urlsplit
 
-import yaml
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -63,7 +35,6 @@ from pydantic import (
     ConfigDict,
     Field,
     SecretStr,
-    ValidationError,
     model_validator,
 )
 from pydantic_settings import (
@@ -71,20 +42,17 @@ from pydantic_settings import (
     EnvSettingsSource,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
-    SettingsError,
 )
 
 from gateway.config.flash_policy import FlashPolicy
 from gateway.errors import ConfigError
-from gateway.profiles import Point, PollGroup, Profile, builtin_profiles, get_profile
-from gateway.profiles.model import Storage
-from gateway.wire.codec import NUMERIC_TYPES, WordOrder
+from gateway.profiles import Point, PollGroup, Profile, get_profile
+from gateway.wire.codec import WordOrder  # noqa: TC001 - pydantic resolves it at run time
 from gateway.wire.timing import LineFormat, Parity
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Iterator, Mapping, Sequence
+    from collections.abc import Mapping
 
-    from pydantic_core import ErrorDetails
 
 ENV_PREFIX: Final = "GATEWAY_"
 ENV_NESTED_DELIMITER: Final = "__"
@@ -105,51 +73,6 @@ _BUS_NAME = re.compile(r"[a-z0-9_-]+")
 _DEVICE_NAME = re.compile(r"[a-z0-9_]+")
 _WINDOWS_PORT = re.compile(r"COM[0-9]+", re.IGNORECASE)
 _MAX_NAME = 64
-
-_Part: TypeAlias = str | int
-_KeyPath: TypeAlias = tuple[_Part, ...]
-_M = TypeVar("_M", bound=BaseModel)  # a model validating one list entry
-
-
-# --- problems ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class Problem:
-    """One thing wrong with a config: where (key path, file line) and what.
-
-    Example::
-
-        Problem("devices[1].address", 14, "address 1 is already used on bus line1 by devices[0]")
-
-    ``line`` is ``None`` where no line applies: a value from the environment, or a key
-    missing from the file altogether.
-    """
-
-    key: str
-    line: int | None
-    message: str
-
-    def __str__(self) -> str:
-        """``devices[1].address (line 14): message``; parts that are not known are left out."""
-        where = self.key
-        if self.line is not None:
-            where = f"{where} (line {self.line})" if where else f"line {self.line}"
-        return f"{where}: {self.message}" if where else self.message
-
-
-class ConfigProblems(ConfigError):  # noqa: N818 - a collection of problems; public name
-    """Every problem found in a config, reported at once, one per line of ``str()``."""
-
-    def __init__(self, problems: Sequence[Problem], *, path: Path | None = None) -> None:
-        """Keep the problems; ``key`` and ``line`` are the first problem's."""
-        self.problems = list(problems)
-        self.path = path
-        super().__init__("\n".join(str(problem) for problem in self.problems))
-        if self.problems:
-            self.key = self.problems[0].key
-            self.line = self.problems[0].line
-
 
 # --- the models -------------------------------------------------------------------------
 
@@ -524,13 +447,14 @@ class LoggingConfig(_Model):
 
 # The environment mapping a load reads, when a caller gives one (tests, embedding);
 # ``None``: os.environ. Set only for the duration of one load by :func:`parse_config`.
-_ENVIRON: ContextVar[Mapping[str, str] | None] = ContextVar("gateway_config_environ", default=None)
+ENVIRON: ContextVar[Mapping[str, str] | None] = ContextVar("gateway_config_environ", default=None)
 
 
-class _EnvironSource(EnvSettingsSource):
+class EnvironSource(EnvSettingsSource):
     """``GATEWAY_*`` variables from an explicit mapping, or from os.environ."""
 
     def __init__(self, settings_cls: type[BaseSettings], environ: Mapping[str, str] | None) -> None:
+        """Read ``environ``'s variables for ``settings_cls`` (``None``: os.environ)."""
         super().__init__(settings_cls)
         if environ is not None:
             # Names are matched case-insensitively, as the stock source does on os.environ.
@@ -577,7 +501,7 @@ class GatewayConfig(BaseSettings):
         The config file is the only file: no ``.env`` and no secrets directory, so that
         what configures the gateway is in one place plus the environment.
         """
-        return _EnvironSource(settings_cls, _ENVIRON.get()), init_settings
+        return EnvironSource(settings_cls, ENVIRON.get()), init_settings
 
     def bus(self, name: str) -> BusConfig:
         """The bus of that name, or a :class:`ConfigError` listing the buses."""
@@ -591,641 +515,3 @@ class GatewayConfig(BaseSettings):
         """The devices on a bus, in config order (a :class:`ConfigError` for unknown buses)."""
         self.bus(bus_name)
         return tuple(device for device in self.devices if device.bus == bus_name)
-
-
-# --- entry points -----------------------------------------------------------------------
-
-
-def load_config(path: Path, *, environ: Mapping[str, str] | None = None) -> GatewayConfig:
-    """Read, override from the environment (default: os.environ), validate and cross-check.
-
-    Raises :class:`ConfigError` naming the path if the file cannot be read, and
-    :class:`ConfigProblems` listing every problem otherwise.
-    """
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc.strerror or exc}") from exc
-    except UnicodeDecodeError as exc:
-        raise ConfigProblems(
-            [Problem("", None, f"{path} is not UTF-8 text: {exc.reason}")], path=path
-        ) from exc
-    try:
-        return parse_config(text, environ=environ)
-    except ConfigProblems as exc:
-        raise ConfigProblems(exc.problems, path=path) from None
-
-
-def check_config(path: Path, *, environ: Mapping[str, str] | None = None) -> list[Problem]:
-    """Every problem of a config file, without raising; empty when the config is good.
-
-    A file that cannot be read is one problem without key or line.
-    """
-    try:
-        load_config(path, environ=environ)
-    except ConfigProblems as exc:
-        return exc.problems
-    except ConfigError as exc:
-        return [Problem("", None, str(exc))]
-    return []
-
-
-def parse_config(text: str, *, environ: Mapping[str, str] | None = None) -> GatewayConfig:
-    """Like :func:`load_config`, from the YAML text itself (no file, no I/O)."""
-    document = _parse_yaml(text)
-    problems = list(document.problems)
-    if document.data is None and problems:
-        raise ConfigProblems(_sorted(problems))
-    data = {} if document.data is None else document.data
-    if not isinstance(data, dict):
-        message = "the file must be a mapping of the keys " + ", ".join(GatewayConfig.model_fields)
-        raise ConfigProblems([Problem("", document.lines.get(()), message)])
-    data = _top_level_keys(data, document.lines, problems)
-    env, env_problems = _environment(os.environ if environ is None else environ)
-    problems.extend(env_problems)
-    try:
-        overrides = _EnvironSource(GatewayConfig, env)()
-    except SettingsError as exc:  # not expected after _environment's checks; still located
-        problems.append(Problem("", None, f"environment: {exc}"))
-        env, overrides = {}, {}
-    locate = _Locator(document.lines, env)
-
-    config: GatewayConfig | None = None
-    token = _ENVIRON.set(env)
-    try:
-        config = GatewayConfig(**data)
-    except ValidationError as exc:
-        problems.extend(locate.error(error) for error in exc.errors(include_url=False))
-    finally:
-        _ENVIRON.reset(token)
-
-    merged = _deep_merge(data, overrides)
-    problems.extend(locate(path, message) for path, message in _cross_check(merged))
-    if problems or config is None:
-        raise ConfigProblems(_sorted(problems))
-    return config
-
-
-# --- YAML with lines --------------------------------------------------------------------
-
-_MERGE_TAG = "tag:yaml.org,2002:merge"
-
-
-@dataclass(frozen=True, slots=True)
-class _Document:
-    data: object  # None for an empty file or one that is not valid YAML
-    lines: dict[_KeyPath, int]  # 1-based line of every mapping key and sequence item
-    problems: list[Problem]
-
-
-def _parse_yaml(text: str) -> _Document:
-    loader = yaml.SafeLoader(text)
-    index = _LineIndex(loader)
-    try:
-        node = loader.get_single_node()
-        if node is None:
-            return _Document(None, {}, [])
-        index.lines[()] = node.start_mark.line + 1
-        index.walk(node)
-        data = loader.construct_document(node)
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        what = exc.problem or "cannot parse"
-        if exc.context:
-            what += f" ({exc.context})"
-        line = mark.line + 1 if mark is not None else None
-        return _Document(None, {}, [Problem("", line, f"not valid YAML: {what}")])
-    except yaml.YAMLError as exc:
-        return _Document(None, {}, [Problem("", None, f"not valid YAML: {exc}")])
-    finally:
-        loader.dispose()
-    return _Document(data, index.lines, index.problems)
-
-
-class _LineIndex:
-    """The 1-based line of every mapping key and sequence item, by key path.
-
-    Works on the composed node tree, before construction, so that duplicate keys (which
-    PyYAML would silently collapse) are still visible and reported.
-    """
-
-    def __init__(self, loader: yaml.SafeLoader) -> None:
-        self._loader = loader
-        self.lines: dict[_KeyPath, int] = {}
-        self.problems: list[Problem] = []
-
-    def walk(
-        self, node: yaml.Node, path: _KeyPath = (), on_path: frozenset[int] = frozenset()
-    ) -> None:
-        """Index ``node`` and everything below it."""
-        if id(node) in on_path:  # a recursive alias
-            return
-        on_path |= {id(node)}
-        if isinstance(node, yaml.SequenceNode):
-            for index, item in enumerate(node.value):
-                self.lines[(*path, index)] = item.start_mark.line + 1
-                self.walk(item, (*path, index), on_path)
-        elif isinstance(node, yaml.MappingNode):
-            self._mapping(node, path, on_path)
-
-    def _mapping(self, node: yaml.MappingNode, path: _KeyPath, on_path: frozenset[int]) -> None:
-        seen: dict[_Part, int] = {}
-        merges: list[yaml.Node] = []
-        for key_node, value_node in node.value:
-            if key_node.tag == _MERGE_TAG:
-                merges.append(value_node)
-                continue
-            key = self._key(key_node)
-            if key is None:
-                continue
-            line = key_node.start_mark.line + 1
-            if key in seen:
-                self.problems.append(
-                    Problem(
-                        _format((*path, key)),
-                        line,
-                        f"duplicate key; it repeats line {seen[key]}, whose value it would "
-                        "silently replace",
-                    )
-                )
-            seen[key] = line
-            self.lines[(*path, key)] = line
-            self.walk(value_node, (*path, key), on_path)
-        # ``<<: *anchor`` merges: keys given explicitly win, as in the constructed data.
-        for source in _merge_sources(merges):
-            merged = _LineIndex(self._loader)
-            merged.walk(source, path, on_path)
-            for key_path, line in merged.lines.items():
-                if key_path[len(path)] not in seen:
-                    self.lines.setdefault(key_path, line)
-
-    def _key(self, node: yaml.Node) -> _Part | None:
-        if not isinstance(node, yaml.ScalarNode):
-            return None
-        key = self._loader.construct_object(node)
-        return key if isinstance(key, str | int) else None
-
-
-def _merge_sources(values: Iterable[yaml.Node]) -> Iterator[yaml.Node]:
-    for value in values:
-        if isinstance(value, yaml.SequenceNode):
-            yield from value.value
-        else:
-            yield value
-
-
-def _format(path: Iterable[_Part]) -> str:
-    """``devices[1].points.temperature`` from ``("devices", 1, "points", "temperature")``."""
-    text = ""
-    for part in path:
-        if isinstance(part, int):
-            text += f"[{part}]"
-        else:
-            text += f".{part}" if text else part
-    return text
-
-
-# --- the environment --------------------------------------------------------------------
-
-
-def _environment(environ: Mapping[str, str]) -> tuple[dict[str, str], list[Problem]]:
-    """The ``GATEWAY_*`` variables pydantic-settings can apply, and problems with the rest.
-
-    pydantic-settings turns ``GATEWAY_DEVICES__0__ADDRESS`` into a mapping that would
-    replace the whole list, and stops at the first top-level variable that is not JSON;
-    both become located problems here instead.
-    """
-    usable: dict[str, str] = {}
-    problems: list[Problem] = []
-    lists = {
-        name
-        for name, field in GatewayConfig.model_fields.items()
-        if get_origin(field.annotation) is list
-    }
-    for name, value in environ.items():
-        if not name.upper().startswith(ENV_PREFIX):
-            continue
-        parts = name[len(ENV_PREFIX) :].lower().split(ENV_NESTED_DELIMITER)
-        top = parts[0]
-        if top not in GatewayConfig.model_fields:
-            continue  # not a setting (GATEWAY_CONFIG and the like are for the command line)
-        if not value:
-            # Empty is unset: Compose passes an unset ${MQTT_PASSWORD} on as "", which
-            # would otherwise replace the file's mqtt.username with an empty one.
-            continue
-        if top in lists and len(parts) > 1:
-            problems.append(
-                Problem(
-                    top,
-                    None,
-                    f"{name}: entries of {top} cannot be set one by one from the "
-                    f"environment; give the whole list as JSON in {ENV_PREFIX}{top.upper()}",
-                )
-            )
-            continue
-        if len(parts) == 1:
-            try:
-                json.loads(value)
-            except ValueError as exc:
-                problems.append(Problem(top, None, f"{name} must be JSON: {exc}"))
-                continue
-        usable[name] = value
-    return usable, problems
-
-
-def _deep_merge(base: Mapping[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
-    """``override`` on top of ``base``, mappings merged key by key (as pydantic-settings does)."""
-    merged = dict(base)
-    for key, value in override.items():
-        current = merged.get(key)
-        if isinstance(current, dict) and isinstance(value, dict):
-            merged[key] = _deep_merge(current, value)
-        else:
-            merged[key] = value
-    return merged
-
-
-# --- locating problems ------------------------------------------------------------------
-
-
-class _Locator:
-    """Turns key paths into :class:`Problem` values with lines or environment names."""
-
-    def __init__(self, lines: Mapping[_KeyPath, int], env: Mapping[str, str]) -> None:
-        self._lines = lines
-        self._env = {name.upper(): name for name in env}
-
-    def __call__(self, path: _KeyPath, message: str) -> Problem:
-        variable = self._variable(path)
-        if variable is not None:
-            return Problem(_format(path), None, f"{message} (from {variable})")
-        return Problem(_format(path), self._line(path), message)
-
-    def error(self, error: ErrorDetails) -> Problem:
-        """A pydantic error as a problem at its key path."""
-        path: _KeyPath = tuple(part for part in error["loc"] if part != "[key]")
-        return self(path, _describe(error, path))
-
-    def _line(self, path: _KeyPath) -> int | None:
-        for end in range(len(path), 0, -1):
-            line = self._lines.get(path[:end])
-            if line is not None:
-                return line
-        return None
-
-    def _variable(self, path: _KeyPath) -> str | None:
-        for end in range(len(path), 0, -1):
-            name = ENV_PREFIX + ENV_NESTED_DELIMITER.join(str(p) for p in path[:end]).upper()
-            if name in self._env:
-                return self._env[name]
-        return None
-
-
-def _describe(error: ErrorDetails, path: _KeyPath) -> str:
-    kind = error["type"]
-    if kind == "missing":
-        return "required, but missing"
-    if kind == "extra_forbidden":
-        return _unknown_key(path)
-    if kind == "value_error":
-        return str(error.get("ctx", {}).get("error", error["msg"]))
-    message = error["msg"]
-    value = error.get("input")
-    secret = any(part == "password" for part in path)
-    if not secret and isinstance(value, str | int | float):
-        message += f", got {value!r}"
-    return message
-
-
-def _unknown_key(path: _KeyPath) -> str:
-    key = str(path[-1]) if path else ""
-    model = _model_at(path[:-1])
-    allowed = list(model.model_fields) if model is not None else []
-    if not allowed:
-        return "unknown key"
-    close = difflib.get_close_matches(key, allowed, n=1)
-    hint = f"; did you mean {close[0]}?" if close else ""
-    return f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})"
-
-
-def _model_at(path: _KeyPath) -> type[BaseModel] | None:
-    """The model that validates the mapping at ``path``, if any."""
-    current: Any = GatewayConfig
-    for part in path:
-        current = _unwrap(current)
-        origin = get_origin(current)
-        if origin is list:
-            current = get_args(current)[0]
-        elif origin is dict:
-            current = get_args(current)[1]
-        elif isinstance(current, type) and issubclass(current, BaseModel):
-            field = current.model_fields.get(str(part))
-            if field is None:
-                return None
-            current = field.annotation
-        else:
-            return None
-    current = _unwrap(current)
-    return current if isinstance(current, type) and issubclass(current, BaseModel) else None
-
-
-def _unwrap(annotation: Any) -> Any:  # noqa: ANN401 - walks arbitrary type expressions
-    """``X`` from ``Annotated[X, ...]`` and ``X | None``."""
-    while True:
-        origin = get_origin(annotation)
-        if origin is Annotated:
-            annotation = get_args(annotation)[0]
-        elif origin is Union or origin is types.UnionType:
-            options = [arg for arg in get_args(annotation) if arg is not type(None)]
-            if len(options) != 1:
-                return annotation
-            annotation = options[0]
-        else:
-            return annotation
-
-
-def _top_level_keys(
-    data: Mapping[object, Any], lines: Mapping[_KeyPath, int], problems: list[Problem]
-) -> dict[str, Any]:
-    """The file's top-level mapping as keyword arguments; other keys become problems.
-
-    Keys that are not strings cannot be keywords, and keys with a leading underscore would
-    be taken by pydantic-settings as its own options (``_env_file``), so both are refused.
-    """
-    kept: dict[str, Any] = {}
-    for key, value in data.items():
-        if isinstance(key, str) and not key.startswith("_"):
-            kept[key] = value
-        else:
-            line = lines.get((key,)) if isinstance(key, str | int) else None
-            problems.append(Problem(str(key), line, _unknown_key((str(key),))))
-    return kept
-
-
-def _sorted(problems: Iterable[Problem]) -> list[Problem]:
-    """File order; problems from the environment last."""
-    return sorted(problems, key=lambda p: (p.line is None, p.line or 0))
-
-
-# --- cross-field checks -----------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True)
-class _Entry(Generic[_M]):
-    """One list entry: its index, its raw mapping and its model if it validates alone."""
-
-    index: int
-    raw: Mapping[str, Any]
-    model: _M | None
-
-    def text(self, key: str) -> str | None:
-        value = self.raw.get(key)
-        return value if isinstance(value, str) else None
-
-
-def _entries(raw: object, model: type[_M]) -> list[_Entry[_M]]:
-    if not isinstance(raw, list):
-        return []
-    entries: list[_Entry[_M]] = []
-    for index, item in enumerate(raw):
-        if not isinstance(item, dict):
-            entries.append(_Entry(index, {}, None))
-            continue
-        try:
-            validated: _M | None = model.model_validate(item)
-        except ValidationError:
-            validated = None  # its field errors are reported by the full validation
-        entries.append(_Entry(index, item, validated))
-    return entries
-
-
-def _cross_check(data: Mapping[str, Any]) -> Iterator[tuple[_KeyPath, str]]:
-    """Checks across entries, on every entry that can be checked even if others are broken."""
-    buses = _entries(data.get("buses"), BusConfig)
-    devices = _entries(data.get("devices"), DeviceConfig)
-    yield from _unique_names("buses", buses)
-    yield from _unique_names("devices", devices)
-    bus_names = list(dict.fromkeys(n for entry in buses if (n := entry.text("name")) is not None))
-    bus_models: dict[str, BusConfig] = {}
-    for entry in buses:
-        if entry.model is not None:
-            bus_models.setdefault(entry.model.name, entry.model)
-    used: dict[tuple[str, int], _Entry[DeviceConfig]] = {}
-    for device in devices:
-        here: _KeyPath = ("devices", device.index)
-        bus_name = device.text("bus")
-        if bus_name is not None and bus_name not in bus_names:
-            yield (*here, "bus"), _unknown_bus(bus_name, bus_names)
-        profile_id = device.text("profile")
-        if profile_id is not None:
-            yield from _check_profile(here, profile_id, device.raw.get("points"))
-            yield from _check_flash_writes(here, profile_id, device.raw.get("flash_writes"))
-        model = device.model
-        if model is None:
-            continue
-        first = used.setdefault((model.bus, model.address), device)
-        if first is not device:
-            yield (
-                (*here, "address"),
-                (
-                    f"address {model.address} is already used on bus {model.bus} by "
-                    f"devices[{first.index}] ({first.text('name')})"
-                ),
-            )
-        bus = bus_models.get(model.bus)
-        if bus is not None:
-            yield from _check_timeout(here, model, bus)
-    mqtt = data.get("mqtt")
-    mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
-    yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
-
-
-def _check_flash_writes(
-    here: _KeyPath, profile_id: str, names: object
-) -> Iterator[tuple[_KeyPath, str]]:
-    profile = builtin_profiles().get(profile_id)
-    if profile is None or not isinstance(names, list):
-        return
-    for index, name in enumerate(names):
-        if not isinstance(name, str):
-            continue
-        where: _KeyPath = (*here, "flash_writes", index)
-        if not profile.has_point(name):
-            yield where, f"profile {profile_id} has no point {name!r}"
-            continue
-        point = profile.point(name)
-        if not point.writable:
-            yield where, f"{name} is read-only; it cannot be written at all"
-        elif point.storage is not Storage.FLASH:
-            yield (
-                where,
-                f"{name} is a {point.storage} register, not flash-backed: it needs no permission",
-            )
-
-
-def _check_feeds(
-    feeds: Sequence[_Entry[FeedConfig]], devices: Sequence[_Entry[DeviceConfig]], *, mqtt_on: bool
-) -> Iterator[tuple[_KeyPath, str]]:
-    """A feed writes a RAM or volatile point of a known device, from a polled source."""
-    by_name = {d.model.name: d.model for d in devices if d.model is not None}
-    targets: dict[tuple[str, str], int] = {}
-    for feed in feeds:
-        model = feed.model
-        if model is None:
-            continue
-        here: _KeyPath = ("feeds", feed.index)
-        device = by_name.get(model.device)
-        if device is None:
-            yield (*here, "device"), f"unknown device {model.device!r}; devices: {_names(by_name)}"
-        else:
-            yield from _check_feed_target(here, model, device)
-        first = targets.setdefault((model.device, model.point), feed.index)
-        if first != feed.index:
-            yield (*here, "point"), f"{model.name} is already fed by feeds[{first}]"
-        yield from _check_feed_source(here, model.source, by_name, mqtt_on=mqtt_on)
-
-
-def _check_feed_source(
-    here: _KeyPath, source: FeedSource, by_name: Mapping[str, DeviceConfig], *, mqtt_on: bool
-) -> Iterator[tuple[_KeyPath, str]]:
-    if source.topic is not None and not mqtt_on:
-        yield (*here, "source", "topic"), "an MQTT source needs MQTT (mqtt.enabled is false)"
-    if source.device is None or source.point is None:
-        return
-    origin = by_name.get(source.device)
-    if origin is None:
-        yield (
-            (*here, "source", "device"),
-            f"unknown device {source.device!r}; devices: {_names(by_name)}",
-        )
-        return
-    profile = _profile_or_none(origin.profile)
-    if profile is None:
-        return
-    if not profile.has_point(source.point):
-        yield (
-            (*here, "source", "point"),
-            f"profile {origin.profile} has no point {source.point!r}",
-        )
-    elif not origin.interval_for(source.point).periodic:
-        yield (
-            (*here, "source", "point"),
-            (
-                f"{source.device}/{source.point} is not polled periodically, so it would "
-                "never feed anything; give it an interval under the device's points"
-            ),
-        )
-
-
-def _check_feed_target(
-    here: _KeyPath, feed: FeedConfig, device: DeviceConfig
-) -> Iterator[tuple[_KeyPath, str]]:
-    profile = _profile_or_none(device.profile)
-    if profile is None:
-        return
-    if not profile.has_point(feed.point):
-        yield (*here, "point"), f"profile {device.profile} has no point {feed.point!r}"
-        return
-    point = profile.point(feed.point)
-    if not point.writable:
-        yield (*here, "point"), f"{feed.point} is read-only"
-    elif point.storage is Storage.FLASH:
-        free = [
-            p.name
-            for p in profile.points
-            if p.writable and p.storage is not Storage.FLASH and p.dtype in NUMERIC_TYPES
-        ]
-        hint = f"; RAM or volatile points of {device.profile}: {', '.join(free)}" if free else ""
-        yield (
-            (*here, "point"),
-            (
-                f"a feed never writes to flash, and {feed.point} is flash-backed "
-                f"(its cells wear out when written cyclically){hint}"
-            ),
-        )
-    elif point.format.dtype not in NUMERIC_TYPES:
-        yield (*here, "point"), f"{feed.point} is a {point.format.dtype}, not a number to feed"
-
-
-def _profile_or_none(profile_id: str) -> Profile | None:
-    return builtin_profiles().get(profile_id)
-
-
-def _names(models: Mapping[str, object]) -> str:
-    return ", ".join(models) or "none"
-
-
-def _unique_names(section: str, entries: Sequence[_Entry[Any]]) -> Iterator[tuple[_KeyPath, str]]:
-    first: dict[str, int] = {}
-    for entry in entries:
-        name = entry.text("name")
-        if name is None:
-            continue
-        if name in first:
-            yield (
-                (section, entry.index, "name"),
-                (f"name {name} is already used by {section}[{first[name]}]"),
-            )
-        else:
-            first[name] = entry.index
-
-
-def _unknown_bus(name: str, known: Sequence[str]) -> str:
-    if not known:
-        return f"unknown bus {name!r}; no bus is defined under buses"
-    close = difflib.get_close_matches(name, known, n=1)
-    hint = f"did you mean {close[0]}? " if close else ""
-    return f"unknown bus {name!r}; {hint}buses: {', '.join(known)}"
-
-
-def _check_profile(
-    here: _KeyPath, profile_id: str, points: object
-) -> Iterator[tuple[_KeyPath, str]]:
-    profiles = builtin_profiles()
-    profile = profiles.get(profile_id)
-    if profile is None:
-        close = difflib.get_close_matches(profile_id, list(profiles), n=2)
-        hint = f"did you mean {' or '.join(close)}? " if close else ""
-        yield (
-            (*here, "profile"),
-            (f"unknown profile {profile_id!r}; {hint}known: {', '.join(sorted(profiles))}"),
-        )
-        return
-    if not isinstance(points, dict):
-        return
-    names = [point.name for point in profile.points]
-    for name in points:
-        if isinstance(name, str) and not profile.has_point(name):
-            close = (
-                difflib.get_close_matches(name, names, n=3, cutoff=0.6)
-                or [n for n in names if name in n][:3]
-            )
-            hint = f"; did you mean {', '.join(close)}?" if close else ""
-            yield (
-                (*here, "points", name),
-                (
-                    f"profile {profile_id} has no point {name!r}{hint} "
-                    f"(gateway profiles show {profile_id} lists them)"
-                ),
-            )
-
-
-def _check_timeout(
-    here: _KeyPath, device: DeviceConfig, bus: BusConfig
-) -> Iterator[tuple[_KeyPath, str]]:
-    timeout = device.response_timeout(bus)
-    if timeout is None or timeout <= device.poll_interval:
-        return
-    if device.timeout is not None:
-        key, source = "timeout", f"timeout {device.timeout:g} s"
-    else:
-        key, source = "poll_interval", f"bus {bus.name} timeout {bus.timeout:g} s"
-    if device.min_response_time_ms:
-        source += f" + min_response_time_ms {device.min_response_time_ms}"
-    yield (
-        (*here, key),
-        (
-            f"the response timeout {timeout:g} s ({source}) is longer than poll_interval "
-            f"{device.poll_interval:g} s; raise poll_interval or shorten the timeout"
-        ),
-    )

@@ -187,7 +187,7 @@ class CommandRouter:
         if route.kind == SET:
             command = parse_set_payload(payload)
             try:
-                done = await writer.set(route.name, command.value)
+                done = await writer.set(writer.point(route.name), command.value)
             except CommandRejectedError:
                 raise  # refused before anything was sent
             except GatewayError as exc:

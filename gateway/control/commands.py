@@ -142,39 +142,49 @@ def _command_id(raw: object) -> str | None:
 
 
 def writable_point(profile: Profile, point_name: str) -> Point:
-    """The point of that name if it may be written, else a :class:`CommandRejectedError`."""
+    """The point of that name if it may be written, else a :class:`CommandRejectedError`.
+
+    This is where a name that comes in (a set command, the command line, a feed, an
+    operation, a calibration step) becomes a :class:`Point`, once; everything below takes
+    the point.
+    """
     if not profile.has_point(point_name):
         raise CommandRejectedError(
             f"no point {point_name!r} in profile {profile.id}", point=point_name
         )
-    point = profile.point(point_name)
+    return require_writable(profile.point(point_name))
+
+
+def require_writable(point: Point) -> Point:
+    """The point if it may be written, else a :class:`CommandRejectedError`."""
     if not point.writable:
-        raise CommandRejectedError("the point is read-only", point=point_name)
+        raise CommandRejectedError("the point is read-only", point=point.name)
     return point
 
 
 def validate_write(
-    profile: Profile, point_name: str, value: object, *, float_order: WordOrder
+    profile: Profile, point: Point, value: object, *, float_order: WordOrder
 ) -> tuple[int, ...]:
     """The registers that write ``value`` to the point, or a :class:`CommandRejectedError`.
 
-    ``float_order`` is the device's word order (the profile default, or what the device
-    reports). Range, type and length checks are the codec's; its reason is kept.
+    ``point`` is one of ``profile``'s (resolved by :func:`writable_point`); ``float_order``
+    is the device's word order (the profile default, or what the device reports). Range,
+    type and length checks are the codec's; its reason is kept.
     """
-    point = writable_point(profile, point_name)
+    require_writable(point)
     fmt = point.format
     coerce = _COERCERS.get(fmt.dtype, _as_is)
     try:
         registers = encode(fmt, coerce(fmt, value), float_order=float_order)
     except _CoercionError as exc:
-        raise CommandRejectedError(str(exc), point=point_name) from exc
+        raise CommandRejectedError(str(exc), point=point.name) from exc
     except EncodeError as exc:
-        raise CommandRejectedError(_with_range(fmt, str(exc)), point=point_name) from exc
+        raise CommandRejectedError(_with_range(fmt, str(exc)), point=point.name) from exc
     if len(registers) > profile.limits.max_write:
         raise CommandRejectedError(
             f"{len(registers)} registers exceed the {profile.limits.max_write} registers "
             f"profile {profile.id} accepts per write",
-            point=point_name,
+            point=point.name,
         )
     return registers
 

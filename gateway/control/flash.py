@@ -26,7 +26,7 @@ from datetime import UTC, date, datetime
 from enum import StrEnum
 from typing import TYPE_CHECKING
 
-from gateway.control.commands import writable_point
+from gateway.control.commands import require_writable
 from gateway.errors import CommandRejectedError, ConfigError
 from gateway.profiles.model import Storage
 from gateway.publish.state import FlashCounts
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from gateway.config import FlashPolicy
-    from gateway.profiles.model import Profile
+    from gateway.profiles.model import Point
 
 
 LEDGER_FILE = "flash-writes.sqlite"  # in the state directory, beside the MQTT queue
@@ -183,8 +183,7 @@ def _holds(current: tuple[int, ...], registers: tuple[int, ...]) -> bool:
 
 
 def check_flash_write(
-    profile: Profile,
-    point: str,
+    point: Point,
     device: str,
     *,
     policy: FlashPolicy,
@@ -198,10 +197,9 @@ def check_flash_write(
     ``current`` is what the device holds, if known (``None`` writes without comparing).
     On :attr:`Action.WRITE` with ``record`` set, call :meth:`FlashLedger.record` first.
     """
-    target = writable_point(profile, point)
-    if target.storage is not Storage.FLASH:
+    if require_writable(point).storage is not Storage.FLASH:
         return _FREE
-    if point not in policy.allowed:
+    if point.name not in policy.allowed:
         return Decision(
             action=Action.REFUSE,
             reason=(
@@ -211,9 +209,11 @@ def check_flash_write(
         )
     if current is not None and _holds(current, registers):
         return _UNCHANGED
-    if ledger.count_today(device, point, today) >= policy.daily_budget:
+    if ledger.count_today(device, point.name, today) >= policy.daily_budget:
         return Decision(
             action=Action.REFUSE,
-            reason=f"budget of {policy.daily_budget} writes per day for {device}/{point} is spent",
+            reason=(
+                f"budget of {policy.daily_budget} writes per day for {device}/{point.name} is spent"
+            ),
         )
     return Decision(action=Action.WRITE, record=True)

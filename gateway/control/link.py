@@ -15,8 +15,8 @@ from __future__ import annotations
 import contextlib
 from typing import TYPE_CHECKING
 
-from gateway.control.commands import validate_write
-from gateway.errors import BusError, CommandRejectedError
+from gateway.control.commands import require_writable, validate_write
+from gateway.errors import BusError
 from gateway.line.port import Line
 from gateway.line.samples import Quality
 from gateway.line.worker import BusWorker
@@ -27,12 +27,13 @@ if TYPE_CHECKING:
 
     from gateway.line.devices import DeviceTarget
     from gateway.profiles import Profile
+    from gateway.profiles.model import Point
     from gateway.wire import codec
     from gateway.wire.timing import LineFormat
 
 
 class DeviceLink:
-    """Reads and writes of one device, by point name, through its line's worker."""
+    """Reads of one device by point name, and writes of its points, through its line's worker."""
 
     def __init__(self, worker: BusWorker, device: str) -> None:
         """Link to ``device`` on ``worker``'s line (a :class:`GatewayError` if it is not there)."""
@@ -74,21 +75,23 @@ class DeviceLink:
         """Read one point now."""
         return (await self.read(point))[point]
 
-    async def encode(self, point: str, value: object) -> tuple[int, ...]:
+    async def encode(self, point: Point, value: object) -> tuple[int, ...]:
         """The registers that write ``value`` to ``point``, or a :class:`CommandRejectedError`.
 
-        The value is checked before anything is read: bad input never reaches the bus, not
-        even as the read of the float format register a float needs.
+        ``point`` is one of the device's, resolved once where its name came in
+        (:func:`gateway.control.commands.writable_point`). The value is checked before
+        anything is read: bad input never reaches the bus, not even as the read of the
+        float format register a float needs.
         """
         known = self.worker.float_order(self.device)
         registers = validate_write(self.profile, point, value, float_order=known)
-        if self.profile.point(point).format.dtype is DataType.FLOAT32:
+        if point.format.dtype is DataType.FLOAT32:
             order = await self.float_order()
             if order is not known:
                 registers = validate_write(self.profile, point, value, float_order=order)
         return registers
 
-    async def write(self, point: str, value: object) -> tuple[int, ...]:
+    async def write(self, point: Point, value: object) -> tuple[int, ...]:
         """Check, encode and write a value (06 or 16), keeping the post-write wait.
 
         Returns the registers written. Flash protection is the caller's:
@@ -98,11 +101,9 @@ class DeviceLink:
         await self.write_registers(point, registers)
         return registers
 
-    async def write_registers(self, point: str, registers: tuple[int, ...]) -> None:
+    async def write_registers(self, point: Point, registers: tuple[int, ...]) -> None:
         """Write registers already checked and encoded (see :meth:`encode`)."""
-        if not self.profile.point(point).writable:
-            raise CommandRejectedError("the point is read-only", point=point)
-        await self.worker.write_registers(self.device, point, registers)
+        await self.worker.write_registers(self.device, require_writable(point), registers)
 
 
 @contextlib.asynccontextmanager

@@ -364,7 +364,7 @@ async def set_clock(writer: SafeWriter, *, now: datetime, local: bool = False) -
     second = gateway.now().replace(microsecond=0) + timedelta(seconds=1)
     await asyncio.sleep(max(0.0, (second - gateway.now()).total_seconds()))
     written = second.astimezone() if local else second.astimezone(UTC)
-    outcome = await writer.set(target.point, written, explicit=True)
+    outcome = await writer.set(writer.point(target.point), written, explicit=True)
     return ClockSetting(
         device=link.device,
         point=target.point,
@@ -456,9 +456,7 @@ async def measure(
         await asyncio.sleep(poll_s)
         word = _bits(await link.read_value(MEASUREMENT_STATUS))
 
-    outcome = await writer.set(
-        MEASUREMENT_STATUS, word.raw | 1 << trigger, explicit=True, read_back=False
-    )
+    outcome = await writer.set(control, word.raw | 1 << trigger, explicit=True, read_back=False)
     triggered = time.monotonic()
     saw_running = False
     while True:

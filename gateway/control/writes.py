@@ -3,6 +3,8 @@
 :class:`SafeWriter` is the one path by which commands (MQTT ``…/set``, ``gateway write``)
 and feeds change a device's registers:
 
+0. the point is resolved by name once, where the name comes in (:meth:`SafeWriter.point`),
+   and the :class:`~gateway.profiles.model.Point` is what every step below is given;
 1. the value is checked and encoded for the point (:func:`gateway.control.commands.validate_write`);
    a bit field given as an object of bit names changes those bits only: the word is read
    and the other bits, named or not, are written back as the device holds them;
@@ -22,6 +24,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from gateway.config import FlashPolicy
+from gateway.control.commands import writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today
 from gateway.errors import BusError, CommandRejectedError, EncodeError
 from gateway.profiles.model import Storage
@@ -33,6 +36,7 @@ if TYPE_CHECKING:
 
     from gateway.control.flash import FlashLedger
     from gateway.control.link import DeviceLink
+    from gateway.profiles.model import Point
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -75,32 +79,40 @@ class SafeWriter:
         """The device written to."""
         return self.link.device
 
+    def point(self, name: str) -> Point:
+        """The device's point of that name if it may be written (where a name comes in).
+
+        A :class:`CommandRejectedError` for an unknown or read-only point, with the reason
+        a set command's result carries.
+        """
+        return writable_point(self.link.profile, name)
+
     async def set(
-        self, point: str, value: object, *, explicit: bool = False, read_back: bool = True
+        self, point: Point, value: object, *, explicit: bool = False, read_back: bool = True
     ) -> WriteOutcome:
         """Write ``value`` to ``point`` if every rule allows it; see the module docstring.
 
-        ``explicit`` is for an operator's deliberate step (a calibration, setting the
-        clock): a flash-backed point needs no place in the allow-list and is written even
-        if unchanged (writing the tecLine date stamp again is what activates a
+        ``point`` is one of the device's, resolved once where its name came in
+        (:meth:`point`). ``explicit`` is for an operator's deliberate step (a calibration,
+        setting the clock): a flash-backed point needs no place in the allow-list and is
+        written even if unchanged (writing the tecLine date stamp again is what activates a
         calibration), but the daily budget still holds and the write is still counted.
         ``read_back=False`` saves the read-back (feeds, which write often).
         """
         link = self.link
+        name = point.name
         registers = await link.encode(point, value)  # refuses bad input before any read
-        target = link.profile.point(point)
-        if isinstance(value, Mapping) and target.format.dtype in codec.BITFIELD_TYPES:
+        if isinstance(value, Mapping) and point.format.dtype in codec.BITFIELD_TYPES:
             registers = await link.encode(point, await self._merged_bits(point, value))
-        flash = target.storage is Storage.FLASH
+        flash = point.storage is Storage.FLASH
         current: codec.Decoded = None
         held: tuple[int, ...] | None = None
         policy = self.policy
         if flash and explicit:
-            policy = FlashPolicy(allowed=policy.allowed | {point}, daily_budget=policy.daily_budget)
-        elif flash and point in policy.allowed:
+            policy = FlashPolicy(allowed=policy.allowed | {name}, daily_budget=policy.daily_budget)
+        elif flash and name in policy.allowed:
             current, held = await self._current(point)
         decision = check_flash_write(
-            link.profile,
             point,
             link.device,
             policy=policy,
@@ -110,11 +122,11 @@ class SafeWriter:
             today=self._today(),
         )
         if decision.action is Action.REFUSE:
-            raise CommandRejectedError(decision.reason, point=point)
+            raise CommandRejectedError(decision.reason, point=name)
         if decision.action is Action.SKIP:
             return WriteOutcome(
                 device=link.device,
-                point=point,
+                point=name,
                 written=False,
                 value=current,
                 registers=registers,
@@ -122,18 +134,18 @@ class SafeWriter:
                 note=decision.reason,
             )
         if decision.record:
-            self.ledger.record(link.device, point, self._today())
+            self.ledger.record(link.device, name, self._today())
         await link.write_registers(point, registers)
         note = ""
         after: codec.Decoded = None
         if read_back:
             try:
-                after = await link.read_value(point)
+                after = await link.read_value(name)
             except BusError as exc:
                 note = f"written; the read-back failed: {exc}"
         return WriteOutcome(
             device=link.device,
-            point=point,
+            point=name,
             written=True,
             value=after,
             registers=registers,
@@ -141,7 +153,7 @@ class SafeWriter:
             note=note,
         )
 
-    async def _merged_bits(self, point: str, bits: Mapping[object, object]) -> int:
+    async def _merged_bits(self, point: Point, bits: Mapping[object, object]) -> int:
         """The word the device holds with the named ``bits`` set or cleared.
 
         A plant system that sends ``{"salinity_from_ram": true}`` means that bit, not "clear
@@ -149,30 +161,30 @@ class SafeWriter:
         e.g. the S10 control byte's bits 4-7) is kept as read.
         """
         try:
-            held = await self.link.read_value(point)
+            held = await self.link.read_value(point.name)
         except BusError as exc:
             raise CommandRejectedError(
-                f"could not read the bits to keep, so nothing was written: {exc}", point=point
+                f"could not read the bits to keep, so nothing was written: {exc}",
+                point=point.name,
             ) from exc
         if not isinstance(held, codec.BitfieldValue):
             raise CommandRejectedError(
-                f"the bits to keep read as {held!r}, so nothing was written", point=point
+                f"the bits to keep read as {held!r}, so nothing was written", point=point.name
             )
-        return codec.with_bits(self.link.profile.point(point).format, held.raw, bits)
+        return codec.with_bits(point.format, held.raw, bits)
 
-    async def _current(self, point: str) -> tuple[codec.Decoded, tuple[int, ...] | None]:
+    async def _current(self, point: Point) -> tuple[codec.Decoded, tuple[int, ...] | None]:
         """What a flash-backed point holds, decoded and as registers to compare with."""
         try:
-            current = await self.link.read_value(point)
+            current = await self.link.read_value(point.name)
         except BusError as exc:
             raise CommandRejectedError(
                 f"could not read the current value before a flash write, so nothing was "
                 f"written: {exc}",
-                point=point,
+                point=point.name,
             ) from exc
-        fmt = self.link.profile.point(point).format
         try:
-            held = codec.encode(fmt, current, float_order=await self.link.float_order())
+            held = codec.encode(point.format, current, float_order=await self.link.float_order())
         except EncodeError:
             held = None  # a fault value or an unknown code: compare nothing, write
         return current, held

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from gateway.line.devices import DeviceState
     from gateway.line.samples import Sample
     from gateway.line.transactions import Transactions
+    from gateway.profiles.model import Point
 
 
 @dataclass(slots=True)
@@ -37,7 +38,7 @@ class WriteJob:
     """A write waiting for its turn on the line: a value to encode, or registers encoded."""
 
     device: str
-    point: str
+    point: Point
     value: object
     done: asyncio.Future[frames.Response | None]
     registers: tuple[int, ...] | None = None
@@ -85,17 +86,20 @@ class JobQueue:
     def submit_write(
         self, device: str, point: str, value: object
     ) -> asyncio.Future[frames.Response | None]:
-        """Queue a write of a value to encode."""
-        self.state(device).profile.point(point)
+        """Queue a write of a value to encode; the point is looked up by name here, once."""
+        target = self.state(device).profile.point(point)
         done: asyncio.Future[frames.Response | None] = asyncio.get_running_loop().create_future()
-        self._enqueue(WriteJob(device=device, point=point, value=value, done=done))
+        self._enqueue(WriteJob(device=device, point=target, value=value, done=done))
         return done
 
     async def write_registers(
-        self, device: str, point: str, registers: tuple[int, ...]
+        self, device: str, point: Point, registers: tuple[int, ...]
     ) -> frames.Response | None:
-        """Write registers already encoded; queued while the worker runs, else at once."""
-        self.state(device).profile.point(point)
+        """Write registers already encoded to a point of the device's profile.
+
+        Queued while the worker runs, else at once.
+        """
+        self.state(device)
         done: asyncio.Future[frames.Response | None] = asyncio.get_running_loop().create_future()
         job = WriteJob(device=device, point=point, value=None, done=done, registers=registers)
         if self.running:
@@ -176,7 +180,7 @@ class JobQueue:
         return False
 
     async def _write(self, state: DeviceState, job: WriteJob) -> None:
-        point = state.profile.point(job.point)
+        point = job.point
         try:
             request = self.transactions.write_request(
                 state, point, value=job.value, registers=job.registers

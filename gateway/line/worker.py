@@ -39,6 +39,7 @@ if TYPE_CHECKING:
     from gateway.line.port import Line
     from gateway.line.samples import Sample, Sink
     from gateway.profiles import Profile
+    from gateway.profiles.model import Point
     from gateway.wire import codec, frames
 
 _LOGGER = logging.getLogger(__name__)
@@ -190,7 +191,7 @@ class BusWorker:
         return self.jobs.submit_write(device, point, value)
 
     async def write_registers(
-        self, device: str, point: str, registers: tuple[int, ...]
+        self, device: str, point: Point, registers: tuple[int, ...]
     ) -> frames.Response | None:
         """Write registers already encoded and validated to a point, then keep its wait.
 

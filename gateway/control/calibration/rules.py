@@ -1,0 +1,202 @@
+"""The arithmetic of calibrating, without I/O: slopes and their judgement, stamps, history.
+
+The constants carry their source in the manuals (tecLine annex 7, Reiss chapter 5, the
+H10/H20 manual 6.2.4); where a manual gives no number, the comment says the number is ours.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import TYPE_CHECKING, Final
+
+from gateway.errors import CommandRejectedError
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+    from datetime import datetime
+
+
+# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than 30 %
+
+# of the nominal slope (value at address 0x030A), follow the maintenance instructions".
+SLOPE_WARNING_FRACTION: Final = 0.30
+# tecLine annex 7.2 / Reiss 5.1: history entries 0 (newest, copy of the current one) to 4.
+HISTORY_ENTRIES: Final = 5
+# tecLine annex 7.3.3 / Reiss 5.2.3 "chemical check": the sensor's and the analysed
+# concentration "should be broadly identical". The manuals give no number; 10 % is ours.
+CHEMICAL_CHECK_TOLERANCE: Final = 0.10
+# A float32 read back is compared with the float64 we computed: 24 bits of mantissa.
+_FLOAT32_REL_TOL: Final = 1e-6
+# H10/H20 registers the sensor fills from the same measurement (203F and the logbook phase):
+# compared with a little room, as the manual does not say they are bit-identical.
+SAME_MEASUREMENT_REL_TOL: Final = 1e-4
+
+# X_Span is "nA per unit" of 0x0200 (tecLine annex 7.1), the nominal slope 0x030A is in nA/ppm
+# (annex 7.5.1: "22 nA/ppm"). ppm per one unit of each 0x0200 code, for a dilute aqueous
+# solution (1 l = 1 kg, so mg/l = ppm); our conversion, the manuals do not give one.
+PPM_PER_UNIT: Final[Mapping[str, float]] = {
+    "percent": 10_000.0,  # 1 % = 10 g/kg
+    "permille": 1_000.0,  # 1 ‰ = 1 g/kg
+    "g_per_l": 1_000.0,
+    "ppm": 1.0,
+    "mg_per_l": 1.0,
+    "ppb": 0.001,
+    "ug_per_l": 0.001,  # Reiss code 6, µg/l
+}
+
+AMPEROMETRIC_POINTS: Final = frozenset(
+    {"cell_current", "x_zero", "x_span", "calibration_stamp", "nominal_slope", "unit"}
+)
+OPTICAL_OXYGEN_POINTS: Final = frozenset(
+    {
+        "zero_point_calibration_trigger",
+        "end_value_calibration_trigger",
+        "calibration_mode",
+        "calibration_date",
+        "end_value_oxygen",
+        "logbook_1_entry_type",
+    }
+)
+LOGBOOK_NEWEST: Final = "logbook_1_"
+
+
+# --- the pure part ---------------------------------------------------------------------------
+
+
+def slope_from(cell_current_na: float, reference: float, *, zero_na: float = 0.0) -> float:
+    """X_Span = (cell current - X_Zero) / reference concentration (tecLine annex 7.3.1).
+
+    Refuses what cannot be a slope: a reference that is not above zero, or a cell current
+    not above the zero point (the sensor would divide by a slope of zero or less).
+    """
+    if not math.isfinite(reference) or reference <= 0:
+        raise CommandRejectedError(
+            f"the reference concentration must be above 0, got {reference:g}", point="x_span"
+        )
+    signal = cell_current_na - zero_na
+    if not math.isfinite(signal) or signal <= 0:
+        raise CommandRejectedError(
+            f"the cell current {cell_current_na:g} nA is not above the zero point "
+            f"{zero_na:g} nA: is disinfectant present and the sensor polarised?",
+            point="x_span",
+        )
+    return signal / reference
+
+
+def nominal_in_unit(nominal_na_per_ppm: float, unit: str) -> float:
+    """The nominal slope (nA/ppm) in nA per ``unit``, the unit label of 0x0200."""
+    try:
+        return nominal_na_per_ppm * PPM_PER_UNIT[unit]
+    except KeyError:
+        raise CommandRejectedError(
+            f"the concentration unit {unit!r} (0x0200) has no known relation to ppm, so the "
+            "nominal slope (nA/ppm) cannot be compared or written",
+            point="x_span",
+        ) from None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SlopeJudgement:
+    """A slope against the nominal one: its fraction, and whether it is below 30 %."""
+
+    slope: float  # nA per unit of 0x0200
+    nominal: float  # the nominal slope in the same unit
+    fraction: float  # slope / nominal
+    low: bool  # below SLOPE_WARNING_FRACTION: maintain the sensor (annex 7.3.4)
+
+
+def judge_slope(slope: float, nominal_na_per_ppm: float, unit: str) -> SlopeJudgement:
+    """Compare a slope in nA per ``unit`` with the nominal slope (annex 7.3.4)."""
+    nominal = nominal_in_unit(nominal_na_per_ppm, unit)
+    if not math.isfinite(nominal) or nominal <= 0:
+        raise CommandRejectedError(
+            f"the nominal slope {nominal_na_per_ppm:g} nA/ppm (0x030A) is not usable",
+            point="nominal_slope",
+        )
+    fraction = slope / nominal
+    return SlopeJudgement(
+        slope=slope, nominal=nominal, fraction=fraction, low=fraction < SLOPE_WARNING_FRACTION
+    )
+
+
+def calibration_stamp(when: datetime) -> datetime:
+    """The tecLine/Reiss date stamp for ``when``: wall-clock time to the minute, no zone.
+
+    The stamp ``YYMMDDHHMM`` (annex 7.1) has no time zone; an aware ``when`` keeps its own
+    wall-clock time, as :mod:`gateway.control.commands` does for set commands.
+    """
+    return when.replace(tzinfo=None, second=0, microsecond=0)
+
+
+def stamp_number(when: datetime) -> int:
+    """The stamp as the sensor holds it, e.g. 2019-03-08 13:10 -> 1903081310 (annex 7.1).
+
+    Representable from 2000-01-01 00:00 to 2042-12-31 23:59 (a uint32, annex 7.1).
+    """
+    stamp = calibration_stamp(when)
+    if not 2000 <= stamp.year <= 2042:  # noqa: PLR2004 - the annex's limits, named above
+        raise CommandRejectedError(
+            f"{stamp:%Y-%m-%d %H:%M} is outside the stamp's 2000-2042 range",
+            point="calibration_stamp",
+        )
+    return int(f"{stamp:%y%m%d%H%M}")
+
+
+class HistoryEffect(StrEnum):
+    """What writing a date stamp does to the history (tecLine annex 7.2, Reiss 5.1)."""
+
+    PUSH = "push"  # later stamp: new entry 0, the others move down one, entry 4 is dropped
+    OVERWRITE = "overwrite"  # equal or earlier stamp: entry 0 replaced, entries 1-4 kept
+
+
+def history_effect(new: datetime, last: datetime | None) -> HistoryEffect:
+    """The effect of stamp ``new`` when history entry 0 holds ``last`` (None: never set)."""
+    if last is None or calibration_stamp(new) > calibration_stamp(last):
+        return HistoryEffect.PUSH
+    return HistoryEffect.OVERWRITE
+
+
+@dataclass(frozen=True, slots=True)
+class HistoryEntry:
+    """One calibration: zero point (nA), slope (nA/unit) and date stamp (None: never set)."""
+
+    x_zero: float
+    x_span: float
+    stamp: datetime | None
+
+    def matches(self, other: HistoryEntry) -> bool:
+        """Equal as the sensor stores it: floats to float32 precision, stamps exactly."""
+        return (
+            close_to(self.x_zero, other.x_zero)
+            and close_to(self.x_span, other.x_span)
+            and self.stamp == other.stamp
+        )
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready."""
+        return {
+            "x_zero": self.x_zero,
+            "x_span": self.x_span,
+            "stamp": None if self.stamp is None else self.stamp.isoformat(timespec="minutes"),
+        }
+
+    def __str__(self) -> str:
+        """One line for the operator."""
+        when = "never" if self.stamp is None else f"{self.stamp:%Y-%m-%d %H:%M}"
+        return f"X_Zero {self.x_zero:.6g} nA, X_Span {self.x_span:.6g}, {when}"
+
+
+def expected_history(
+    before: Sequence[HistoryEntry], new: HistoryEntry, effect: HistoryEffect
+) -> tuple[HistoryEntry, ...]:
+    """The history after activating ``new``, as annex 7.2 describes it."""
+    if effect is HistoryEffect.PUSH:
+        return (new, *before[: len(before) - 1])
+    return (new, *before[1:])
+
+
+def close_to(a: float, b: float, rel_tol: float = _FLOAT32_REL_TOL) -> bool:
+    """Whether two values are the same as far as a float32 (or ``rel_tol``) can tell."""
+    return math.isclose(a, b, rel_tol=rel_tol, abs_tol=1e-9)
