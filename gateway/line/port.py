@@ -37,6 +37,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
+from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -136,6 +137,10 @@ class Line:
         self._transport: asyncio.Transport | None = None
         self._receiver: _Receiver | None = None
         self._silence_s = max(SILENCE_CHARACTERS * line.character_s, MIN_SILENCE_S)
+        self._timer = DeadlineTimer()
+        # How late each request started after its gap was due (seconds), kept only when
+        # a benchmark sets a list here; nothing in the gateway reads it.
+        self.gap_lateness_s: list[float] | None = None
 
     @property
     def is_open(self) -> bool:
@@ -173,6 +178,7 @@ class Line:
         """Close the port (idempotent)."""
         transport, self._transport, self._receiver = self._transport, None, None
         self.stats.port_open = False
+        self._timer.close()
         if transport is None:
             return
         if transport.is_closing():
@@ -224,25 +230,29 @@ class Line:
             )
         receiver.arrived.clear()
 
-    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0) -> None:
-        """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``)."""
+    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0) -> float:
+        """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``).
+
+        Returns when the gap was due, for the lateness of the request that follows.
+        """
         receiver = self._live_receiver()
         while True:
             quiet_since = max(self.last_frame_end, receiver.last_byte_at)
             ready = max(quiet_since + gap_s, not_before)
-            delay = ready - time.monotonic()
-            if delay <= 0 and self._unread_input():
-                # Bytes wait in the port's buffer that the event loop has not handed over
-                # yet (a late answer or noise while this process was busy elsewhere): the
-                # line was not quiet. They arrived at the latest now; the gap starts again.
-                receiver.last_byte_at = time.monotonic()
-                continue
-            if delay <= 0:
-                return
-            # The event loop's timers wake up to 1 ms late (epoll counts milliseconds), so a
-            # gap ends up to 1 ms long. Spinning out the last millisecond would shorten it,
-            # but costs about 1 ms of CPU per request: too much with many buses.
-            await asyncio.sleep(delay)
+            if ready <= time.monotonic():
+                if self._unread_input():
+                    # Bytes wait in the port's buffer that the event loop has not handed
+                    # over yet (a late answer or noise while this process was busy
+                    # elsewhere): the line was not quiet. They arrived at the latest now;
+                    # the gap starts again.
+                    receiver.last_byte_at = time.monotonic()
+                    continue
+                return ready
+            # Not asyncio.sleep: its timers end up to 1 ms late (epoll counts whole
+            # milliseconds), which made every gap up to 1 ms long. The timer fires within
+            # tens of microseconds and costs no CPU while it waits (see line/timer).
+            await self._timer.sleep_until(ready)
+            self._live_receiver()
 
     async def transact(
         self,
@@ -260,10 +270,12 @@ class Line:
         :class:`MalformedFrameError`, :class:`DeviceExceptionError` or
         :class:`BusClosedError`; every failure is counted by kind for the device.
         """
-        await self.wait_gap(gap_s, not_before=not_before)
+        due = await self.wait_gap(gap_s, not_before=not_before)
         self.flush_input(request.device)
         assert self._transport is not None  # noqa: S101 - _live_receiver checked it
         sent_at = time.monotonic()
+        if self.gap_lateness_s is not None:
+            self.gap_lateness_s.append(sent_at - due)
         try:
             self._transport.write(request.frame)
         except (OSError, serial.SerialException) as exc:
