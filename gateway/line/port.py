@@ -14,8 +14,9 @@ code implies, resynchronising on garbage and classifying every failure.
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import bisect
 import logging
+import math
 import os
 import stat
 import termios
@@ -84,10 +85,10 @@ class LineStats:
     def observe_latency(self, device: int, seconds: float) -> None:
         """Add one request-to-response time to the histogram."""
         self.latency_sum_s[device] += seconds
-        for bound in LATENCY_BUCKETS_S:
-            if seconds <= bound:
-                self.latency_buckets[device, bound] += 1
-        self.latency_buckets[device, float("inf")] += 1
+        buckets = self.latency_buckets
+        for bound in LATENCY_BUCKETS_S[bisect.bisect_left(LATENCY_BUCKETS_S, seconds) :]:
+            buckets[device, bound] += 1
+        buckets[device, math.inf] += 1
 
     def utilisation(self, now: float | None = None) -> float:
         """Share of wall time the line was busy with our transactions."""
@@ -100,20 +101,27 @@ class _Receiver(asyncio.Protocol):
 
     def __init__(self) -> None:
         self.buffer = bytearray()
-        self.arrived = asyncio.Event()
         self.last_byte_at = 0.0
         self.lost = asyncio.Event()
         self.lost_reason: Exception | None = None
+        # The transaction waiting for bytes: a bare future, not an Event behind
+        # asyncio.wait_for, which made a task per wait and cost two turns of the loop.
+        self.waiter: asyncio.Future[None] | None = None
 
     def data_received(self, data: bytes) -> None:
         self.buffer.extend(data)
         self.last_byte_at = time.monotonic()
-        self.arrived.set()
+        self._wake()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.lost_reason = exc
         self.lost.set()
-        self.arrived.set()
+        self._wake()
+
+    def _wake(self) -> None:
+        waiter = self.waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -136,7 +144,8 @@ class Line:
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
         self._transport: asyncio.Transport | None = None
         self._receiver: _Receiver | None = None
-        self._silence_s = max(SILENCE_CHARACTERS * line.character_s, MIN_SILENCE_S)
+        self._character_s = line.character_s
+        self._silence_s = max(SILENCE_CHARACTERS * self._character_s, MIN_SILENCE_S)
         self._timer = DeadlineTimer()
         # How late each request started after its gap was due (seconds), kept only when
         # a benchmark sets a list here; nothing in the gateway reads it.
@@ -228,7 +237,6 @@ class Line:
             _LOGGER.debug(
                 "%s: discarded %d %s bytes: %s", self.port, len(stale), kind, stale.hex(" ")
             )
-        receiver.arrived.clear()
 
     async def wait_gap(self, gap_s: float, *, not_before: float = 0.0) -> float:
         """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``).
@@ -281,7 +289,7 @@ class Line:
         except (OSError, serial.SerialException) as exc:
             raise BusClosedError(f"{self.port}: write failed: {exc}") from exc
         self.stats.requests[request.device] += 1
-        request_end = sent_at + self.format.wire_s(len(request.frame))
+        request_end = sent_at + len(request.frame) * self._character_s
         if request.is_broadcast:
             self.last_frame_end = request_end
             self.stats.busy_s += request_end - sent_at
@@ -347,9 +355,7 @@ class Line:
             if now >= wake:
                 receiver.buffer.clear()
                 raise scan.failure(self.port)
-            receiver.arrived.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(receiver.arrived.wait(), timeout=wake - now)
+            await _bytes_or_timeout(receiver, wake - now)
             self._live_receiver()
 
     def _consume(self, receiver: _Receiver, scan: _Scan, device: int) -> None:
@@ -363,6 +369,24 @@ class Line:
             self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
         if scan.garbage:
             self.stats.errors[device, ErrorKind.NOISE] += 1
+
+
+async def _bytes_or_timeout(receiver: _Receiver, timeout_s: float) -> None:
+    """Return when bytes arrive, the port is lost, or after ``timeout_s``."""
+    loop = asyncio.get_running_loop()
+    waiter = loop.create_future()
+    receiver.waiter = waiter
+    timer = loop.call_later(timeout_s, _expire, waiter)
+    try:
+        await waiter
+    finally:
+        timer.cancel()
+        receiver.waiter = None
+
+
+def _expire(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_result(None)
 
 
 _WAIT: Final = object()  # a plausible answer has started: wait for the rest

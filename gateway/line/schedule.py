@@ -133,6 +133,7 @@ class Schedule:
         """
         state.deadline_cache.clear()
         late: Late | None = None
+        starting: bool | None = None  # whether any device still reads its identity, once
         for name in set(names):
             interval = state.target.intervals.get(name)
             if interval is None or name not in state.next_due:
@@ -152,8 +153,11 @@ class Schedule:
                 state.missed_deadlines += skipped
             state.next_due[name] = nxt
             state.lag_s = max(0.0, lag)
-            starting = any(s.identity_pending for s in self.devices.values())
-            if lag > interval and not state.lag_reported and not starting:
+            if lag <= interval or state.lag_reported:
+                continue
+            if starting is None:
+                starting = any(s.identity_pending for s in self.devices.values())
+            if not starting:
                 state.lag_reported = True
                 late = Late(point=name, lag_s=lag, interval_s=interval)
         return late
