@@ -12,6 +12,8 @@ and 9600 8N2); printed as a table, and written to bench/results/bus_efficiency.j
 - efficiency: the theoretical minimum bus time of the measured transactions (gap before
   each request, request and answer on the wire, the simulated device's answer delay)
   divided by the bus time measured;
+- gap lateness: how late each request started after its inter-frame gap was due
+  (median and 99th percentile, ms);
 - the gateway's CPU time per transaction (this process only; the simulator runs apart)
   and its peak resident memory.
 
@@ -26,6 +28,7 @@ import contextlib
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -131,11 +134,14 @@ async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[s
     task = asyncio.create_task(worker.run())
     await asyncio.sleep(2.0)  # identity reads and warm-up are not measured
     stats = line.stats
+    lateness: list[float] = []
+    line.gap_lateness_s = lateness
     requests0, busy0 = sum(stats.requests.values()), stats.busy_s
     values0 = sum(sink.values.values())
     cpu0, wall0 = time.process_time(), time.monotonic()
     await asyncio.sleep(seconds)
     cpu1, wall1 = time.process_time(), time.monotonic()
+    line.gap_lateness_s = None
     requests = sum(stats.requests.values()) - requests0
     values = sum(sink.values.values()) - values0
     busy = stats.busy_s - busy0
@@ -152,6 +158,18 @@ async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[s
         "busy_s": busy,
         "cpu_us_per_transaction": 1e6 * (cpu1 - cpu0) / max(requests, 1),
         "errors": errors,
+        **lateness_figures(lateness),
+    }
+
+
+def lateness_figures(lateness_s: list[float]) -> dict[str, float]:
+    """Median and 99th percentile of the requests' lateness after their gap, in ms."""
+    if len(lateness_s) < 2:  # noqa: PLR2004 - quantiles need two
+        return {"gap_late_ms_median": float("nan"), "gap_late_ms_p99": float("nan")}
+    p99 = statistics.quantiles(lateness_s, n=100)[98]
+    return {
+        "gap_late_ms_median": 1000 * statistics.median(lateness_s),
+        "gap_late_ms_p99": 1000 * p99,
     }
 
 
@@ -229,13 +247,15 @@ def main() -> None:
     (RESULTS / "bus_efficiency.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     print(
         f"{'line':<12} {'frames/cycle':>13} {'min ms':>7} {'meas ms':>8} {'efficiency':>10} "
-        f"{'tx/s':>6} {'values/s':>8} {'µs CPU/tx':>9} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
+        f"{'late ms':>7} {'p99':>5} {'tx/s':>6} {'values/s':>8} {'µs CPU/tx':>9} "
+        f"{'RSS MiB':>7} {'err':>4} {'viol':>4}"
     )
     for r in results:
         frames_text = f"{r['frames_per_cycle']}/{r['frames_per_cycle_one_per_point']}"
         print(
             f"{r['line']:<12} {frames_text:>13} {1000 * r['bus_s_per_cycle']:>7.1f} "  # type: ignore[operator]
             f"{1000 * r['measured_s_per_cycle']:>8.1f} {r['efficiency']:>10.3f} "  # type: ignore[operator]
+            f"{r['gap_late_ms_median']:>7.3f} {r['gap_late_ms_p99']:>5.2f} "
             f"{r['transactions_per_s']:>6.1f} {r['values_per_s']:>8.1f} "
             f"{r['cpu_us_per_transaction']:>9.0f} {r['gateway_rss_mib']:>7.1f} "
             f"{r['errors']:>4} {r['timing_violations']:>4}"

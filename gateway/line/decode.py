@@ -39,18 +39,22 @@ class Decoder:
         """The samples of a block read; the device's values and pending identity updated."""
         at = (time.monotonic(), datetime.now(tz=UTC))
         order = state.float_order
+        base = block.address
+        values = state.values
+        pending = state.identity_pending
         samples = []
         for point in block.points:
-            offset = point.address - block.address
+            offset = point.address - base
             chunk = registers[offset : offset + point.count]
             try:
                 value: codec.Decoded = codec.decode(point.format, chunk, float_order=order)
             except DecodeError as exc:
                 value = codec.Fault.undecodable(chunk, exc)
-            self._note_undecodable(state, point, value)
-            state.values[point.name] = value
-            if point.name in state.identity_pending:
-                state.identity_pending.discard(point.name)
+            if isinstance(value, codec.Fault) or state.undecodable:
+                self._note_undecodable(state, point, value)
+            values[point.name] = value
+            if pending and point.name in pending:
+                pending.discard(point.name)
                 state.deadline_cache.clear()
             if isinstance(value, codec.Fault):
                 fault = self._sample(state, point, fault=value.name, raw=value.registers, at=at)

@@ -82,6 +82,7 @@ class Availability:
             state.online = False
             state.backoff_s = state.target.poll_interval_s
             state.probe_at = time.monotonic() + state.backoff_s
+            self.schedule.touch(state)  # the probe may be due before its values were
             _LOGGER.warning(
                 "%s/%s (address %d) is offline after %d failed requests: %s",
                 self.bus,
@@ -110,6 +111,7 @@ class Availability:
             if state.online is not False:
                 state.online = False
                 state.probe_at = 0.0
+                self.schedule.touch(state)
                 await self._announce(state, online=False, reason=reason)
 
     def health(self) -> list[DeviceHealth]:

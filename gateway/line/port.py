@@ -14,8 +14,9 @@ code implies, resynchronising on garbage and classifying every failure.
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import bisect
 import logging
+import math
 import os
 import stat
 import termios
@@ -37,6 +38,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
+from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -83,10 +85,10 @@ class LineStats:
     def observe_latency(self, device: int, seconds: float) -> None:
         """Add one request-to-response time to the histogram."""
         self.latency_sum_s[device] += seconds
-        for bound in LATENCY_BUCKETS_S:
-            if seconds <= bound:
-                self.latency_buckets[device, bound] += 1
-        self.latency_buckets[device, float("inf")] += 1
+        buckets = self.latency_buckets
+        for bound in LATENCY_BUCKETS_S[bisect.bisect_left(LATENCY_BUCKETS_S, seconds) :]:
+            buckets[device, bound] += 1
+        buckets[device, math.inf] += 1
 
     def utilisation(self, now: float | None = None) -> float:
         """Share of wall time the line was busy with our transactions."""
@@ -99,20 +101,27 @@ class _Receiver(asyncio.Protocol):
 
     def __init__(self) -> None:
         self.buffer = bytearray()
-        self.arrived = asyncio.Event()
         self.last_byte_at = 0.0
         self.lost = asyncio.Event()
         self.lost_reason: Exception | None = None
+        # The transaction waiting for bytes: a bare future, not an Event behind
+        # asyncio.wait_for, which made a task per wait and cost two turns of the loop.
+        self.waiter: asyncio.Future[None] | None = None
 
     def data_received(self, data: bytes) -> None:
         self.buffer.extend(data)
         self.last_byte_at = time.monotonic()
-        self.arrived.set()
+        self._wake()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.lost_reason = exc
         self.lost.set()
-        self.arrived.set()
+        self._wake()
+
+    def _wake(self) -> None:
+        waiter = self.waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -135,7 +144,12 @@ class Line:
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
         self._transport: asyncio.Transport | None = None
         self._receiver: _Receiver | None = None
-        self._silence_s = max(SILENCE_CHARACTERS * line.character_s, MIN_SILENCE_S)
+        self._character_s = line.character_s
+        self._silence_s = max(SILENCE_CHARACTERS * self._character_s, MIN_SILENCE_S)
+        self._timer = DeadlineTimer()
+        # How late each request started after its gap was due (seconds), kept only when
+        # a benchmark sets a list here; nothing in the gateway reads it.
+        self.gap_lateness_s: list[float] | None = None
 
     @property
     def is_open(self) -> bool:
@@ -173,6 +187,7 @@ class Line:
         """Close the port (idempotent)."""
         transport, self._transport, self._receiver = self._transport, None, None
         self.stats.port_open = False
+        self._timer.close()
         if transport is None:
             return
         if transport.is_closing():
@@ -222,27 +237,30 @@ class Line:
             _LOGGER.debug(
                 "%s: discarded %d %s bytes: %s", self.port, len(stale), kind, stale.hex(" ")
             )
-        receiver.arrived.clear()
 
-    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0) -> None:
-        """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``)."""
+    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0) -> float:
+        """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``).
+
+        Returns when the gap was due, for the lateness of the request that follows.
+        """
         receiver = self._live_receiver()
         while True:
             quiet_since = max(self.last_frame_end, receiver.last_byte_at)
             ready = max(quiet_since + gap_s, not_before)
-            delay = ready - time.monotonic()
-            if delay <= 0 and self._unread_input():
-                # Bytes wait in the port's buffer that the event loop has not handed over
-                # yet (a late answer or noise while this process was busy elsewhere): the
-                # line was not quiet. They arrived at the latest now; the gap starts again.
-                receiver.last_byte_at = time.monotonic()
-                continue
-            if delay <= 0:
-                return
-            # The event loop's timers wake up to 1 ms late (epoll counts milliseconds), so a
-            # gap ends up to 1 ms long. Spinning out the last millisecond would shorten it,
-            # but costs about 1 ms of CPU per request: too much with many buses.
-            await asyncio.sleep(delay)
+            if ready <= time.monotonic():
+                if self._unread_input():
+                    # Bytes wait in the port's buffer that the event loop has not handed
+                    # over yet (a late answer or noise while this process was busy
+                    # elsewhere): the line was not quiet. They arrived at the latest now;
+                    # the gap starts again.
+                    receiver.last_byte_at = time.monotonic()
+                    continue
+                return ready
+            # Not asyncio.sleep: its timers end up to 1 ms late (epoll counts whole
+            # milliseconds), which made every gap up to 1 ms long. The timer fires within
+            # tens of microseconds and costs no CPU while it waits (see line/timer).
+            await self._timer.sleep_until(ready)
+            self._live_receiver()
 
     async def transact(
         self,
@@ -260,16 +278,18 @@ class Line:
         :class:`MalformedFrameError`, :class:`DeviceExceptionError` or
         :class:`BusClosedError`; every failure is counted by kind for the device.
         """
-        await self.wait_gap(gap_s, not_before=not_before)
+        due = await self.wait_gap(gap_s, not_before=not_before)
         self.flush_input(request.device)
         assert self._transport is not None  # noqa: S101 - _live_receiver checked it
         sent_at = time.monotonic()
+        if self.gap_lateness_s is not None:
+            self.gap_lateness_s.append(sent_at - due)
         try:
             self._transport.write(request.frame)
         except (OSError, serial.SerialException) as exc:
             raise BusClosedError(f"{self.port}: write failed: {exc}") from exc
         self.stats.requests[request.device] += 1
-        request_end = sent_at + self.format.wire_s(len(request.frame))
+        request_end = sent_at + len(request.frame) * self._character_s
         if request.is_broadcast:
             self.last_frame_end = request_end
             self.stats.busy_s += request_end - sent_at
@@ -335,9 +355,7 @@ class Line:
             if now >= wake:
                 receiver.buffer.clear()
                 raise scan.failure(self.port)
-            receiver.arrived.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(receiver.arrived.wait(), timeout=wake - now)
+            await _bytes_or_timeout(receiver, wake - now)
             self._live_receiver()
 
     def _consume(self, receiver: _Receiver, scan: _Scan, device: int) -> None:
@@ -351,6 +369,24 @@ class Line:
             self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
         if scan.garbage:
             self.stats.errors[device, ErrorKind.NOISE] += 1
+
+
+async def _bytes_or_timeout(receiver: _Receiver, timeout_s: float) -> None:
+    """Return when bytes arrive, the port is lost, or after ``timeout_s``."""
+    loop = asyncio.get_running_loop()
+    waiter = loop.create_future()
+    receiver.waiter = waiter
+    timer = loop.call_later(timeout_s, _expire, waiter)
+    try:
+        await waiter
+    finally:
+        timer.cancel()
+        receiver.waiter = None
+
+
+def _expire(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_result(None)
 
 
 _WAIT: Final = object()  # a plausible answer has started: wait for the rest

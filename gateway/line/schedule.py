@@ -6,13 +6,19 @@ deadlines are counted and skipped, never piled up. Values (process values and st
 come first; diagnostics and configuration (the slow class) fill the time values leave
 free. Between devices the earliest deadline wins, ties to the lower address.
 
-The earliest deadline of a device is cached per class, so the next device is found in one
-pass over the line's devices (247 at most) rather than kept in a heap, which would have to
-follow every quarantine, post-write wait and probe as well.
+The earliest deadline of a device is cached per class, and the devices sit in a heap per
+class keyed by it, so the next device is found in O(log n). The heap is checked lazily: an
+entry whose device has since moved on is dropped or pushed again when it comes to the top,
+which covers every deadline that only grows (points read, identity read, points found
+unreadable). A deadline that can move earlier is pushed at once by :meth:`Schedule.touch`:
+a (re)start and a device going offline (its probe may be due before its values). Waits
+(quarantines, post-write waits) are not in the key: a device inside one is set aside for
+that pick, as before.
 """
 
 from __future__ import annotations
 
+import heapq
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final
@@ -42,14 +48,36 @@ class Schedule:
     def __init__(self, devices: Mapping[str, DeviceState]) -> None:
         """Schedule ``devices`` (the worker's states, shared)."""
         self.devices = devices
+        # Per class (slow: diagnostics): (deadline, address, index, device); the key last
+        # pushed for each device index, older entries of a device being stale.
+        self._index = {state.target.name: n for n, state in enumerate(devices.values())}
+        self._heaps: dict[bool, list[tuple[float, int, int, DeviceState]]] = {False: [], True: []}
+        self._keys: dict[bool, dict[int, float]] = {False: {}, True: {}}
+        for state in devices.values():
+            self.touch(state)
+
+    def touch(self, state: DeviceState) -> None:
+        """Put the device in the heaps with its deadlines as they are now.
+
+        Needed where a deadline may move earlier than the one the heap holds (a restart,
+        the device going offline); a deadline that grows is found out when it is popped.
+        """
+        for slow in (False, True):
+            self._push(state, self.next_deadline(state, slow=slow), slow=slow)
+
+    def _push(self, state: DeviceState, deadline: float, *, slow: bool) -> None:
+        index = self._index[state.target.name]
+        if self._keys[slow].get(index) == deadline:
+            return  # already there with this key
+        self._keys[slow][index] = deadline
+        heapq.heappush(self._heaps[slow], (deadline, state.target.address, index, state))
 
     def restart(self, now: float) -> None:
         """Everything due now, identity again, on every device (start or reconnection)."""
         for state in self.devices.values():
             self.restart_device(state, now)
 
-    @staticmethod
-    def restart_device(state: DeviceState, now: float) -> None:
+    def restart_device(self, state: DeviceState, now: float) -> None:
         """Everything due now, identity again (start, reconnection, back online)."""
         state.next_due.clear()
         state.identity_pending.clear()
@@ -72,6 +100,7 @@ class Schedule:
         if profile.float_order_register is not None and state.target.float_order is None:
             state.identity_pending.add(profile.float_order_register.point)
         state.attempts.clear()
+        self.touch(state)
 
     @staticmethod
     def is_slow(state: DeviceState, name: str) -> bool:
@@ -104,13 +133,31 @@ class Schedule:
         return cached
 
     def pick(self, now: float, *, slow: bool) -> DeviceState | None:
-        """The device with the earliest due work of the class (ties: lower address)."""
-        due = [
-            (deadline, s.target.address, s)
-            for s in self.devices.values()
-            if s.not_before <= now and (deadline := self.next_deadline(s, slow=slow)) <= now
-        ]
-        return min(due, key=lambda item: (item[0], item[1]))[2] if due else None
+        """The device with the earliest due work of the class (ties: lower address).
+
+        O(log n) per device looked at: the heap's top, past stale entries and devices
+        inside a wait, which go back for the next pick.
+        """
+        heap, keys = self._heaps[slow], self._keys[slow]
+        waiting: list[tuple[float, int, int, DeviceState]] = []
+        chosen: DeviceState | None = None
+        while heap and heap[0][0] <= now:
+            entry = heapq.heappop(heap)
+            deadline, _, index, state = entry
+            if keys.get(index) != deadline:
+                continue  # the device was pushed again since: this entry is stale
+            current = self.next_deadline(state, slow=slow)
+            if current != deadline:  # its deadline grew (points read): where it is now
+                keys[index] = current
+                heapq.heappush(heap, (current, entry[1], index, state))
+                continue
+            waiting.append(entry)  # stays scheduled: picking is not serving
+            if state.not_before <= now:
+                chosen = state
+                break
+        for entry in waiting:
+            heapq.heappush(heap, entry)
+        return chosen
 
     def wake_at(self, now: float) -> float:
         """When the next device has work it may do (its waits kept); ``now + 1`` without devices."""
@@ -133,6 +180,7 @@ class Schedule:
         """
         state.deadline_cache.clear()
         late: Late | None = None
+        starting: bool | None = None  # whether any device still reads its identity, once
         for name in set(names):
             interval = state.target.intervals.get(name)
             if interval is None or name not in state.next_due:
@@ -152,8 +200,12 @@ class Schedule:
                 state.missed_deadlines += skipped
             state.next_due[name] = nxt
             state.lag_s = max(0.0, lag)
-            starting = any(s.identity_pending for s in self.devices.values())
-            if lag > interval and not state.lag_reported and not starting:
+            if lag <= interval or state.lag_reported:
+                continue
+            if starting is None:
+                starting = any(s.identity_pending for s in self.devices.values())
+            if not starting:
                 state.lag_reported = True
                 late = Late(point=name, lag_s=lag, interval_s=interval)
+        self.touch(state)  # a point read early takes a new phase, which may come sooner
         return late

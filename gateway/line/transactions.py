@@ -89,16 +89,30 @@ class Transactions:
             )
             for name, state in devices.items()
         }
+        # Read requests by (device, address, count): the same few blocks are asked again
+        # and again, and building one through pymodbus costs more than the rest of a read.
+        self._read_requests: dict[tuple[int, int, int], frames.Request] = {}
+        self._gaps: dict[str, float] = {}
+        self._timeouts: dict[tuple[str, int], float] = {}
 
     def timeout_for(self, state: DeviceState, response_bytes: int) -> float:
         """How long to wait for an answer of ``response_bytes`` from the device."""
-        return default_timeout_s(state.target, response_bytes, self.line.format.character_s)
+        key = (state.target.name, response_bytes)
+        timeout = self._timeouts.get(key)
+        if timeout is None:  # the target, its profile and the line format never change
+            timeout = default_timeout_s(state.target, response_bytes, self.line.format.character_s)
+            self._timeouts[key] = timeout
+        return timeout
 
     def gap_s(self, state: DeviceState) -> float:
         """The silence the device needs before a request."""
-        return self.line.format.frame_gap_s(
-            max(state.profile.timing.min_gap_s, state.target.extra_gap_s)
-        )
+        gap = self._gaps.get(state.target.name)
+        if gap is None:
+            gap = self.line.format.frame_gap_s(
+                max(state.profile.timing.min_gap_s, state.target.extra_gap_s)
+            )
+            self._gaps[state.target.name] = gap
+        return gap
 
     async def transact(
         self, state: DeviceState, request: frames.Request, response_bytes: int
@@ -160,13 +174,22 @@ class Transactions:
             if any(point.name in due for point in block.points)
         )
 
+    def read_request(self, state: DeviceState, block: ReadBlock) -> frames.Request:
+        """The request that reads ``block`` (built once, then reused: requests are values)."""
+        key = (state.target.address, block.address, block.count)
+        request = self._read_requests.get(key)
+        if request is None:
+            request = frames.read_request(*key)
+            self._read_requests[key] = request
+        return request
+
     async def read_block(self, state: DeviceState, block: ReadBlock) -> list[Sample] | None:
         """Read one block; ``None`` when it will be retried later.
 
         Every failed transaction counts towards taking the device offline; any answer,
         an exception included, shows it is there.
         """
-        request = frames.read_request(state.target.address, block.address, block.count)
+        request = self.read_request(state, block)
         try:
             response = await self.transact(state, request, 5 + 2 * block.count)
         except DeviceExceptionError as exc:
@@ -249,7 +272,7 @@ class Transactions:
         """One small read of an offline device; on success it is polled in full again."""
         names = list(state.target.intervals) or [state.profile.points[0].name]
         block = self.plan(state, names[:1])[0]
-        request = frames.read_request(state.target.address, block.address, block.count)
+        request = self.read_request(state, block)
         try:
             await self.transact(state, request, 5 + 2 * block.count)
         except DeviceExceptionError:

@@ -253,12 +253,18 @@ def reorder_float(
     return regs[0], regs[1]
 
 
+# For each order, the wire byte that lands at each IEEE position (the inverse of the above):
+# a float is decoded on every poll, so the bytes are picked, not shuffled in a loop.
+_IEEE_FROM_WIRE: dict[WordOrder, tuple[int, int, int, int]] = {
+    order: (wire.index(0), wire.index(1), wire.index(2), wire.index(3))
+    for order, wire in _WIRE_TO_IEEE.items()
+}
+
+
 def _float_bits(registers: Sequence[int], order: WordOrder) -> int:
     wire = registers_to_bytes(registers[:2])
-    ieee = bytearray(4)
-    for wire_index, ieee_index in enumerate(_WIRE_TO_IEEE[order]):
-        ieee[ieee_index] = wire[wire_index]
-    return int.from_bytes(ieee, "big")
+    a, b, c, d = _IEEE_FROM_WIRE[order]
+    return int.from_bytes(bytes((wire[a], wire[b], wire[c], wire[d])), "big")
 
 
 # --- decoders --------------------------------------------------------------------------

@@ -229,6 +229,18 @@ def parse_response(
             expected=request.device,
             received=frame[0],
         )
+    count = request.count
+    if (
+        request.function in READ_FUNCTIONS
+        and frame[1] == request.function
+        and frame[2] == 2 * count
+        and len(frame) == 5 + 2 * count
+    ):
+        # The answer to nearly every request: registers as pymodbus would decode them
+        # (big-endian words), read straight from the frame. Its decoder took a third of
+        # a transaction's CPU; everything else still goes through it below.
+        registers = struct.unpack_from(f">{count}H", frame, 3)
+        return _read_response(request, frame, registers, None)
     tolerated = None
     if (
         byte_count_16bit

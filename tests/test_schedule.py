@@ -1,0 +1,108 @@
+"""The pure schedule: its heap picks what a scan over every device would, step by step."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+
+from gateway.line.devices import DeviceState, DeviceTarget
+from gateway.line.schedule import Schedule
+from gateway.profiles import PollGroup, get_profile
+
+FAMILIES = ("jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c")
+
+
+def seeded(seed: int) -> random.Random:
+    return random.Random(seed)  # noqa: S311 - a repeatable test, nothing secret
+
+
+def states(count: int, rng: random.Random) -> dict[str, DeviceState]:
+    result = {}
+    for n in range(count):
+        profile = get_profile(FAMILIES[n % len(FAMILIES)])
+        process = [p for p in profile.points_in(PollGroup.PROCESS, PollGroup.STATUS) if not p.view]
+        slow = [p for p in profile.points_in(PollGroup.DIAGNOSTICS) if not p.view][:3]
+        intervals: dict[str, float | None] = {p.name: rng.choice((0.5, 1.0, 2.0)) for p in process}
+        intervals.update({p.name: 10.0 for p in slow})
+        target = DeviceTarget(
+            name=f"d{n}", address=rng.randint(1, 247), profile=profile, intervals=intervals
+        )
+        result[target.name] = DeviceState(target=target)
+    return result
+
+
+def scan(schedule: Schedule, now: float, *, slow: bool) -> DeviceState | None:
+    """The reference: every device looked at, the earliest deadline, ties to the lower address."""
+    due = [
+        (deadline, s.target.address, n, s)
+        for n, s in enumerate(schedule.devices.values())
+        if s.not_before <= now and (deadline := schedule.next_deadline(s, slow=slow)) <= now
+    ]
+    return min(due, key=lambda item: item[:3])[3] if due else None
+
+
+def identity_read(state: DeviceState) -> None:
+    state.identity_pending.clear()
+    state.deadline_cache.clear()
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_the_heap_picks_what_a_scan_picks(seed: int) -> None:
+    rng = seeded(seed)
+    devices = states(rng.randint(1, 40), rng)
+    schedule = Schedule(devices)
+    now = 1000.0
+    schedule.restart(now)
+    for _ in range(600):
+        now += rng.choice((0.0, 0.001, 0.05, 0.3))
+        slow = rng.random() < 0.3
+        chosen = schedule.pick(now, slow=slow)
+        expected = scan(schedule, now, slow=slow)
+        assert chosen is expected
+        if chosen is None:
+            continue
+        action = rng.random()
+        if action < 0.6:
+            identity_read(chosen)
+            names = schedule.due_points(chosen, now, slow=slow)
+            schedule.advance(chosen, rng.sample(names, k=(len(names) + 1) // 2), now)
+        elif action < 0.75:
+            chosen.not_before = now + rng.choice((0.01, 0.25, 1.0))  # a wait: set aside
+        elif action < 0.85:
+            chosen.online = False  # as Availability does, then tells the schedule
+            chosen.probe_at = now + rng.choice((0.0, 0.5))
+            schedule.touch(chosen)
+        elif action < 0.92:
+            chosen.online = None
+            schedule.restart_device(chosen, now)
+        else:
+            names = sorted(chosen.next_due)
+            chosen.unreadable.add(rng.choice(names))
+            chosen.deadline_cache.clear()
+
+
+def test_a_device_inside_a_wait_is_passed_over_then_picked_when_it_ends() -> None:
+    devices = states(2, seeded(1))
+    first, second = sorted(devices.values(), key=lambda s: s.target.address)
+    schedule = Schedule(devices)
+    schedule.restart(0.0)
+    identity_read(first)
+    identity_read(second)
+    first.not_before = 5.0
+    assert schedule.pick(1.0, slow=False) is second
+    assert schedule.pick(5.0, slow=False) is first  # ties go to the lower address
+
+
+def test_nothing_due_is_nothing_picked() -> None:
+    devices = states(3, seeded(2))
+    schedule = Schedule(devices)
+    assert schedule.pick(0.0, slow=False) is None  # never started: no deadlines
+    schedule.restart(10.0)
+    for state in devices.values():
+        identity_read(state)
+        schedule.advance(state, list(state.next_due), 10.0)
+    assert schedule.pick(10.0, slow=False) is None
+    assert schedule.wake_at(10.0) > 10.0
+    assert not math.isinf(schedule.wake_at(10.0))
