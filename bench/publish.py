@@ -44,7 +44,7 @@ from gateway.publish.prometheus import GatewayCollector
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Iterator
+    from collections.abc import AsyncIterator, Iterator, Sequence
 
 RESULTS = Path(__file__).parent / "results"
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
@@ -86,6 +86,10 @@ def rss_mib() -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+def percentile_ms(ordered: Sequence[float], fraction: float) -> float:
+    return 1000 * ordered[int(fraction * (len(ordered) - 1))] if ordered else float("nan")
 
 
 def synthetic_state(buses: int, devices: int) -> tuple[GatewayState, list[list[Sample]]]:
@@ -230,6 +234,16 @@ async def plant(
     broker: int, directory: Path, buses: int, devices: int, seconds: float
 ) -> dict[str, float]:
     latencies: list[float] = []
+    decoded: list[float] = []
+    handed: dict[tuple[str, int], float] = {}
+    hand_over = MqttSink.publish
+
+    async def timed(sink: MqttSink, samples: Sequence[Sample]) -> None:
+        # When the bus task hands a decoded cycle over, keyed by the document's seq.
+        if samples:
+            device = samples[0].device
+            handed[device, sink._sequence.get(device, 0) + 1] = time.perf_counter()  # noqa: SLF001
+        await hand_over(sink, samples)
 
     async def subscribe() -> None:
         async with aiomqtt.Client("127.0.0.1", broker) as client:
@@ -237,13 +251,19 @@ async def plant(
             async for message in client.messages:
                 payload = message.payload
                 if isinstance(payload, bytes):
-                    sent = datetime.fromisoformat(json.loads(payload)["time"])
+                    arrived = time.perf_counter()
+                    document = json.loads(payload)
+                    sent = datetime.fromisoformat(document["time"])
                     latencies.append((datetime.now(tz=UTC) - sent).total_seconds())
+                    device = message.topic.value.split("/")[1]
+                    if (at := handed.pop((device, document["seq"]), None)) is not None:
+                        decoded.append(arrived - at)
 
     async with simulators(directory, buses, devices) as (ports, _):
         config = parse_config(plant_config(ports, devices, broker, directory), environ={})
         state = GatewayState()
         stop = asyncio.Event()
+        MqttSink.publish = timed  # type: ignore[method-assign,assignment]
         listener = asyncio.create_task(subscribe())
         gateway = asyncio.create_task(run(config, stop=stop, state=state))
         await asyncio.sleep(5.0)  # identity reads, warm-up
@@ -252,14 +272,16 @@ async def plant(
         settle_until = time.monotonic() + 30
         while state.mqtt.queue_depth > WARM_BACKLOG and time.monotonic() < settle_until:  # noqa: ASYNC110
             await asyncio.sleep(0.2)
-        first = len(latencies)
+        first, first_decoded = len(latencies), len(decoded)
         cpu0 = time.process_time()
         await asyncio.sleep(seconds)
         cpu = time.process_time() - cpu0
         rss = rss_mib()
         measured = latencies[first:]
+        measured_decoded = sorted(decoded[first_decoded:])
         stop.set()
         await asyncio.wait_for(gateway, timeout=30)
+        MqttSink.publish = hand_over  # type: ignore[method-assign]
         listener.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await listener
@@ -272,6 +294,8 @@ async def plant(
         "latency_p99_ms": 1000 * ordered[int(0.99 * (len(ordered) - 1))]
         if ordered
         else float("nan"),
+        "decoded_latency_p50_ms": percentile_ms(measured_decoded, 0.5),
+        "decoded_latency_p99_ms": percentile_ms(measured_decoded, 0.99),
         "gateway_rss_mib": rss,
         "gateway_cpu_share": cpu / seconds,
         "mqtt_dropped": state.mqtt.dropped,

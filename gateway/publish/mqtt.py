@@ -19,8 +19,10 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
 import random
 import socket
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final, Protocol
@@ -34,6 +36,7 @@ from gateway.line.samples import Quality, hex_registers, json_value
 from gateway.profiles import get_profile
 from gateway.publish.discovery import discovery_messages
 from gateway.publish.message import Message
+from gateway.publish.state import STALE_FACTOR, STALE_MARGIN_S
 from gateway.publish.store import MessageStore
 from gateway.wire.codec import BitfieldValue
 
@@ -72,12 +75,26 @@ class Listener(Protocol):
         ...
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class _Route:
+    """A point's value topic and publish settings, worked out once."""
+
+    topic: str  # {device}/{point}
+    full_topic: str  # {base}/{device}/{point}
+    settings: PublishSettings
+
+
 @dataclass(slots=True)
 class _Published:
     """What was last published on a value topic, for the change and deadband modes."""
 
     value: object
     at: float
+
+
+# The state document's serialiser, built once: ``json.dumps`` with an argument builds a
+# new encoder at every call. Same text as ``json.dumps(document, ensure_ascii=False)``.
+_encode_json = json.JSONEncoder(ensure_ascii=False).encode
 
 
 def _payload(value: object) -> str:
@@ -111,7 +128,8 @@ class MqttSink:
         self.client_id = settings.client_id or f"gateway-{socket.gethostname()}"
         self._publish = dict(publish or {})
         self._default_publish = PublishSettings()
-        self._last: dict[str, _Published] = {}
+        self._last: dict[str, _Published] = {}  # the change modes' last publish per topic
+        self._routes: dict[tuple[str, str], _Route] = {}
         self._flags: dict[str, bool] = {}
         self._fault_cleared: set[str] = set()
         self._live: deque[Message] = deque()
@@ -140,7 +158,7 @@ class MqttSink:
             return
         messages: list[Message] = []
         for sample in samples:
-            messages.extend(self._value_messages(sample))
+            self._value_messages(sample, messages)
         first = samples[0]
         messages.append(self._state_document(first.bus, first.device, first.time))
         if self.settings.discovery.enabled and (first.bus, first.device) not in self._discovered:
@@ -176,44 +194,61 @@ class MqttSink:
     def _message(
         self, suffix: str, payload: str, *, retain: bool, qos: int | None = None
     ) -> Message:
-        return Message.text(
-            f"{self.base}/{suffix}",
-            payload,
+        return Message(
+            topic=f"{self.base}/{suffix}",
+            payload=payload.encode(),
             qos=self.settings.qos if qos is None else qos,
             retain=retain,
         )
 
-    def _settings_for(self, sample: Sample) -> PublishSettings:
-        return self._publish.get((sample.device, sample.point), self._default_publish)
+    def _route(self, sample: Sample) -> _Route:
+        """What a point's value messages need, worked out at its first sample."""
+        key = (sample.device, sample.point)
+        route = self._routes[key] = _Route(
+            topic=f"{sample.device}/{sample.point}",
+            full_topic=f"{self.base}/{sample.device}/{sample.point}",
+            settings=self._publish.get(key, self._default_publish),
+        )
+        return route
 
-    def _value_messages(self, sample: Sample) -> list[Message]:
-        topic = f"{sample.device}/{sample.point}"
-        messages = []
+    def _value_messages(self, sample: Sample, messages: list[Message]) -> None:
+        """Append a sample's value (and status bit) messages to ``messages``."""
+        route = self._routes.get((sample.device, sample.point)) or self._route(sample)
+        topic = route.topic
+        value_qos = self.settings.value_qos
         if sample.quality is not Quality.GOOD:
             # No number for a fault or a failed read: clear the retained value once.
             if topic not in self._fault_cleared:
                 self._fault_cleared.add(topic)
                 self._last.pop(topic, None)
-                messages.append(self._message(topic, "", retain=True, qos=self.settings.value_qos))
-            return messages
-        self._fault_cleared.discard(topic)
-        if self._due(topic, sample):
-            self._last[topic] = _Published(value=sample.value, at=sample.monotonic)
-            value = _payload(sample.value)
-            messages.append(self._message(topic, value, retain=True, qos=self.settings.value_qos))
-        if isinstance(sample.value, BitfieldValue):
-            for flag, on in sample.value.flags:
+                messages.append(
+                    Message(topic=route.full_topic, payload=b"", qos=value_qos, retain=True)
+                )
+            return
+        if self._fault_cleared:
+            self._fault_cleared.discard(topic)
+        value = sample.value
+        if route.settings.mode is PublishMode.EVERY_POLL or self._due(topic, route, sample):
+            if route.settings.mode is not PublishMode.EVERY_POLL:
+                self._last[topic] = _Published(value=value, at=sample.monotonic)
+            payload = repr(value) if type(value) is float else _payload(value)
+            messages.append(
+                Message(
+                    topic=route.full_topic, payload=payload.encode(), qos=value_qos, retain=True
+                )
+            )
+        if isinstance(value, BitfieldValue):
+            for flag, on in value.flags:
                 key = f"{sample.device}/status/{flag}"
                 if self._flags.get(key) != on:
                     self._flags[key] = on
                     messages.append(self._message(key, "true" if on else "false", retain=True))
-        return messages
 
-    def _due(self, topic: str, sample: Sample) -> bool:
-        """Whether the publish mode wants this value out now."""
-        settings = self._settings_for(sample)
+    def _due(self, topic: str, route: _Route, sample: Sample) -> bool:
+        """Whether a change mode wants this value out now."""
+        settings = route.settings
         last = self._last.get(topic)
-        if settings.mode is PublishMode.EVERY_POLL or last is None:
+        if last is None:
             return True
         if sample.monotonic - last.at >= settings.heartbeat_s:
             return True
@@ -228,18 +263,28 @@ class MqttSink:
         """Every point's latest value, unit, fault and quality, as the gateway sees them now.
 
         A value that could not be decoded also has its registers under ``raw`` (a key
-        present only then), so a subscriber sees what the sensor sent.
+        present only then), so a subscriber sees what the sensor sent. Built once per
+        cycle: the device's intervals and the clock are read once, not per point.
         """
         values: dict[str, object] = {}
         units: dict[str, str | None] = {}
         faults: dict[str, str] = {}
         quality: dict[str, str] = {}
         raw: dict[str, list[str]] = {}
+        info = self.state.devices.get((bus, device))
+        intervals = info.intervals if info is not None else {}
+        now = time.monotonic()
+        good = Quality.GOOD
         for point, sample in sorted(self.state.device_samples(bus, device).items()):
             units[point] = sample.unit
-            if sample.quality is Quality.GOOD:
-                values[point] = json_value(sample.value)
-                quality[point] = "stale" if self.state.is_stale(sample) else "good"
+            if sample.quality is good:
+                value = sample.value
+                values[point] = value if type(value) is float else json_value(value)
+                interval = intervals.get(point)
+                stale = interval is not None and now - sample.monotonic > (
+                    STALE_FACTOR * interval + STALE_MARGIN_S
+                )
+                quality[point] = "stale" if stale else "good"
             else:
                 faults[point] = sample.fault or sample.quality.value
                 quality[point] = sample.quality.value
@@ -256,8 +301,11 @@ class MqttSink:
         }
         if raw:
             document["raw"] = raw
-        return self._message(
-            f"{device}/state", json.dumps(document, ensure_ascii=False), retain=False
+        return Message(
+            topic=f"{self.base}/{device}/state",
+            payload=_encode_json(document).encode(),
+            qos=self.settings.qos,
+            retain=False,
         )
 
     # --- queueing --------------------------------------------------------------------------
@@ -462,8 +510,15 @@ class MqttSink:
         and are sent again (QoS 1 allows the duplicate). One publish at a time moved only
         some 550 messages a second out of a gateway polling 480 devices: each PUBACK waited
         its turn in a busy event loop.
+
+        The loop wakes on a new message as well as on an acknowledgement (a publish's end
+        sets the same event), so a cycle handed over while the window waits for a PUBACK
+        goes out at once, not after it. A publish carries no timer of its own: the oldest
+        unacknowledged one is given :data:`CLIENT_TIMEOUT_S`, as aiomqtt gave each.
         """
-        window: deque[asyncio.Task[None]] = deque()
+        window: deque[tuple[asyncio.Task[None], float]] = deque()
+        wake = self._wake
+        loop = asyncio.get_running_loop()
         try:
             while True:
                 if len(self.store) and not window:
@@ -472,21 +527,64 @@ class MqttSink:
                 if not self._connected:
                     self._connected = True
                     self._update_status()
-                while len(window) < min(WINDOW, len(self._live)):
-                    message = self._live[len(window)]
-                    window.append(_in_flight(self._send(client, message)))
+                wake.clear()
+                self._retire(window)
+                if len(window) < WINDOW and len(self._live) > len(window):
+                    self._fill(client, window, loop.time())
                 if not window:
                     self._update_status()
-                    self._wake.clear()
-                    await self._wake.wait()
+                    await wake.wait()
                     continue
-                await window[0]
-                window.popleft()
-                self._live.popleft()
-                self.state.mqtt.published += 1
+                if wake.is_set():
+                    continue
+                try:
+                    async with asyncio.timeout_at(window[0][1] + CLIENT_TIMEOUT_S):
+                        await wake.wait()
+                except TimeoutError:
+                    raise aiomqtt.MqttError("Operation timed out") from None
         finally:
-            for task in window:
+            for task, _ in window:
                 task.cancel()
+
+    def _retire(self, window: deque[tuple[asyncio.Task[None], float]]) -> None:
+        """The acknowledged head of the window leaves it, and the live queue, in order."""
+        live = self._live
+        status = self.state.mqtt
+        while window and window[0][0].done():
+            window.popleft()[0].result()  # a failed publish ends the session
+            live.popleft()
+            status.published += 1
+
+    def _fill(
+        self,
+        client: aiomqtt.Client,
+        window: deque[tuple[asyncio.Task[None], float]],
+        now: float,
+    ) -> None:
+        """Start the live messages behind the window until it is full."""
+        live = self._live
+        while len(window) < WINDOW and len(live) > len(window):
+            window.append((self._start(client, live[len(window)]), now))
+
+    def _start(self, client: aiomqtt.Client, message: Message) -> asyncio.Task[None]:
+        """A live publish as a task whose end wakes the sender (ack or failure alike)."""
+        task = asyncio.create_task(
+            client.publish(
+                message.topic,
+                message.payload,
+                qos=message.qos,
+                retain=message.retain,
+                timeout=math.inf,  # the sender times the oldest publish itself
+            )
+        )
+        task.add_done_callback(self._published)
+        return task
+
+    def _published(self, done: asyncio.Task[None]) -> None:
+        """A live publish ended: wake the sender; its failure counts as seen."""
+        self._wake.set()
+        if not done.cancelled():
+            done.exception()
 
 
 def _in_flight(publish: Coroutine[object, object, None]) -> asyncio.Task[None]:
