@@ -1,0 +1,238 @@
+"""The HTTP server: ``/metrics`` from the collector's registry, and ``/healthz``."""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import socketserver
+import sys
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import TYPE_CHECKING, Final, Self
+from urllib.parse import urlsplit
+
+from prometheus_client import CollectorRegistry
+from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
+
+from gateway.errors import PublishError
+from gateway.publish.prometheus.collector import GatewayCollector
+
+if TYPE_CHECKING:
+    from gateway.publish.state import GatewayState
+
+_LOGGER = logging.getLogger(__name__)
+
+DEFAULT_HOST: Final = "0.0.0.0"  # noqa: S104 - prometheus.host's documented default
+DEFAULT_PORT: Final = 9108  # prometheus.port's default, as in the product contract
+POLL_INTERVAL_S: Final = 0.1  # serve_forever checks for shutdown this often: bounds stop()
+STOP_TIMEOUT_S: Final = 2.0  # wait for the server thread to end after shutdown
+REQUEST_TIMEOUT_S: Final = 10.0  # socket timeout of one HTTP connection
+_INTERNAL_ERROR: Final = (HTTPStatus.INTERNAL_SERVER_ERROR, "text/plain", b"internal error\n")
+
+
+# --- /healthz --------------------------------------------------------------------------------
+
+
+def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
+    """Whether the gateway is healthy, and the ``/healthz`` body that says why (not).
+
+    Healthy: every bus port is open, and MQTT is connected or buffering within its bound.
+    A device that does not answer is the device's problem, not the gateway's: it shows
+    in ``devices_online`` and the metrics, not in the status.
+    """
+    snapshot = state.snapshot()
+    availability = {(h.bus, h.device): h.online for h in snapshot.health()}
+    reasons: list[str] = []
+    buses: dict[str, object] = {}
+    for bus, stats in sorted(snapshot.lines.items()):
+        devices = [info for info in snapshot.devices.values() if info.bus == bus]
+        online = sum(
+            1 for info in devices if availability.get((bus, info.name), info.online) is True
+        )
+        buses[bus] = {
+            "port_open": stats.port_open,
+            "devices_online": online,
+            "devices": len(devices),
+        }
+        if not stats.port_open:
+            reasons.append(f"bus {bus}: port not open ({stats.port_failures} failures)")
+    mqtt = snapshot.mqtt
+    if not mqtt.healthy:
+        why = f": {mqtt.last_error}" if mqtt.last_error else ""
+        reasons.append(
+            f"mqtt: not connected and the queue is full ({mqtt.queue_depth}/{mqtt.queue_max}){why}"
+        )
+    body: dict[str, object] = {
+        "status": "unhealthy" if reasons else "ok",
+        "reasons": reasons,
+        "buses": buses,
+        "mqtt": {
+            "enabled": mqtt.enabled,
+            "connected": mqtt.connected,
+            "healthy": mqtt.healthy,
+            "queue_depth": mqtt.queue_depth,
+            "queue_max": mqtt.queue_max,
+            "dropped": mqtt.dropped,
+            "published": mqtt.published,
+            "last_error": mqtt.last_error,
+        },
+    }
+    return not reasons, body
+
+
+# --- the HTTP server -------------------------------------------------------------------------
+
+
+class _Server(ThreadingHTTPServer):
+    """The HTTP server with what its handlers read."""
+
+    daemon_threads = True  # a hung scraper never holds up shutdown
+
+    def __init__(
+        self, address: tuple[str, int], *, state: GatewayState, registry: CollectorRegistry
+    ) -> None:
+        self.state = state
+        self.registry = registry
+        super().__init__(address, _Handler)
+
+    def server_bind(self) -> None:
+        # HTTPServer.server_bind looks the host's FQDN up (reverse DNS, slow or hanging
+        # on a plant network); the name is never used here.
+        socketserver.TCPServer.server_bind(self)
+        host, port = self.server_address[:2]
+        self.server_name = str(host)
+        self.server_port = int(port)
+
+    def handle_error(self, request: object, client_address: object) -> None:  # noqa: ARG002
+        # Called in the except block of the request's thread. A scraper that hangs up
+        # mid-answer is not worth the base's traceback on standard error.
+        _LOGGER.debug("metrics request from %s failed: %r", client_address, sys.exc_info()[1])
+
+
+class _Server6(_Server):
+    address_family = socket.AF_INET6
+
+
+class _Handler(BaseHTTPRequestHandler):
+    """``GET /metrics``, ``GET /healthz``; anything else is 404."""
+
+    server: _Server
+    server_version = "rs485-gateway"
+    timeout = REQUEST_TIMEOUT_S  # a client that connects and says nothing is let go
+
+    def do_GET(self) -> None:  # the name http.server dispatches to
+        """Answer one request."""
+        path = urlsplit(self.path).path
+        try:
+            status, content_type, body = self._answer(path)
+        except Exception:  # a broken scrape must not end the thread silently: log, answer 500
+            _LOGGER.exception("GET %s failed", path)
+            status, content_type, body = _INTERNAL_ERROR
+        self.send_response(status)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _answer(self, path: str) -> tuple[HTTPStatus, str, bytes]:
+        if path == "/metrics":
+            return HTTPStatus.OK, CONTENT_TYPE_PLAIN_0_0_4, generate_latest(self.server.registry)
+        if path == "/healthz":
+            healthy, report = health_report(self.server.state)
+            status = HTTPStatus.OK if healthy else HTTPStatus.SERVICE_UNAVAILABLE
+            return status, "application/json", json.dumps(report).encode()
+        text = f"{path} not found: GET /metrics or /healthz\n"
+        return HTTPStatus.NOT_FOUND, "text/plain; charset=utf-8", text.encode()
+
+    def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - the base's name
+        """Requests go to the debug log, not to standard error."""
+        _LOGGER.debug("%s %s", self.address_string(), format % args)
+
+
+class MetricsServer:
+    """Serves ``/metrics`` and ``/healthz`` for a :class:`GatewayState` in its own thread.
+
+    Example::
+
+        server = MetricsServer(state, host="0.0.0.0", port=9108)
+        server.start()  # PublishError if the port is taken
+        ...
+        server.stop()
+
+    ``port=0`` binds a free port; :attr:`port` tells which.
+    """
+
+    def __init__(
+        self, state: GatewayState, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT
+    ) -> None:
+        """Serve ``state`` on ``host:port`` once started."""
+        self.state = state
+        self.host = host
+        self.registry = CollectorRegistry()
+        self.collector = GatewayCollector(state)
+        self.registry.register(self.collector)
+        self._requested_port = port
+        self._bound_port: int | None = None
+        self._server: _Server | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def port(self) -> int:
+        """The port bound by the last start (the requested one before any)."""
+        return self._requested_port if self._bound_port is None else self._bound_port
+
+    def start(self) -> None:
+        """Bind and serve in a daemon thread; a port in use raises :class:`PublishError`."""
+        if self._server is not None:
+            return
+        server_class = _Server6 if ":" in self.host else _Server
+        where = f"[{self.host}]" if ":" in self.host else self.host
+        try:
+            server = server_class(
+                (self.host, self._requested_port), state=self.state, registry=self.registry
+            )
+        except OSError as exc:
+            raise PublishError(
+                f"cannot serve metrics on {where}:{self._requested_port}: "
+                f"{exc.strerror or exc} (prometheus.host, prometheus.port)"
+            ) from exc
+        thread = threading.Thread(
+            target=server.serve_forever,
+            kwargs={"poll_interval": POLL_INTERVAL_S},
+            name=f"prometheus[{where}:{server.server_address[1]}]",
+            daemon=True,
+        )
+        self._server, self._thread = server, thread
+        self._bound_port = int(server.server_address[1])
+        thread.start()
+        _LOGGER.info("serving /metrics and /healthz on %s:%d", where, self.port)
+
+    def stop(self) -> None:
+        """Stop serving and close the socket (idempotent).
+
+        Bounded: ``shutdown()`` returns once the serving loop sees the request, within
+        :data:`POLL_INTERVAL_S` (it only accepts connections; each is handled in a daemon
+        thread of its own), and the thread is joined for at most :data:`STOP_TIMEOUT_S`.
+        """
+        server, thread = self._server, self._thread
+        self._server = self._thread = None
+        if server is None:
+            return
+        server.shutdown()
+        server.server_close()
+        if thread is not None:
+            thread.join(STOP_TIMEOUT_S)
+            if thread.is_alive():
+                _LOGGER.warning("metrics server thread still running after %.1f s", STOP_TIMEOUT_S)
+
+    def __enter__(self) -> Self:
+        """Start serving."""
+        self.start()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        """Stop serving."""
+        self.stop()

@@ -1,0 +1,101 @@
+"""The families of what goes out: MQTT's connection and queue, writes, flash and feeds."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamily, Metric
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+    from gateway.publish.state import GatewayState
+
+
+def mqtt_families(snapshot: GatewayState) -> Iterator[Metric]:
+    """The MQTT sink's connection and queue, when MQTT is enabled."""
+    mqtt = snapshot.mqtt
+    if not mqtt.enabled:
+        return
+    yield GaugeMetricFamily(
+        "gateway_mqtt_connected", "1 while connected to the broker", value=float(mqtt.connected)
+    )
+    yield GaugeMetricFamily(
+        "gateway_mqtt_queue_depth", "Messages waiting for the broker", value=mqtt.queue_depth
+    )
+    yield GaugeMetricFamily(
+        "gateway_mqtt_queue_max", "Bound of the store-and-forward queue", value=mqtt.queue_max
+    )
+    yield CounterMetricFamily(
+        "gateway_mqtt_dropped", "Messages dropped because the queue was full", value=mqtt.dropped
+    )
+    yield CounterMetricFamily(
+        "gateway_mqtt_published", "Messages delivered to the broker", value=mqtt.published
+    )
+
+
+def write_families(snapshot: GatewayState, now: float) -> Iterator[Metric]:
+    """Commands and feeds by outcome, flash writes against their budget, feed health."""
+    writes = snapshot.writes
+    outcomes = CounterMetricFamily(
+        "gateway_writes",
+        "Commands and feed writes by kind (set, command, feed) and outcome",
+        labels=["device", "kind", "outcome"],
+    )
+    for (device, kind, outcome), count in sorted(writes.outcomes.items()):
+        outcomes.add_metric([device, kind, outcome], count)
+    yield outcomes
+    if writes.flash_counts is not None:
+        counts = writes.flash_counts()
+        total = CounterMetricFamily(
+            "gateway_flash_writes",
+            "Writes to flash-backed registers, ever (kept across restarts)",
+            labels=["device", "point"],
+        )
+        today = GaugeMetricFamily(
+            "gateway_flash_writes_today",
+            "Writes to flash-backed registers this UTC day",
+            labels=["device", "point"],
+        )
+        for key in sorted(counts.totals.keys() | writes.flash_budgets.keys()):
+            total.add_metric(list(key), counts.totals.get(key, 0))
+            today.add_metric(list(key), counts.today.get(key, 0))
+        yield total
+        yield today
+    budget = GaugeMetricFamily(
+        "gateway_flash_write_budget",
+        "Flash writes allowed per point and UTC day (flash_write_budget)",
+        labels=["device", "point"],
+    )
+    for key, allowed in sorted(writes.flash_budgets.items()):
+        budget.add_metric(list(key), allowed)
+    yield budget
+    if not writes.feeds:
+        return
+    labels = ["feed", "source"]
+    feed_writes = CounterMetricFamily(
+        "gateway_feed_writes", "Values written by a feed", labels=labels
+    )
+    feed_errors = CounterMetricFamily(
+        "gateway_feed_errors", "Failed feed writes and unusable source values", labels=labels
+    )
+    age = GaugeMetricFamily(
+        "gateway_feed_source_age_seconds", "Age of the newest source value", labels=labels
+    )
+    stale = GaugeMetricFamily(
+        "gateway_feed_stale", "1 while the source is older than max_age", labels=labels
+    )
+    fallback = GaugeMetricFamily(
+        "gateway_feed_fallback",
+        "1 while the sensor uses its own source because the feed's went stale",
+        labels=labels,
+    )
+    for name, feed in sorted(writes.feeds.items()):
+        labels_of = [name, feed.source]
+        feed_writes.add_metric(labels_of, feed.writes)
+        feed_errors.add_metric(labels_of, feed.errors)
+        if feed.source_at is not None:
+            age.add_metric(labels_of, max(0.0, now - feed.source_at))
+        stale.add_metric(labels_of, float(feed.stale))
+        fallback.add_metric(labels_of, float(feed.fallback))
+    yield from (feed_writes, feed_errors, age, stale, fallback)
