@@ -41,10 +41,13 @@ out = Console(highlight=False, soft_wrap=True)
 err = Console(stderr=True, highlight=False)
 
 
-def fail(exc: GatewayError) -> typer.Exit:
-    """Print an error as the command line does everywhere; raise what it returns."""
+def fail(exc: GatewayError, *, code: int = 2) -> typer.Exit:
+    """Print an error as the command line does everywhere; raise what it returns.
+
+    Exit code 2: refused, nothing was sent; 1: the device or the line failed.
+    """
     err.print(f"[bold red]error:[/] {escape(str(exc))}")
-    return typer.Exit(code=2)
+    return typer.Exit(code=code)
 
 
 ConfigOption = Annotated[

@@ -55,10 +55,7 @@ def _run(spec: DeviceSpec, operation: Callable[[SafeWriter], Awaitable[_T]]) -> 
     except CommandRejectedError as exc:
         raise fail(exc) from exc  # refused: nothing was written (exit 2)
     except GatewayError as exc:
-        err.print(
-            f"[bold red]error:[/] {escape(str(exc))}"
-        )  # the device or the line failed (exit 1)
-        raise typer.Exit(code=1) from exc
+        raise fail(exc, code=1) from exc  # the device or the line failed (exit 1)
 
 
 async def _with_device(spec: DeviceSpec, operation: Callable[[SafeWriter], Awaitable[_T]]) -> _T:

@@ -29,6 +29,7 @@ from gateway.cli import calibrate as cli_calibrate
 from gateway.cli import operations as cli_operations
 from gateway.cli import write as cli_write
 from gateway.cli.demo import LOCAL_BIND, run_demo
+from gateway.cli.device import fail
 from gateway.config import check_config, load_config
 from gateway.control.link import open_link
 from gateway.errors import ConfigError, GatewayError
@@ -62,11 +63,6 @@ _out = Console(highlight=False, soft_wrap=True)
 _err = Console(stderr=True, highlight=False)
 
 
-def _fail(exc: GatewayError) -> typer.Exit:
-    _err.print(f"[bold red]error:[/] {escape(str(exc))}")
-    return typer.Exit(code=2)
-
-
 @app.callback(invoke_without_command=True)
 def _root(
     version: Annotated[
@@ -89,7 +85,7 @@ def profiles_list(
     try:
         profiles = builtin_profiles()
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if as_json:
         rows = [
             {
@@ -133,7 +129,7 @@ def profiles_show(
     try:
         profile = get_profile(profile_id)
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if as_json:
         points = [point.as_dict() for point in profile.points]
         sys.stdout.write(json.dumps(points, indent=2, ensure_ascii=False) + "\n")
@@ -316,7 +312,7 @@ def simulate(
         )
         asyncio.run(_simulate(settings, pty, _host_port(tcp) if tcp else None, stats))
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
 
 
 def _read_targets(profile_id: str, points: list[str], *, every: bool) -> dict[str, float | None]:
@@ -373,11 +369,11 @@ def read(
         line_format = LineFormat(baudrate=baudrate, parity=parity, stopbits=stopbits)  # type: ignore[arg-type]
         samples = asyncio.run(_read(port, line_format, target))
     except ValueError as exc:
-        raise _fail(
+        raise fail(
             ConfigError(f"--float-order {float_order!r}: expected ABCD, CDAB, BADC or DCBA")
         ) from exc
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     # Only a failed read fails the command: a fault the sensor sent (2.0e37, or registers
     # that are not a value) is an answer, and the line worked.
     failed = [s for s in samples if s.quality is Quality.COMMS_ERROR]
@@ -428,7 +424,7 @@ def demo(
     try:
         asyncio.run(run_demo(mqtt_port=mqtt_port, metrics_port=metrics_port, bind=bind, live=live))
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
 
 
 @app.command("check-config")
@@ -458,13 +454,13 @@ def run(
     try:
         settings = load_config(config)
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     configure_logging(settings.logging)
     console = show if show is not None else sys.stdout.isatty()
     try:
         asyncio.run(run_gateway(settings, [ConsoleSink()] if console else []))
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
 
 
 @app.command("scan")
@@ -523,7 +519,7 @@ def scan_command(
                 )
             )
     except GatewayError as exc:
-        raise _fail(exc) from exc
+        raise fail(exc) from exc
     if as_json:
         sys.stdout.write(json.dumps(report.as_dict(), indent=2, ensure_ascii=False) + "\n")
     elif report.devices:

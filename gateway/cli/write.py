@@ -14,7 +14,6 @@ import sys
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.markup import escape
 
 from gateway.cli.device import device_link, err, fail, out, with_device_options
 from gateway.config import FlashPolicy
@@ -79,10 +78,7 @@ def write(
     except (CommandRejectedError, ConfigError, ProfileError) as exc:
         raise fail(exc) from exc  # refused: nothing was written (exit 2)
     except GatewayError as exc:
-        err.print(
-            f"[bold red]error:[/] {escape(str(exc))}"
-        )  # the device or the line failed (exit 1)
-        raise typer.Exit(code=1) from exc
+        raise fail(exc, code=1) from exc  # the device or the line failed (exit 1)
     shown = json_value(outcome.value)  # type: ignore[arg-type]
     if as_json:
         data = {
