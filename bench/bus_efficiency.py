@@ -15,9 +15,12 @@ and 9600 8N2); printed as a table, and written to bench/results/bus_efficiency.j
 - gap lateness: how late each request started after its inter-frame gap was due
   (median and 99th percentile, ms);
 - the gateway's CPU time per transaction (this process only; the simulator runs apart)
-  and its peak resident memory.
+  and its peak resident memory;
+- the floor: the CPU per transaction of a bare master with the same libraries and the same
+  reads that does nothing else (bench/bare_master.py), run next on the same line.
 
-Run: .venv/bin/python bench/bus_efficiency.py [--seconds 15] [--formats 9600-E-1,19200-N-1]
+Run from the repository root:
+.venv/bin/python -m bench.bus_efficiency [--seconds 15] [--formats 9600-E-1,19200-N-1]
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from bench.bare_master import measure_bare
 from gateway.line.devices import DeviceTarget
 from gateway.line.plan import CostModel, plan_reads
 from gateway.line.port import Line
@@ -116,6 +120,22 @@ def plan_figures(line: LineFormat) -> dict[str, float]:
         "bus_s_per_cycle": planned_s,
         "bus_s_per_cycle_one_per_point": per_point_s,
     }
+
+
+def plan_reads_of() -> list[tuple[int, int, int]]:
+    """The reads of one cycle of the plan: (device, address, count) of each block."""
+    reads = []
+    for target in targets(1.0):
+        profile = target.profile
+        cost = CostModel.for_device(profile, LineFormat(baudrate=9600, parity="E", stopbits=1))
+        blocks = plan_reads([profile.point(n) for n in target.intervals], profile, cost)
+        reads += [(target.address, b.address, b.count) for b in blocks]
+    return reads
+
+
+def plan_gap_s(line: LineFormat) -> float:
+    """The longest inter-frame gap of the plant's devices at ``line``."""
+    return max(line.frame_gap_s(get_profile(pid).timing.min_gap_s) for _, pid, _ in PLANT)
 
 
 def write_simulator_config(path: Path, line: LineFormat) -> None:
@@ -207,6 +227,9 @@ def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
         simulator.stdout.readline()  # ready
         try:
             measured = asyncio.run(measure(port, line, seconds))
+            floor = asyncio.run(
+                measure_bare(port, line.baudrate, plan_gap_s(line), plan_reads_of(), seconds)
+            )
         finally:
             simulator.terminate()
             simulator.wait(timeout=10)
@@ -220,6 +243,7 @@ def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
         "measured_s_per_cycle": measured_cycle_s,
         "cycles_per_s": cycles_per_s,
         **measured,
+        **floor,
         "efficiency": figures["bus_s_per_cycle"] / measured_cycle_s,
         "gateway_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "timing_violations": referee["timing_violations"],
@@ -248,7 +272,7 @@ def main() -> None:
     print(
         f"{'line':<12} {'frames/cycle':>13} {'min ms':>7} {'meas ms':>8} {'efficiency':>10} "
         f"{'late ms':>7} {'p99':>5} {'tx/s':>6} {'values/s':>8} {'µs CPU/tx':>9} "
-        f"{'RSS MiB':>7} {'err':>4} {'viol':>4}"
+        f"{'bare µs/tx':>10} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
     )
     for r in results:
         frames_text = f"{r['frames_per_cycle']}/{r['frames_per_cycle_one_per_point']}"
@@ -257,7 +281,8 @@ def main() -> None:
             f"{1000 * r['measured_s_per_cycle']:>8.1f} {r['efficiency']:>10.3f} "  # type: ignore[operator]
             f"{r['gap_late_ms_median']:>7.3f} {r['gap_late_ms_p99']:>5.2f} "
             f"{r['transactions_per_s']:>6.1f} {r['values_per_s']:>8.1f} "
-            f"{r['cpu_us_per_transaction']:>9.0f} {r['gateway_rss_mib']:>7.1f} "
+            f"{r['cpu_us_per_transaction']:>9.0f} {r['bare_cpu_us_per_transaction']:>10.0f} "
+            f"{r['gateway_rss_mib']:>7.1f} "
             f"{r['errors']:>4} {r['timing_violations']:>4}"
         )
 
