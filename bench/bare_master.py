@@ -89,3 +89,17 @@ async def measure_bare(
         "bare_cpu_us_per_transaction": 1e6 * cpu / max(done, 1),
         "bare_failed": failed,
     }
+
+
+async def wake_cost(wait_s: float, waits: int = 300) -> dict[str, float]:
+    """CPU of one timed wait of the event loop: going to sleep for ``wait_s`` and waking.
+
+    A transaction needs two at least (the inter-frame gap, the answer), so this is the
+    part of the floor no code of a master can remove. On a virtual machine it is far more
+    than the few microseconds of the system calls: the interpreter resumes with cold
+    caches after every sleep.
+    """
+    cpu0 = time.process_time()
+    for _ in range(waits):
+        await asyncio.sleep(wait_s)
+    return {"wake_cpu_us": 1e6 * (time.process_time() - cpu0) / waits}

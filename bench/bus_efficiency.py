@@ -17,7 +17,9 @@ and 9600 8N2); printed as a table, and written to bench/results/bus_efficiency.j
 - the gateway's CPU time per transaction (this process only; the simulator runs apart)
   and its peak resident memory;
 - the floor: the CPU per transaction of a bare master with the same libraries and the same
-  reads that does nothing else (bench/bare_master.py), run next on the same line.
+  reads that does nothing else (bench/bare_master.py), run next on the same line, and
+  the CPU of one sleep and wake of the event loop for the gap's time (two per transaction
+  at least).
 
 Run from the repository root:
 .venv/bin/python -m bench.bus_efficiency [--seconds 15] [--formats 9600-E-1,19200-N-1]
@@ -39,7 +41,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from bench.bare_master import measure_bare
+from bench.bare_master import measure_bare, wake_cost
 from gateway.line.devices import DeviceTarget
 from gateway.line.plan import CostModel, plan_reads
 from gateway.line.port import Line
@@ -48,7 +50,7 @@ from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Iterator, Sequence
 
     from gateway.line.samples import DeviceEvent, Sample
 
@@ -196,9 +198,12 @@ def lateness_figures(lateness_s: list[float]) -> dict[str, float]:
 SWEEP = ("9600-E-1", "19200-N-1", "38400-E-1", "115200-N-1", "9600-N-2")
 
 
-def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
-    """Run the reference plant at one line format and work out its figures."""
-    figures = plan_figures(line)
+@contextlib.contextmanager
+def simulated_line(line: LineFormat) -> Iterator[tuple[Path, dict[str, object]]]:
+    """The reference plant in a ``gateway simulate`` process: its port, and its referee.
+
+    The referee's figures fill the dictionary once the simulator has stopped.
+    """
     with tempfile.TemporaryDirectory() as tmp:
         config, port, stats = (
             Path(tmp) / "plant.yaml",
@@ -225,15 +230,26 @@ def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
         )
         assert simulator.stdout is not None
         simulator.stdout.readline()  # ready
+        referee: dict[str, object] = {}
         try:
-            measured = asyncio.run(measure(port, line, seconds))
-            floor = asyncio.run(
-                measure_bare(port, line.baudrate, plan_gap_s(line), plan_reads_of(), seconds)
-            )
+            yield port, referee
         finally:
             simulator.terminate()
             simulator.wait(timeout=10)
-        referee = json.loads(stats.read_text(encoding="utf-8"))
+            referee.update(json.loads(stats.read_text(encoding="utf-8")))
+
+
+def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
+    """Run the reference plant at one line format and work out its figures."""
+    figures = plan_figures(line)
+    with simulated_line(line) as (port, referee):
+        measured = asyncio.run(measure(port, line, seconds))
+    # The bare master on a line of its own: it keeps no timing rule but its sleep, and the
+    # referee's verdict above is the gateway's alone.
+    with simulated_line(line) as (port, _):
+        gap_s = plan_gap_s(line)
+        floor = asyncio.run(measure_bare(port, line.baudrate, gap_s, plan_reads_of(), seconds))
+    floor |= asyncio.run(wake_cost(gap_s))
     cycles_per_s = measured["transactions_per_s"] / figures["frames_per_cycle"]
     measured_cycle_s = 1.0 / cycles_per_s
     return {
@@ -272,7 +288,7 @@ def main() -> None:
     print(
         f"{'line':<12} {'frames/cycle':>13} {'min ms':>7} {'meas ms':>8} {'efficiency':>10} "
         f"{'late ms':>7} {'p99':>5} {'tx/s':>6} {'values/s':>8} {'µs CPU/tx':>9} "
-        f"{'bare µs/tx':>10} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
+        f"{'bare µs/tx':>10} {'wake µs':>7} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
     )
     for r in results:
         frames_text = f"{r['frames_per_cycle']}/{r['frames_per_cycle_one_per_point']}"
@@ -282,6 +298,7 @@ def main() -> None:
             f"{r['gap_late_ms_median']:>7.3f} {r['gap_late_ms_p99']:>5.2f} "
             f"{r['transactions_per_s']:>6.1f} {r['values_per_s']:>8.1f} "
             f"{r['cpu_us_per_transaction']:>9.0f} {r['bare_cpu_us_per_transaction']:>10.0f} "
+            f"{r['wake_cpu_us']:>7.0f} "
             f"{r['gateway_rss_mib']:>7.1f} "
             f"{r['errors']:>4} {r['timing_violations']:>4}"
         )
