@@ -242,7 +242,7 @@ async def plant(
         # When the bus task hands a decoded cycle over, keyed by the document's seq.
         if samples:
             device = samples[0].device
-            handed[device, sink._sequence.get(device, 0) + 1] = time.perf_counter()  # noqa: SLF001
+            handed[device, sink.topics._sequence.get(device, 0) + 1] = time.perf_counter()  # noqa: SLF001
         await hand_over(sink, samples)
 
     async def subscribe() -> None:

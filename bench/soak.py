@@ -71,7 +71,7 @@ OUTAGE_MARGIN_S = 5.0  # commands sent this long before a broker stop may be los
 MIN_SAMPLES = 4  # memory samples needed to judge growth
 FLASH_BUDGET = 2  # the pool's flash_write_budget in the config below
 CONTROL_BYTE = 0x25AF  # S10 compensation control byte, set by the feed
-DRAIN_BATCH = 100  # gateway.publish.mqtt.BATCH: what a broker restart may send twice
+DRAIN_BATCH = 100  # gateway.publish.mqtt.outbox.BATCH: what a broker restart may send twice
 
 
 @dataclass(frozen=True)

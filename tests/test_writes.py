@@ -16,7 +16,7 @@ import pytest
 from gateway.config import FlashPolicy
 from gateway.control.flash import FlashLedger
 from gateway.control.writes import SafeWriter, WriteOutcome
-from gateway.errors import CommandRejectedError, DeviceExceptionError
+from gateway.errors import CommandRejectedError, ConfigError, DeviceExceptionError
 from gateway.profiles.model import Point, Profile
 from tests.rigs import PLANT, link_rig, link_target
 
@@ -24,7 +24,6 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from gateway.line.devices import DeviceTarget
-    from gateway.wire import codec
     from tests.rigs import LinkRig
 
 DAY = date(2026, 11, 22)
@@ -280,10 +279,58 @@ async def test_a_write_looks_its_point_up_by_name_once(
     point: str,
     value: object,
 ) -> None:
-    # A spy on the profile's lookup by the gateway (the simulated devices, in the same
-    # process, look their points up too): the name becomes a Point where it comes in, and
-    # the encoding, the flash guard, the link and the job queue are handed the Point.
-    # (Reads, the bits to keep included, still go by name: the read path names what it reads.)
+    # The name becomes a Point where it comes in, and the encoding, the flash guard, the
+    # link, the job queue and the reads (the bits to keep, the read-back) are handed the
+    # Point: nothing below looks the name up again.
+    async with link_rig(tmp_path, PLANT, targets()) as rig:
+        w = writer(rig, device, ledger)
+        await w.link.float_order()  # the format register is read once per device, by name
+        looked_up = spy_on_lookups(monkeypatch)
+        done = await w.set(w.point(point), value, explicit=True)
+    assert done.written
+    assert done.value is not None  # read back
+    assert looked_up == [point]
+
+
+@pytest.mark.parametrize(
+    ("device", "units", "names"),
+    [
+        ("s10", ("oxygen_unit",), ("oxygen",)),  # a float whose unit a register selects
+        # several points in one block, a bit field among them, and a unit register itself
+        ("s10", (), ("oxygen_unit", "oxygen", "temperature", "compensation_control")),
+        ("s10", (), ("clock", "clock_year")),  # a view that shares its register's read
+        ("cl2", ("unit",), ("concentration", "x_span")),  # a process value, a flash-backed one
+        ("h10", ("oxygen_unit",), ("oxygen", "oxygen", "temperature")),  # a name twice
+    ],
+)
+async def test_a_read_looks_each_point_up_by_name_once(
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    *,
+    device: str,
+    units: tuple[str, ...],
+    names: tuple[str, ...],
+) -> None:
+    # The names become Points where they come in (the link); the job queue, the
+    # transactions, the planner (whose plans are not cached yet: it checks the points it
+    # is handed, it does not look them up) and the decoder (the unit registers read
+    # before, so a value's unit is found from its register) are handed the Points.
+    async with link_rig(tmp_path, PLANT, targets()) as rig:
+        link = rig.links[device]
+        if units:
+            await link.read(*units)
+        looked_up = spy_on_lookups(monkeypatch)
+        values = await link.read(*names)
+    assert set(values) == set(names)
+    assert looked_up == list(names)
+
+
+def spy_on_lookups(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """The names the gateway looks up in a profile from now on, in order.
+
+    The simulated devices, in the same process, look their points up too: theirs are not
+    counted.
+    """
     looked_up: list[str] = []
     lookup = Profile.point
 
@@ -293,18 +340,21 @@ async def test_a_write_looks_its_point_up_by_name_once(
             looked_up.append(name)
         return lookup(profile, name)
 
-    async with link_rig(tmp_path, PLANT, targets()) as rig:
-        w = writer(rig, device, ledger)
-        await w.link.float_order()  # the format register is read once per device, by name
-        reads = rig.links[device].read
-        monkeypatch.setattr(Profile, "point", counting)
+    monkeypatch.setattr(Profile, "point", counting)
+    return looked_up
 
-        async def read_unspied(*names: str) -> dict[str, codec.Decoded]:
-            with monkeypatch.context() as unspied:
-                unspied.setattr(Profile, "point", lookup)
-                return await reads(*names)
 
-        monkeypatch.setattr(rig.links[device], "read", read_unspied)
-        done = await w.set(w.point(point), value, explicit=True, read_back=False)
-    assert done.written
-    assert looked_up == [point]
+@pytest.mark.parametrize("poll", [False, True], ids=["inline", "while-polling"])
+async def test_a_point_of_another_profile_is_refused_before_it_is_queued(
+    tmp_path: Path, *, poll: bool
+) -> None:
+    # Handed a Point, the line checks it is the device's own at the door: in the bus task,
+    # the planner's refusal would end the line's polling.
+    async with link_rig(tmp_path, PLANT, targets(), poll=poll) as rig:
+        foreign = rig.links["cl2"].profile.point("concentration")
+        with pytest.raises(ConfigError, match="no point 'concentration'"):
+            await rig.links["s10"].read_points(foreign)
+        with pytest.raises(ConfigError, match="not the one of profile"):
+            await rig.links["s10"].read_points(rig.links["cl2"].profile.point("temperature"))
+        assert await rig.links["s10"].read_value("temperature") is not None  # still served
+        assert rig.polling is None or not rig.polling.done()

@@ -211,14 +211,14 @@ class FeedEngine:
     async def _select(self, feed: _Feed, bit: str, *, use_ram: bool) -> None:
         """Set or clear one bit of the S10 control byte, keeping the others."""
         writer = feed.writer
-        control = await writer.link.read_value(CONTROL_POINT)
+        target = writer.point(CONTROL_POINT)  # looked up once, for the read and the write
+        control = await writer.link.read_point(target)
         if not isinstance(control, codec.BitfieldValue):
             raise GatewayError(f"{writer.device}: the control byte reads {control!r}")
         if dict(control.flags).get(bit) == use_ram:
             return
         # Bits the profile does not name (4-7, for JUMO masters) are kept as read; the
         # raw word, not the bit's name, so the write path does not read the byte again.
-        target = writer.point(CONTROL_POINT)
         raw = codec.with_bits(target.format, control.raw, {bit: use_ram})
         await writer.set(target, raw, read_back=False)
 

@@ -1,9 +1,15 @@
 """One device on a line, as commands, feeds, operations and calibrations see it.
 
-A :class:`DeviceLink` reads and writes points by name through the line's
+A :class:`DeviceLink` reads and writes points through the line's
 :class:`~gateway.line.worker.BusWorker`, so every timing rule (gaps, post-write waits,
 late-answer windows) still holds: while the gateway polls, its reads and writes queue
 ahead of due polls; from the command line, with no poll running, they run at once.
+
+A name is looked up in the profile once, where it comes in (:meth:`DeviceLink.read` for
+reads by name); from there down the :class:`~gateway.profiles.model.Point` travels, so the
+line never resolves a name again. Code that holds the point already (a write's read-back,
+the bits to keep, a flash point's current value) reads it with
+:meth:`DeviceLink.read_points` and looks nothing up.
 
 Values are checked and encoded by :func:`gateway.control.commands.validate_write` before anything
 is queued, in the word order the device uses now (its format register is read first if
@@ -33,7 +39,7 @@ if TYPE_CHECKING:
 
 
 class DeviceLink:
-    """Reads of one device by point name, and writes of its points, through its line's worker."""
+    """Reads and writes of one device's points, through its line's worker."""
 
     def __init__(self, worker: BusWorker, device: str) -> None:
         """Link to ``device`` on ``worker``'s line (a :class:`GatewayError` if it is not there)."""
@@ -55,10 +61,19 @@ class DeviceLink:
             await self.read(selector.point)
         return self.worker.float_order(self.device)
 
-    async def read(self, *points: str) -> dict[str, codec.Decoded]:
-        """Read points now; a :class:`BusError` naming the points that could not be read.
+    async def read(self, *names: str) -> dict[str, codec.Decoded]:
+        """Read points by name now: each name looked up once, here (see :meth:`read_points`).
 
-        A sensor fault (``2.0e37``...) is a value here (:class:`codec.Fault`), not an error.
+        An unknown name is a :class:`~gateway.errors.ConfigError` listing close ones,
+        before anything is queued.
+        """
+        return await self.read_points(*(self.profile.point(name) for name in names))
+
+    async def read_points(self, *points: Point) -> dict[str, codec.Decoded]:
+        """Read points of the device's profile now, by name in the result.
+
+        A :class:`BusError` names the points that could not be read. A sensor fault
+        (``2.0e37``...) is a value here (:class:`codec.Fault`), not an error.
         """
         samples = await self.worker.read_points(self.device, points)
         failed = [s for s in samples if s.quality is Quality.COMMS_ERROR]
@@ -66,14 +81,18 @@ class DeviceLink:
             what = ", ".join(f"{s.point} ({s.fault})" for s in failed)
             raise BusError(f"{self.device}: could not read {what}")
         if len(samples) != len(points):
-            missing = sorted(set(points) - {s.point for s in samples})
+            missing = sorted({p.name for p in points} - {s.point for s in samples})
             raise BusError(f"{self.device}: could not read {', '.join(missing)}")
         # A fault sample carries the fault's name; the decoded value keeps it with its raw.
         return {s.point: self.worker.last_value(self.device, s.point) for s in samples}
 
-    async def read_value(self, point: str) -> codec.Decoded:
-        """Read one point now."""
-        return (await self.read(point))[point]
+    async def read_value(self, name: str) -> codec.Decoded:
+        """Read one point by name now."""
+        return (await self.read(name))[name]
+
+    async def read_point(self, point: Point) -> codec.Decoded:
+        """Read one point of the device's profile now."""
+        return (await self.read_points(point))[point.name]
 
     async def encode(self, point: Point, value: object) -> tuple[int, ...]:
         """The registers that write ``value`` to ``point``, or a :class:`CommandRejectedError`.

@@ -140,7 +140,7 @@ class SafeWriter:
         after: codec.Decoded = None
         if read_back:
             try:
-                after = await link.read_value(name)
+                after = await link.read_point(point)
             except BusError as exc:
                 note = f"written; the read-back failed: {exc}"
         return WriteOutcome(
@@ -161,7 +161,7 @@ class SafeWriter:
         e.g. the S10 control byte's bits 4-7) is kept as read.
         """
         try:
-            held = await self.link.read_value(point.name)
+            held = await self.link.read_point(point)
         except BusError as exc:
             raise CommandRejectedError(
                 f"could not read the bits to keep, so nothing was written: {exc}",
@@ -176,7 +176,7 @@ class SafeWriter:
     async def _current(self, point: Point) -> tuple[codec.Decoded, tuple[int, ...] | None]:
         """What a flash-backed point holds, decoded and as registers to compare with."""
         try:
-            current = await self.link.read_value(point.name)
+            current = await self.link.read_point(point)
         except BusError as exc:
             raise CommandRejectedError(
                 f"could not read the current value before a flash write, so nothing was "

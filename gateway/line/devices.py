@@ -38,11 +38,19 @@ class DeviceTarget:
     # Points of the diagnostics and configuration groups, polled in free line time; resolved
     # once here, not looked up on every scheduling step.
     slow_points: frozenset[str] = field(init=False, repr=False, compare=False)
+    # The units each unit register selects (an O-DO's ``oxygen_unit``: code -> unit), by the
+    # register's name as points give it in ``unit_from``; resolved once here, not looked up
+    # for every sample decoded.
+    unit_tables: Mapping[str, Mapping[int, str]] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """Resolve the slow points from the profile."""
-        slow = frozenset(n for n in self.intervals if self.profile.point(n).group in SLOW_GROUPS)
+        """Resolve the slow points and the unit registers from the profile."""
+        profile = self.profile
+        slow = frozenset(n for n in self.intervals if profile.point(n).group in SLOW_GROUPS)
         object.__setattr__(self, "slow_points", slow)
+        selectors = {p.unit_from for p in profile.points if p.unit_from is not None}
+        tables = {name: profile.point(name).enum_units for name in selectors}
+        object.__setattr__(self, "unit_tables", tables)
 
     @property
     def poll_interval_s(self) -> float:
@@ -103,5 +111,5 @@ class DeviceState:
             return point.unit
         selected = self.values.get(point.unit_from)
         if isinstance(selected, codec.EnumValue):
-            return self.profile.point(point.unit_from).enum_units.get(selected.code)
+            return self.target.unit_tables[point.unit_from].get(selected.code)
         return None

@@ -22,6 +22,7 @@ from gateway.errors import (
     FrameError,
     GatewayError,
 )
+from gateway.line.plan import require_own
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -49,7 +50,7 @@ class ReadJob:
     """An on-demand read (a command's check or read-back) waiting for its turn."""
 
     device: str
-    points: tuple[str, ...]
+    points: tuple[Point, ...]
     done: asyncio.Future[list[Sample]]
 
 
@@ -110,14 +111,20 @@ class JobQueue:
                 await self._write(self.devices[device], job)
         return await done
 
-    async def read_points(self, device: str, points: Sequence[str]) -> list[Sample]:
-        """Read points; queued while the worker runs, else at once."""
+    async def read_points(self, device: str, points: Sequence[Point]) -> list[Sample]:
+        """Read points of the device's profile; queued while the worker runs, else at once.
+
+        The points come resolved (by the caller, where their names came in). One of another
+        profile is refused here, at the caller, not in the bus task that would plan it.
+        """
         state = self.state(device)
-        names = tuple(state.profile.point(p).name for p in points)
+        chosen = tuple(points)
+        for point in chosen:
+            require_own(state.profile, point)
         if not self.running:
-            return await self.transactions.read_now(state, names)
+            return await self.transactions.read_now(state, chosen)
         done: asyncio.Future[list[Sample]] = asyncio.get_running_loop().create_future()
-        self._enqueue(ReadJob(device=device, points=names, done=done))
+        self._enqueue(ReadJob(device=device, points=chosen, done=done))
         return await done
 
     def submit_broadcast(self, address: int, registers: Sequence[int]) -> asyncio.Future[None]:

@@ -153,16 +153,26 @@ def _read_limit(profile: Profile, max_registers: int | None) -> int:
     return limit
 
 
+def require_own(profile: Profile, point: Point) -> None:
+    """A :class:`ConfigError` unless ``point`` is the profile's own.
+
+    A check of a point already resolved, not a lookup: the name is looked up only to word
+    the error of a name the profile does not have (its error lists the close ones).
+    """
+    if not profile.owns(point):
+        profile.point(point.name)
+        raise ConfigError(
+            f"point {point.name!r} is not the one of profile {profile.id}", key="points"
+        )
+
+
 def _requested(points: Iterable[Point], profile: Profile) -> list[Point]:
     """The distinct requested points in address order; each must be the profile's own."""
     by_name: dict[str, Point] = {}
     for point in points:
         if point.name in by_name:
             continue
-        if profile.point(point.name) != point:
-            raise ConfigError(
-                f"point {point.name!r} is not the one of profile {profile.id}", key="points"
-            )
+        require_own(profile, point)
         by_name[point.name] = point
     return sorted(by_name.values(), key=lambda p: (p.address, p.view, p.name))
 

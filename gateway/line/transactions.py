@@ -143,8 +143,11 @@ class Transactions:
         return exchange.response
 
     def plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
-        """The reads of the named points of the device."""
-        points = [state.profile.point(name) for name in names]
+        """The reads of the named points of the device (the schedule names what is due)."""
+        return self.plan_points(state, [state.profile.point(name) for name in names])
+
+    def plan_points(self, state: DeviceState, points: Sequence[Point]) -> tuple[ReadBlock, ...]:
+        """The reads of points of the device's profile."""
         planner = self._planners[state.target.name]
         return planner.plan(points, split_before=frozenset(state.split_before))
 
@@ -239,12 +242,12 @@ class Transactions:
         self.line.stats.retries[state.target.address] += 1
         return True
 
-    async def read_now(self, state: DeviceState, names: Sequence[str]) -> list[Sample]:
-        """Read the named points, waiting out the device's waits and retrying inline."""
+    async def read_now(self, state: DeviceState, points: Sequence[Point]) -> list[Sample]:
+        """Read points (resolved where their names came in), waiting and retrying inline."""
         samples: dict[str, Sample] = {}
-        todo = list(names)
+        todo = list(points)
         while todo:
-            blocks = self.plan(state, todo)
+            blocks = self.plan_points(state, todo)
             todo = []
             for block in blocks:
                 delay = state.not_before - time.monotonic()
@@ -252,21 +255,21 @@ class Transactions:
                     await asyncio.sleep(delay)
                 outcome = await self.read_block(state, block)
                 if outcome is None:
-                    todo.extend(p.name for p in block.points)
+                    todo.extend(block.points)
                 else:
                     samples.update((s.point, s) for s in outcome)
-        return [samples[name] for name in names if name in samples]
+        return [samples[p.name] for p in points if p.name in samples]
 
     async def read_all(self, state: DeviceState) -> list[Sample]:
         """Read every point of the device, the unit and float-format registers first."""
-        names = list(state.target.intervals)
         profile = state.profile
-        needed = {u for n in names if (u := profile.point(n).unit_from) is not None}
+        points = [profile.point(name) for name in state.target.intervals]
+        needed = {u for p in points if (u := p.unit_from) is not None}
         if profile.float_order_register is not None and state.target.float_order is None:
             needed.add(profile.float_order_register.point)
         if needed:
-            await self.read_now(state, sorted(needed))
-        return await self.read_now(state, names)
+            await self.read_now(state, [profile.point(name) for name in sorted(needed)])
+        return await self.read_now(state, points)
 
     async def probe(self, state: DeviceState, now: float) -> None:
         """One small read of an offline device; on success it is polled in full again."""

@@ -201,8 +201,8 @@ class BusWorker:
         """
         return await self.jobs.write_registers(device, point, registers)
 
-    async def read_points(self, device: str, points: Sequence[str]) -> list[Sample]:
-        """Read points of a device now (a command's check or read-back), with retries.
+    async def read_points(self, device: str, points: Sequence[Point]) -> list[Sample]:
+        """Read points of a device's profile now (a command's check or read-back), with retries.
 
         Queued ahead of due reads while :meth:`run` polls, else run at once. A point that
         could not be read comes back with quality ``comms_error``; the samples are not

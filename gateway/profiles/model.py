@@ -205,6 +205,14 @@ class Profile:
         """Whether the map defines a point of that name."""
         return name in self._by_name
 
+    def owns(self, point: Point) -> bool:
+        """Whether ``point`` is this map's own, not one of another map with the same name.
+
+        A check of a :class:`Point` already resolved, for code handed one (the planner);
+        resolving a name is :meth:`point`.
+        """
+        return self._by_name.get(point.name) == point
+
     def point(self, name: str) -> Point:
         """The point of that name, or a :class:`ConfigError` listing close names."""
         try:

@@ -1,0 +1,218 @@
+"""The session with the broker: connect, subscribe, say online, send, take commands, reconnect.
+
+One client at a time, re-entered in a ``while True`` with ``except MqttError`` (aiomqtt
+2.5's reconnect loop) on a capped, jittered backoff. Each session subscribes the listeners'
+filters, says ``online`` on ``{base}/status`` (the last will says ``offline`` if the gateway
+vanishes), then runs the outbox's sender beside a receiver that hands every incoming message
+to the listeners that asked for it. Whatever ends a session ends it whole: the error goes to
+the reconnect loop, which logs it and starts the next one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import random
+import socket
+from typing import TYPE_CHECKING, Final, Protocol
+
+import aiomqtt
+from aiomqtt.exceptions import MqttConnectError
+
+from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, WINDOW
+
+if TYPE_CHECKING:
+    from gateway.config import MqttConfig
+    from gateway.publish.message import Message
+    from gateway.publish.mqtt.outbox import Outbox
+    from gateway.publish.state import MqttStatus
+
+_LOGGER = logging.getLogger(__name__)
+
+# aiomqtt logs a warning for every publish beyond 10 awaiting completion; the window holds
+# 16 on purpose, so it warns only past the window and the few publishes outside it.
+PENDING_CALLS_WARNING: Final = WINDOW + 4
+BACKOFF_FIRST_S: Final = 0.5
+NOT_AUTHORISED: Final = frozenset({4, 5, 134, 135})  # CONNACK: MQTT 3.1.1 4, 5; MQTT 5 134, 135
+
+
+class Listener(Protocol):
+    """Something that takes messages from the broker: commands, feed sources."""
+
+    def subscriptions(self) -> list[str]:
+        """The topic filters it wants (subscribed with QoS 1 at every connection)."""
+        ...
+
+    async def handle(self, topic: str, payload: bytes, *, retained: bool = False) -> list[Message]:
+        """Take one message; what it returns is published (results)."""
+        ...
+
+
+class Connection:
+    """Keeps one client connected to the broker, sending the outbox and feeding listeners.
+
+    ``listeners`` is held, not copied: a listener added before :meth:`run` starts is
+    subscribed at the first connection.
+    """
+
+    def __init__(
+        self,
+        settings: MqttConfig,
+        status: MqttStatus,
+        outbox: Outbox,
+        *,
+        client_id: str,
+        listeners: list[Listener],
+    ) -> None:
+        """Connect with ``settings`` as ``client_id``; report on ``status``."""
+        self.settings = settings
+        self.status = status
+        self.outbox = outbox
+        self.client_id = client_id
+        self.listeners = listeners
+        self.base = settings.base_topic
+        self._handling: set[asyncio.Task[None]] = set()
+        self._rng = random.Random()  # noqa: S311 - jitter only
+        self._failures_in_a_row = 0
+
+    def _client_for(self) -> aiomqtt.Client:
+        settings = self.settings
+        tls = None
+        if settings.tls is not None:
+            tls = aiomqtt.TLSParameters(
+                ca_certs=str(settings.tls.ca) if settings.tls.ca else None,
+                certfile=str(settings.tls.cert) if settings.tls.cert else None,
+                keyfile=str(settings.tls.key) if settings.tls.key else None,
+            )
+        client = aiomqtt.Client(
+            settings.host,
+            settings.port,
+            username=settings.username,
+            password=settings.password.get_secret_value() if settings.password else None,
+            identifier=self.client_id,
+            will=aiomqtt.Will(f"{self.base}/status", "offline", qos=1, retain=True),
+            clean_session=settings.clean_session,
+            keepalive=settings.keepalive,
+            tls_params=tls,
+            timeout=CLIENT_TIMEOUT_S,
+            # Small packets at once: without it Nagle's algorithm and delayed ACKs hold
+            # publishes back by tens of milliseconds.
+            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
+        )
+        client.pending_calls_threshold = PENDING_CALLS_WARNING
+        return client
+
+    async def run(self) -> None:
+        """Keep connected; send the backlog in order, then live messages, until cancelled.
+
+        On cancellation the gateway says ``offline`` itself (a clean disconnect does not
+        fire the will) and what was not sent stays on disk for the next start.
+        """
+        delay = BACKOFF_FIRST_S
+        try:
+            while True:
+                client = self._client_for()
+                try:
+                    async with client:
+                        try:
+                            await self._on_connect(client)
+                            delay = BACKOFF_FIRST_S
+                            await self._session(client)
+                        except asyncio.CancelledError:
+                            await self._say_offline(client)
+                            raise
+                except aiomqtt.MqttError as exc:
+                    self._lost(exc)
+                await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
+                delay = min(delay * 2, self.settings.reconnect_max_s)
+        finally:
+            for task in self._handling:
+                task.cancel()
+            self.outbox.close()
+
+    async def _say_offline(self, client: aiomqtt.Client) -> None:
+        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            async with asyncio.timeout(2):
+                await client.publish(f"{self.base}/status", "offline", qos=1, retain=True)
+
+    async def _on_connect(self, client: aiomqtt.Client) -> None:
+        if self._failures_in_a_row:
+            _LOGGER.info("MQTT: connected to %s:%d again", self.settings.host, self.settings.port)
+        self._failures_in_a_row = 0
+        self.status.last_error = None
+        # Subscribed before saying online: a plant system may send a command as soon as it
+        # sees ``online``, and a clean session drops what arrives before the subscription
+        # (the soak lost a command sent while a broker restart's backlog drained). The
+        # backlog drains in the session, while commands are already taken.
+        for topic_filter in self._filters():
+            await client.subscribe(topic_filter, qos=1)
+        await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
+
+    def _lost(self, exc: aiomqtt.MqttError) -> None:
+        """Note the failure, loudly at the first of a streak; the outbox keeps what was unsent."""
+        was_connected = self.outbox.lost()
+        self._failures_in_a_row += 1
+        rc = getattr(exc, "rc", None)
+        code = getattr(rc, "value", rc)
+        refused = isinstance(exc, MqttConnectError) and code in NOT_AUTHORISED
+        if refused:
+            who = self.settings.username or "an anonymous client"
+            reason = f"the broker refused the credentials of {who} ({exc})"
+        else:
+            reason = f"{self.settings.host}:{self.settings.port}: {exc}"
+        self.status.last_error = reason
+        log = _LOGGER.error if refused else _LOGGER.warning
+        if was_connected or self._failures_in_a_row == 1:
+            log("MQTT: %s; buffering on disk and retrying", reason)
+        else:
+            _LOGGER.debug("MQTT: %s", reason)
+        self.outbox.update_status()
+
+    async def _session(self, client: aiomqtt.Client) -> None:
+        """Send, and take messages for the listeners, until the connection fails."""
+        if not self._filters():
+            await self.outbox.send_forever(client)
+            return
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self.outbox.send_forever(client))
+                group.create_task(self._receive_forever(client))
+        except* aiomqtt.MqttError as failed:
+            raise failed.exceptions[0] from None  # the reconnect loop handles one error
+
+    def _filters(self) -> list[str]:
+        """The listeners' topic filters, each once."""
+        return list(
+            dict.fromkeys(f for listener in self.listeners for f in listener.subscriptions())
+        )
+
+    async def _receive_forever(self, client: aiomqtt.Client) -> None:
+        """Hand every message to the listeners that subscribed to it, each in its own task.
+
+        A command can take seconds (post-write waits, a measurement): it must hold up
+        neither the next message nor the publishing.
+        """
+        async for message in client.messages:
+            topic = message.topic
+            payload = message.payload
+            data = payload if isinstance(payload, bytes) else str(payload or "").encode()
+            for listener in self.listeners:
+                if any(topic.matches(f) for f in listener.subscriptions()):
+                    task = asyncio.create_task(
+                        self._handle(listener, topic.value, data, retained=message.retain)
+                    )
+                    self._handling.add(task)
+                    task.add_done_callback(self._handling.discard)
+
+    async def _handle(
+        self, listener: Listener, topic: str, payload: bytes, *, retained: bool
+    ) -> None:
+        """One message to one listener; its replies (results) queue like any message."""
+        try:
+            replies = await listener.handle(topic, payload, retained=retained)
+        except Exception:
+            _LOGGER.exception("MQTT: handling %s failed", topic)
+            return
+        if replies:
+            self.outbox.enqueue(replies)

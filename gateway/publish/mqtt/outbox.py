@@ -1,0 +1,208 @@
+"""Messages on their way to the broker: the live queue, the disk backlog, and the sender.
+
+The bus tasks only hand messages over (:meth:`Outbox.enqueue`, which never waits); the
+sender (:meth:`Outbox.send_forever`, run by the connection while it is up) is the one that
+publishes. While connected with nothing waiting on disk, messages go to a queue in memory
+and out at once; otherwise they are appended to :class:`gateway.publish.store.MessageStore`
+and, when the broker is back, sent from there first, in order, before anything newer. What
+was handed over is never lost to a broker outage: a message leaves the queues only once the
+broker acknowledged it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections import deque
+from typing import TYPE_CHECKING, Final
+
+import aiomqtt
+
+if TYPE_CHECKING:
+    from collections.abc import Coroutine
+
+    from gateway.publish.message import Message
+    from gateway.publish.state import MqttStatus
+    from gateway.publish.store import MessageStore
+
+_LOGGER = logging.getLogger(__name__)
+
+BATCH: Final = 100  # messages read from disk at a time while a backlog drains
+# Publishes awaiting their PUBACK at once: below paho's own limit of 20 in flight, beyond
+# which it would hold messages back in a queue of its own.
+WINDOW: Final = 16
+CLIENT_TIMEOUT_S: Final = 4.0  # connect, PUBACK and disconnect: within the app's stop bound
+
+# The sender's window: each publish in flight with the loop time it was started at.
+_Window = deque[tuple[asyncio.Task[None], float]]
+
+
+class Outbox:
+    """The messages handed over and not yet acknowledged, in order, and their sender.
+
+    ``connected`` is true while the sender runs with the backlog drained: only then do new
+    messages skip the disk. The connection clears it when the session ends
+    (:meth:`lost`), and the sender sets it again once the backlog is out.
+    """
+
+    def __init__(self, store: MessageStore, status: MqttStatus) -> None:
+        """Send what ``store`` holds first; keep ``status`` (the metrics' view) current."""
+        self.store = store
+        self.status = status
+        self.connected = False
+        self._live: deque[Message] = deque()
+        self._wake = asyncio.Event()
+
+    def enqueue(self, messages: list[Message]) -> None:
+        """Live while connected with nothing waiting; otherwise to disk, in order."""
+        if self.connected and not len(self.store):
+            self._live.extend(messages)
+        else:
+            dropped = self.store.append(messages)
+            if dropped:
+                _LOGGER.warning("MQTT queue full: dropped the %d oldest messages", dropped)
+        self.update_status()
+        self._wake.set()
+
+    def update_status(self) -> None:
+        """The queue's depth, drops and connection, as ``/healthz`` and the metrics show."""
+        status = self.status
+        status.queue_depth = len(self.store) + len(self._live)
+        status.dropped = self.store.dropped
+        status.connected = self.connected
+
+    def lost(self) -> bool:
+        """The session ended: unsent live messages go to the head of the disk queue.
+
+        Returns whether it was connected (the backlog drained) until now.
+        """
+        was_connected = self.connected
+        self.connected = False
+        if self._live:
+            backlog = self.store.peek(len(self.store))  # normally empty: live implies drained
+            self.store.remove([i for i, _ in backlog])
+            self.store.append([*self._live, *(m for _, m in backlog)])
+            self._live.clear()
+        return was_connected
+
+    def close(self) -> None:
+        """Keep what was not sent on disk for the next start, and close the store."""
+        self.connected = False
+        if self._live:
+            self.store.append(list(self._live))
+            self._live.clear()
+        self.update_status()
+        self.store.close()
+
+    async def send_forever(self, client: aiomqtt.Client) -> None:
+        """Send live messages in order, up to :data:`WINDOW` awaiting their PUBACK at once.
+
+        The first messages of the live queue are the ones in flight; each leaves the queue
+        only once acknowledged, so on a lost connection the unacknowledged ones go to disk
+        and are sent again (QoS 1 allows the duplicate). One publish at a time moved only
+        some 550 messages a second out of a gateway polling 480 devices: each PUBACK waited
+        its turn in a busy event loop.
+
+        The loop wakes on a new message as well as on an acknowledgement (a publish's end
+        sets the same event), so a cycle handed over while the window waits for a PUBACK
+        goes out at once, not after it. A publish carries no timer of its own: the oldest
+        unacknowledged one is given :data:`CLIENT_TIMEOUT_S`, as aiomqtt gave each.
+        """
+        window: _Window = deque()
+        wake = self._wake
+        loop = asyncio.get_running_loop()
+        try:
+            while True:
+                if len(self.store) and not window:
+                    self.connected = False  # newer messages queue on disk behind the backlog
+                    await self._drain(client)  # the backlog first, before anything newer
+                if not self.connected:
+                    self.connected = True
+                    self.update_status()
+                wake.clear()
+                self._retire(window)
+                if len(window) < WINDOW and len(self._live) > len(window):
+                    self._fill(client, window, loop.time())
+                if not window:
+                    self.update_status()
+                    await wake.wait()
+                    continue
+                if wake.is_set():
+                    continue
+                try:
+                    async with asyncio.timeout_at(window[0][1] + CLIENT_TIMEOUT_S):
+                        await wake.wait()
+                except TimeoutError:
+                    raise aiomqtt.MqttError("Operation timed out") from None
+        finally:
+            for task, _ in window:
+                task.cancel()
+
+    async def _drain(self, client: aiomqtt.Client) -> None:
+        """Send the disk queue in order, removing what the broker acknowledged."""
+        while batch := self.store.peek(BATCH):
+            window: deque[asyncio.Task[None]] = deque()
+            try:
+                for _, m in batch:
+                    if len(window) == WINDOW:
+                        await window.popleft()
+                    window.append(_in_flight(_send(client, m)))
+                while window:
+                    await window.popleft()
+            finally:
+                for task in window:
+                    task.cancel()
+            self.store.remove([i for i, _ in batch])
+            self.status.published += len(batch)
+            self.update_status()
+
+    def _retire(self, window: _Window) -> None:
+        """The acknowledged head of the window leaves it, and the live queue, in order."""
+        live = self._live
+        status = self.status
+        while window and window[0][0].done():
+            window.popleft()[0].result()  # a failed publish ends the session
+            live.popleft()
+            status.published += 1
+
+    def _fill(self, client: aiomqtt.Client, window: _Window, now: float) -> None:
+        """Start the live messages behind the window until it is full."""
+        live = self._live
+        while len(window) < WINDOW and len(live) > len(window):
+            window.append((self._start(client, live[len(window)]), now))
+
+    def _start(self, client: aiomqtt.Client, message: Message) -> asyncio.Task[None]:
+        """A live publish as a task whose end wakes the sender (ack or failure alike)."""
+        task = asyncio.create_task(
+            client.publish(
+                message.topic,
+                message.payload,
+                qos=message.qos,
+                retain=message.retain,
+                timeout=math.inf,  # the sender times the oldest publish itself
+            )
+        )
+        task.add_done_callback(self._published)
+        return task
+
+    def _published(self, done: asyncio.Task[None]) -> None:
+        """A live publish ended: wake the sender; its failure counts as seen."""
+        self._wake.set()
+        if not done.cancelled():
+            done.exception()
+
+
+async def _send(client: aiomqtt.Client, message: Message) -> None:
+    await client.publish(message.topic, message.payload, qos=message.qos, retain=message.retain)
+
+
+def _in_flight(publish: Coroutine[object, object, None]) -> asyncio.Task[None]:
+    """A publish of the backlog's window, as a task whose failure counts as seen.
+
+    Only the head of the window is awaited; when the connection fails, the others fail
+    too and are dropped with it (their messages stay queued), which is no news to log.
+    """
+    task = asyncio.create_task(publish)
+    task.add_done_callback(lambda done: done.cancelled() or done.exception())
+    return task

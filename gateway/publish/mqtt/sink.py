@@ -1,0 +1,80 @@
+"""The MQTT sink: a poll cycle becomes the contract's messages, handed over to be sent at once.
+
+:class:`MqttSink` is what the bus tasks and the app see; it only joins the pieces. Its
+:meth:`~MqttSink.publish` builds a cycle's messages (:class:`~gateway.publish.mqtt.topics.Topics`)
+and hands them to the outbox (:class:`~gateway.publish.mqtt.outbox.Outbox`) without waiting:
+no batching and no timer, the sender wakes on them. Its :meth:`~MqttSink.run` is the
+connection (:class:`~gateway.publish.mqtt.connection.Connection`), the one task that talks
+to the broker.
+"""
+
+from __future__ import annotations
+
+import socket
+from typing import TYPE_CHECKING
+
+from gateway.errors import PublishError
+from gateway.publish.mqtt.connection import Connection
+from gateway.publish.mqtt.outbox import Outbox
+from gateway.publish.mqtt.topics import Topics
+from gateway.publish.store import MessageStore
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+    from pathlib import Path
+
+    from gateway.config import MqttConfig, PublishSettings
+    from gateway.line.samples import DeviceEvent, Sample
+    from gateway.publish.mqtt.connection import Listener
+    from gateway.publish.state import GatewayState
+
+
+class MqttSink:
+    """Publishes samples and availability; keeps the broker connection up.
+
+    ``listeners`` (commands, feed sources) may be appended to until :meth:`run` starts.
+    """
+
+    def __init__(
+        self,
+        settings: MqttConfig,
+        state: GatewayState,
+        *,
+        state_dir: Path,
+        publish: Mapping[tuple[str, str], PublishSettings] | None = None,
+        listeners: Sequence[Listener] = (),
+    ) -> None:
+        """Check the settings that can fail at start (TLS files, the state directory)."""
+        self.settings = settings
+        self.state = state
+        self.listeners = list(listeners)
+        client_id = settings.client_id or f"gateway-{socket.gethostname()}"
+        self.topics = Topics(settings, state, client_id=client_id, publish=publish)
+        if settings.tls is not None:
+            for name in ("ca", "cert", "key"):
+                path = getattr(settings.tls, name)
+                if path is not None and not path.is_file():
+                    raise PublishError(f"mqtt.tls.{name}: {path} does not exist")
+        store = MessageStore(state_dir / "mqtt-queue.sqlite", max_messages=settings.queue_max)
+        status = state.mqtt
+        status.enabled = True
+        status.queue_max = settings.queue_max
+        status.queue_depth = len(store)
+        self.outbox = Outbox(store, status)
+        self.connection = Connection(
+            settings, status, self.outbox, client_id=client_id, listeners=self.listeners
+        )
+
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        """Turn one device's poll cycle into messages and hand them to the sender."""
+        if not samples:
+            return
+        self.outbox.enqueue(self.topics.cycle(samples))
+
+    async def device_event(self, event: DeviceEvent) -> None:
+        """Publish a device's availability (retained)."""
+        self.outbox.enqueue([self.topics.availability(event)])
+
+    async def run(self) -> None:
+        """Keep connected and send, until cancelled (see :meth:`Connection.run`)."""
+        await self.connection.run()

@@ -1,0 +1,258 @@
+"""What MQTT sends where: value topics, status bits, state documents, availability, discovery.
+
+Every message of the contract that a sample or a device event becomes is built here, and
+nothing here touches the broker: :class:`Topics` turns one device's poll cycle into its
+messages, in the order they go out, and the connection sends them as they are (topic,
+payload, QoS, retain). Kept apart from the connection so that what a subscriber sees can be
+read, and changed, without the reconnect loop and the in-flight window in the way.
+
+A value in fault or unreadable is never published as a number: its plain topic is cleared
+(an empty retained payload, so no stale number lingers) and the state document names the
+fault.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from gateway.config import PublishMode, PublishSettings
+from gateway.line.samples import Quality, hex_registers, json_value
+from gateway.profiles import get_profile
+from gateway.publish.discovery import discovery_messages
+from gateway.publish.message import Message
+from gateway.publish.state import STALE_FACTOR, STALE_MARGIN_S
+from gateway.wire.codec import BitfieldValue
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+    from datetime import datetime
+
+    from gateway.config import MqttConfig
+    from gateway.line.samples import DeviceEvent, Sample
+    from gateway.publish.state import GatewayState
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class _Route:
+    """A point's value topic and publish settings, worked out once."""
+
+    topic: str  # {device}/{point}
+    full_topic: str  # {base}/{device}/{point}
+    settings: PublishSettings
+
+
+@dataclass(slots=True)
+class _Published:
+    """What was last published on a value topic, for the change and deadband modes."""
+
+    value: object
+    at: float
+
+
+# The state document's serialiser, built once: ``json.dumps`` with an argument builds a
+# new encoder at every call. Same text as ``json.dumps(document, ensure_ascii=False)``.
+_encode_json = json.JSONEncoder(ensure_ascii=False).encode
+
+
+def _payload(value: object) -> str:
+    """A plain value as text: numbers as numbers, true/false, labels, ISO date-times."""
+    data = json_value(value)  # type: ignore[arg-type]
+    if isinstance(data, bool):
+        return "true" if data else "false"
+    if isinstance(data, dict):
+        return str(value.raw) if isinstance(value, BitfieldValue) else json.dumps(data)
+    return "" if data is None else str(data)
+
+
+class Topics:
+    """The contract's messages, built from samples, device events and the gateway state.
+
+    It remembers across cycles only what the contract needs to stay correct: the last value
+    sent on each topic (the change and deadband modes), the status bits last sent (a bit is
+    sent when it changes), the value topics already cleared for a fault (cleared once, not
+    every cycle), the devices announced to Home Assistant, and each device's document count
+    (``seq``, so a subscriber sees a document it missed).
+    """
+
+    def __init__(
+        self,
+        settings: MqttConfig,
+        state: GatewayState,
+        *,
+        client_id: str,
+        publish: Mapping[tuple[str, str], PublishSettings] | None = None,
+    ) -> None:
+        """Take the publish settings per ``(device, point)``; others publish every poll."""
+        self.settings = settings
+        self.state = state
+        self.base = settings.base_topic
+        self.client_id = client_id
+        self._publish = dict(publish or {})
+        self._default_publish = PublishSettings()
+        self._last: dict[str, _Published] = {}  # the change modes' last publish per topic
+        self._routes: dict[tuple[str, str], _Route] = {}
+        self._flags: dict[str, bool] = {}
+        self._fault_cleared: set[str] = set()
+        self._discovered: set[tuple[str, str]] = set()
+        self._sequence: dict[str, int] = {}  # state documents per device since the start
+
+    def cycle(self, samples: Sequence[Sample]) -> list[Message]:
+        """One device's poll cycle as messages, in the order they go out.
+
+        Its values and status bits, its state document, then (at its first cycle, when
+        enabled) its Home Assistant discovery.
+        """
+        if not samples:
+            return []
+        messages: list[Message] = []
+        for sample in samples:
+            self._value_messages(sample, messages)
+        first = samples[0]
+        messages.append(self._state_document(first.bus, first.device, first.time))
+        if self.settings.discovery.enabled and (first.bus, first.device) not in self._discovered:
+            self._discovered.add((first.bus, first.device))
+            messages.extend(self._discovery(first.bus, first.device))
+        return messages
+
+    def availability(self, event: DeviceEvent) -> Message:
+        """A device's ``online``/``offline`` (retained)."""
+        payload = "online" if event.online else "offline"
+        return self._message(f"{event.device}/availability", payload, retain=True)
+
+    def _discovery(self, bus: str, device: str) -> list[Message]:
+        """Home Assistant discovery for a device, from its identity and units read so far."""
+        info = self.state.devices.get((bus, device))
+        if info is None:
+            return []
+        mine = self.state.device_samples(bus, device)
+        return discovery_messages(
+            prefix=self.settings.discovery.prefix,
+            base_topic=self.base,
+            gateway_id=self.client_id,
+            device=device,
+            profile=get_profile(info.profile),
+            points=[p for p in info.intervals if p in mine],
+            identity={p: s.value for p, s in mine.items() if s.group == "identity" and s.good},
+            units={p: s.unit for p, s in mine.items()},
+            qos=self.settings.qos,
+        )
+
+    def _message(
+        self, suffix: str, payload: str, *, retain: bool, qos: int | None = None
+    ) -> Message:
+        return Message(
+            topic=f"{self.base}/{suffix}",
+            payload=payload.encode(),
+            qos=self.settings.qos if qos is None else qos,
+            retain=retain,
+        )
+
+    def _route(self, sample: Sample) -> _Route:
+        """What a point's value messages need, worked out at its first sample."""
+        key = (sample.device, sample.point)
+        route = self._routes[key] = _Route(
+            topic=f"{sample.device}/{sample.point}",
+            full_topic=f"{self.base}/{sample.device}/{sample.point}",
+            settings=self._publish.get(key, self._default_publish),
+        )
+        return route
+
+    def _value_messages(self, sample: Sample, messages: list[Message]) -> None:
+        """Append a sample's value (and status bit) messages to ``messages``."""
+        route = self._routes.get((sample.device, sample.point)) or self._route(sample)
+        topic = route.topic
+        value_qos = self.settings.value_qos
+        if sample.quality is not Quality.GOOD:
+            # No number for a fault or a failed read: clear the retained value once.
+            if topic not in self._fault_cleared:
+                self._fault_cleared.add(topic)
+                self._last.pop(topic, None)
+                messages.append(
+                    Message(topic=route.full_topic, payload=b"", qos=value_qos, retain=True)
+                )
+            return
+        if self._fault_cleared:
+            self._fault_cleared.discard(topic)
+        value = sample.value
+        if route.settings.mode is PublishMode.EVERY_POLL or self._due(topic, route, sample):
+            if route.settings.mode is not PublishMode.EVERY_POLL:
+                self._last[topic] = _Published(value=value, at=sample.monotonic)
+            payload = repr(value) if type(value) is float else _payload(value)
+            messages.append(
+                Message(
+                    topic=route.full_topic, payload=payload.encode(), qos=value_qos, retain=True
+                )
+            )
+        if isinstance(value, BitfieldValue):
+            for flag, on in value.flags:
+                key = f"{sample.device}/status/{flag}"
+                if self._flags.get(key) != on:
+                    self._flags[key] = on
+                    messages.append(self._message(key, "true" if on else "false", retain=True))
+
+    def _due(self, topic: str, route: _Route, sample: Sample) -> bool:
+        """Whether a change mode wants this value out now."""
+        settings = route.settings
+        last = self._last.get(topic)
+        if last is None:
+            return True
+        if sample.monotonic - last.at >= settings.heartbeat_s:
+            return True
+        if settings.mode is PublishMode.ON_CHANGE:
+            return sample.value != last.value
+        value, previous = sample.value, last.value
+        if isinstance(value, int | float) and isinstance(previous, int | float):
+            return abs(value - previous) > settings.deadband
+        return value != previous
+
+    def _state_document(self, bus: str, device: str, when: datetime) -> Message:
+        """Every point's latest value, unit, fault and quality, as the gateway sees them now.
+
+        A value that could not be decoded also has its registers under ``raw`` (a key
+        present only then), so a subscriber sees what the sensor sent. Built once per
+        cycle: the device's intervals and the clock are read once, not per point.
+        """
+        values: dict[str, object] = {}
+        units: dict[str, str | None] = {}
+        faults: dict[str, str] = {}
+        quality: dict[str, str] = {}
+        raw: dict[str, list[str]] = {}
+        info = self.state.devices.get((bus, device))
+        intervals = info.intervals if info is not None else {}
+        now = time.monotonic()
+        good = Quality.GOOD
+        for point, sample in sorted(self.state.device_samples(bus, device).items()):
+            units[point] = sample.unit
+            if sample.quality is good:
+                value = sample.value
+                values[point] = value if type(value) is float else json_value(value)
+                interval = intervals.get(point)
+                stale = interval is not None and now - sample.monotonic > (
+                    STALE_FACTOR * interval + STALE_MARGIN_S
+                )
+                quality[point] = "stale" if stale else "good"
+            else:
+                faults[point] = sample.fault or sample.quality.value
+                quality[point] = sample.quality.value
+            if sample.raw:
+                raw[point] = hex_registers(sample.raw)
+        seq = self._sequence[device] = self._sequence.get(device, 0) + 1
+        document = {
+            "time": when.isoformat(),
+            "seq": seq,
+            "values": values,
+            "units": units,
+            "faults": faults,
+            "quality": quality,
+        }
+        if raw:
+            document["raw"] = raw
+        return Message(
+            topic=f"{self.base}/{device}/state",
+            payload=_encode_json(document).encode(),
+            qos=self.settings.qos,
+            retain=False,
+        )
