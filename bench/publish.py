@@ -6,8 +6,11 @@
 2. Latency: a simulated line polled by the gateway with MQTT on; a subscriber takes the time
    each state document arrives minus the time of the poll cycle it describes (response
    received -> delivered through the broker: an upper bound of "publish acknowledged").
-3. Memory: 16 buses x 16 devices, each bus a `gateway simulate` process on its own
-   pseudo-terminal, polled at 1 s with MQTT and Prometheus on; resident memory after the run.
+3. Memory: 16 buses x 16 devices, each bus a simulated line on its own pseudo-terminal (the
+   simulators in one process apart), polled at 1 s with MQTT and Prometheus on by `gateway run`
+   as its own process, as a user runs it; that process's resident memory after the run (the
+   harness's own, with part 1's queue and the subscriber, is not in it), and what
+   `import gateway.app` alone takes.
 
 Printed, and written to bench/results/publish.json.
 Run: .venv/bin/python bench/publish.py [--seconds 20] [--buses 16] [--devices 16]
@@ -28,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.request
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -81,11 +85,21 @@ def mosquitto(directory: Path) -> Iterator[int]:
         process.wait(timeout=10)
 
 
-def rss_mib() -> float:
-    for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
-        if line.startswith("VmRSS:"):
+def rss_mib(pid: int | str = "self", field: str = "VmRSS") -> float:
+    """A process's resident memory (`VmRSS`) or its peak (`VmHWM`), from /proc."""
+    for line in Path(f"/proc/{pid}/status").read_text(encoding="utf-8").splitlines():
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return float("nan")
+
+
+IMPORT_ONLY = """
+from pathlib import Path
+import gateway.app
+for line in Path("/proc/self/status").read_text(encoding="utf-8").splitlines():
+    if line.startswith("VmRSS:"):
+        print(int(line.split()[1]) / 1024)
+"""
 
 
 def percentile_ms(ordered: Sequence[float], fraction: float) -> float:
@@ -213,7 +227,9 @@ async def simulators(
         await process.wait()
 
 
-def plant_config(ports: list[Path], devices: int, broker: int, directory: Path) -> str:
+def plant_config(
+    ports: list[Path], devices: int, broker: int, directory: Path, metrics_port: int = 0
+) -> str:
     profiles = ["jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c", "jumo-digiline-odo-h10"]
     lines = ["buses:"]
     lines += [f"  - {{name: bus{b}, port: {p}, baudrate: 115200}}" for b, p in enumerate(ports)]
@@ -225,7 +241,7 @@ def plant_config(ports: list[Path], devices: int, broker: int, directory: Path) 
                 f"profile: {profiles[d % len(profiles)]}, poll_interval: 1.0}}"
             )
     lines.append(f"mqtt: {{host: 127.0.0.1, port: {broker}, base_topic: bench}}")
-    lines.append(f"prometheus: {{host: 127.0.0.1, port: {free_port()}}}")
+    lines.append(f"prometheus: {{host: 127.0.0.1, port: {metrics_port or free_port()}}}")
     lines.append(f"state_dir: {directory / 'plant-state'}")
     return "\n".join(lines) + "\n"
 
@@ -276,7 +292,6 @@ async def plant(
         cpu0 = time.process_time()
         await asyncio.sleep(seconds)
         cpu = time.process_time() - cpu0
-        rss = rss_mib()
         measured = latencies[first:]
         measured_decoded = sorted(decoded[first_decoded:])
         stop.set()
@@ -296,9 +311,65 @@ async def plant(
         else float("nan"),
         "decoded_latency_p50_ms": percentile_ms(measured_decoded, 0.5),
         "decoded_latency_p99_ms": percentile_ms(measured_decoded, 0.99),
-        "gateway_rss_mib": rss,
         "gateway_cpu_share": cpu / seconds,
         "mqtt_dropped": state.mqtt.dropped,
+    }
+
+
+def metric(url: str, name: str) -> float:
+    """One unlabelled value of the gateway's /metrics."""
+    with urllib.request.urlopen(url, timeout=5) as response:  # noqa: S310 - our own endpoint
+        for line in response.read().decode().splitlines():
+            if line.startswith(f"{name} "):
+                return float(line.split()[1])
+    return float("nan")
+
+
+async def memory(
+    broker: int, directory: Path, buses: int, devices: int, seconds: float
+) -> dict[str, float]:
+    """`gateway run` as its own process, as a user runs it: its resident memory alone."""
+    importer = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", IMPORT_ONLY, stdout=asyncio.subprocess.PIPE
+    )
+    imported, _ = await importer.communicate()
+    async with simulators(directory, buses, devices) as (ports, _):
+        metrics_port = free_port()
+        config = directory / "memory.yaml"
+        config.write_text(
+            plant_config(ports, devices, broker, directory / "memory", metrics_port),
+            encoding="utf-8",
+        )
+        process = await asyncio.create_subprocess_exec(
+            sys.executable,
+            "-m",
+            "gateway",
+            "run",
+            "--config",
+            str(config),
+            "--no-print",
+            stdout=asyncio.subprocess.DEVNULL,
+            stderr=asyncio.subprocess.DEVNULL,
+        )
+        try:
+            await asyncio.sleep(5.0)  # identity reads, warm-up
+            url = f"http://127.0.0.1:{metrics_port}/metrics"
+            settle_until = time.monotonic() + 30
+            while time.monotonic() < settle_until:
+                depth = await asyncio.to_thread(metric, url, "gateway_mqtt_queue_depth")
+                if depth <= WARM_BACKLOG:
+                    break
+                await asyncio.sleep(0.2)
+            await asyncio.sleep(seconds)
+            rss = rss_mib(process.pid)
+            peak = rss_mib(process.pid, "VmHWM")
+        finally:
+            process.terminate()
+            await process.wait()
+    return {
+        "gateway_rss_mib": rss,
+        "gateway_peak_rss_mib": peak,
+        "import_gateway_app_rss_mib": float(imported.strip()),
     }
 
 
@@ -310,9 +381,11 @@ async def main_async(args: argparse.Namespace) -> dict[str, object]:
                 broker, directory, args.buses, args.devices, args.rounds
             )
             scale = await plant(broker, directory, args.buses, args.devices, args.seconds)
+            resident = await memory(broker, directory, args.buses, args.devices, args.seconds)
     return {
         "throughput": throughput,
         "plant": scale,
+        "memory": resident,
         "profile_checked": get_profile("reiss-m0c").id,
     }
 
@@ -330,7 +403,7 @@ def main() -> None:
     result = asyncio.run(main_async(args))
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "publish.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
-    for section in ("throughput", "plant"):
+    for section in ("throughput", "plant", "memory"):
         print(section)
         for key, value in result[section].items():  # type: ignore[attr-defined]
             print(

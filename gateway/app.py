@@ -12,7 +12,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from gateway.config import Cadence
+from gateway.config import Cadence, PublishSettings
 from gateway.control.command_router import CommandRouter
 from gateway.control.feeds import FeedEngine
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
@@ -33,7 +33,6 @@ if TYPE_CHECKING:
         DeviceConfig,
         GatewayConfig,
         LoggingConfig,
-        PublishSettings,
     )
     from gateway.line.samples import Sink
 
@@ -90,7 +89,7 @@ def build_workers(
                         name=target.name,
                         profile=target.profile.id,
                         address=target.address,
-                        intervals=dict(target.intervals),
+                        intervals=target.intervals,  # shared, not copied: read-only
                     )
                 )
         workers.append(worker)
@@ -165,14 +164,19 @@ def state_directory(config: GatewayConfig) -> Path:
 
 
 def publish_settings(config: GatewayConfig) -> dict[tuple[str, str], PublishSettings]:
-    """The publish mode of every polled point: the point's own, else its device's."""
+    """The publish mode of every point whose mode is not the default: its own, else its device's.
+
+    A point without an entry is published on every poll (``PublishSettings()``); at 16
+    buses of 16 sensors an entry for each of some 26,000 points cost megabytes.
+    """
+    default = PublishSettings()
     result = {}
     for device in config.devices:
         for point in device.get_profile().points:
             own = device.points.get(point.name)
-            result[device.name, point.name] = (
-                own.publish if own is not None and own.publish is not None else device.publish
-            )
+            chosen = own.publish if own is not None and own.publish is not None else device.publish
+            if chosen != default:
+                result[device.name, point.name] = chosen
     return result
 
 

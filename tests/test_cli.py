@@ -332,3 +332,29 @@ def test_sigterm_stops_cleanly_and_sighup_does_not_kill(
     assert "config is not reloaded" in err
     assert "basin concentration=0.168 ppm" in out
     assert json.loads(stats.read_text(encoding="utf-8"))["timing_violations"] == 0
+
+
+def test_gateway_run_does_not_import_what_only_other_commands_need(tmp_path: Path) -> None:
+    # What `gateway run` holds in memory for as long as it runs: the simulator, the bus
+    # scan and the calibrations belong to other commands (imported there, when asked for).
+    script = (
+        "import atexit, json, sys\n"
+        "atexit.register(lambda: print(json.dumps(sorted(sys.modules))))\n"
+        "from gateway.cli import main\n"
+        f"sys.argv = ['gateway', 'run', '--config', {str(tmp_path / 'none.yaml')!r}]\n"
+        "main()\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert result.returncode == 2, result.stderr  # the config file does not exist
+    modules = set(json.loads(result.stdout.splitlines()[-1]))
+    assert "gateway.app" in modules
+    unwanted = (
+        "gateway.simulator",
+        "gateway.line.scan",
+        "gateway.control.calibration",
+        "rich.progress",
+        "rich.live",
+    )
+    assert not {m for m in modules if m.startswith(unwanted)}

@@ -20,17 +20,19 @@ from rich.markup import escape
 from rich.text import Text
 
 from gateway.cli.device import device_link, err, fail, out, with_device_options
-from gateway.control import calibration
-from gateway.control.calibration import CalibrationOutcome, Status, Step, StepKind
 from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError, GatewayError
 
+# The calibrations are imported by the command that runs one, not here: every command of
+# the command line imports this module to register its own, `gateway run` included.
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable
 
     from rich.console import Console
 
     from gateway.cli.device import DeviceOptions, DeviceSpec
+    from gateway.control import calibration
+    from gateway.control.calibration import CalibrationOutcome, Step
 
     Flow = Callable[[SafeWriter, calibration.Operator], Awaitable[CalibrationOutcome]]
 
@@ -42,15 +44,16 @@ calibrate_app = typer.Typer(
     no_args_is_help=True,
 )
 
+# By the values of ``StepKind`` (a ``StrEnum``: its members are these strings).
 _STYLES: Final = {
-    StepKind.READ: ("read", "cyan"),
-    StepKind.COMPUTE: ("=", "cyan"),
-    StepKind.PLAN: ("to write", "bold yellow"),
-    StepKind.WRITE: ("wrote", "green"),
-    StepKind.VERIFIED: ("ok", "bold green"),
-    StepKind.MISMATCH: ("MISMATCH", "bold red"),
-    StepKind.WARNING: ("warning", "bold yellow"),
-    StepKind.NOTE: ("note", "dim"),
+    "read": ("read", "cyan"),
+    "compute": ("=", "cyan"),
+    "plan": ("to write", "bold yellow"),
+    "write": ("wrote", "green"),
+    "verified": ("ok", "bold green"),
+    "mismatch": ("MISMATCH", "bold red"),
+    "warning": ("warning", "bold yellow"),
+    "note": ("note", "dim"),
 }
 
 ReferenceOption = Annotated[
@@ -158,6 +161,8 @@ def _run(
     as_json: bool,
 ) -> None:
     """Open the device, run the flow, print the outcome and exit as the module says."""
+    from gateway.control.calibration import Status  # noqa: PLC0415
+
     console = err if as_json else out
     operator = ConsoleOperator(console, assume_yes=yes, prompt_to_stderr=as_json)
     try:
@@ -195,6 +200,8 @@ def slope_command(
     """tecLine/Reiss slope calibration: X_Span = (cell current - X_Zero) / reference."""
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
+        from gateway.control import calibration  # noqa: PLC0415
+
         return await calibration.calibrate_slope(
             writer,
             operator,
@@ -230,6 +237,8 @@ def zero_command(
     """Zero-point calibration: tecLine/Reiss X_Zero (annex 7.4), or H10/H20 via 0x3003."""
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
+        from gateway.control import calibration  # noqa: PLC0415
+
         if writer.link.profile.has_point("zero_point_calibration_trigger"):
             if zero_current is not None:
                 raise CommandRejectedError("--zero-current is for tecLine/Reiss cells")
@@ -274,6 +283,8 @@ def end_value_command(
     """H10/H20 end-value calibration via 0x2043 and 0x3005, with mode and date."""
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
+        from gateway.control import calibration  # noqa: PLC0415
+
         return await calibration.calibrate_oxygen_end_value(
             writer, operator, reference=reference, when=_when(at), unit=unit, mode=mode
         )
@@ -293,6 +304,8 @@ def nominal_command(
     """tecLine/Reiss: restore the nominal slope (0x030A) and the zero point 0 (annex 7.5)."""
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
+        from gateway.control import calibration  # noqa: PLC0415
+
         return await calibration.restore_nominal_slope(writer, operator, when=_when(at))
 
     _run(options, flow, yes=yes, as_json=as_json)
@@ -312,6 +325,8 @@ def check_command(
     """tecLine/Reiss regular check (annex 7.3.4): today's slope against nominal; no writes."""
 
     async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
+        from gateway.control import calibration  # noqa: PLC0415
+
         return await calibration.check_slope(
             writer,
             operator,

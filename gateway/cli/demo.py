@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rich.console import Console, Group
-from rich.live import Live
 from rich.markup import escape
 from rich.table import Table
 
@@ -36,7 +35,6 @@ from gateway.errors import ConfigError
 from gateway.line.samples import Quality
 from gateway.publish.console import ConsoleSink, format_sample
 from gateway.publish.state import GatewayState
-from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 
 if TYPE_CHECKING:
@@ -284,6 +282,12 @@ async def run_demo(
     ``bind`` is where ``/metrics`` and the embedded broker listen: ``0.0.0.0`` for a
     container whose ports are published, loopback by default.
     """
+    # Here, not at the top: `gateway run` imports this module for the command line's
+    # options, and does not need a simulator or a live display.
+    from rich.live import Live  # noqa: PLC0415
+
+    from gateway.simulator import SimulatorServer, build_bus, parse_settings  # noqa: PLC0415
+
     listen = Listen.parse(bind)
     console = Console(soft_wrap=True)  # commands to copy stay on one line
     with tempfile.TemporaryDirectory(prefix="gateway-demo-") as tmp:

@@ -7,20 +7,11 @@ import json
 import signal
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
-from rich.table import Table
 
 from gateway import __version__
 from gateway.app import configure_logging
@@ -35,20 +26,17 @@ from gateway.control.link import open_link
 from gateway.errors import ConfigError, GatewayError
 from gateway.line.devices import DeviceTarget
 from gateway.line.samples import Quality, Sample, hex_registers, json_value
-from gateway.line.scan import parse_addresses, scan_formats
-from gateway.line.scan import scan as scan_bus
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.publish.console import ConsoleSink, format_sample
-from gateway.simulator import (
-    SimulationSettings,
-    SimulatorServer,
-    build_bus,
-    load_settings,
-    parse_device_option,
-    parse_settings,
-)
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat
+
+if TYPE_CHECKING:
+    from gateway.simulator import SimulationSettings
+
+# What only one command needs (tables, progress bars, the simulator, the bus scan) is
+# imported in that command, so that `gateway run` does not hold it in memory for as long
+# as the gateway runs.
 
 app = typer.Typer(
     name="gateway",
@@ -99,6 +87,8 @@ def profiles_list(
         ]
         sys.stdout.write(json.dumps(rows, indent=2, ensure_ascii=False) + "\n")
         return
+    from rich.table import Table  # noqa: PLC0415
+
     table = Table(title="Sensor profiles")
     # Whole ids on any width (an id is what users copy): the other columns fold instead.
     table.add_column("id", no_wrap=True, min_width=max(len(p) for p in profiles))
@@ -153,6 +143,8 @@ def profiles_show(
             f"factory serial settings: address {s.address}, {s.baudrate} baud, "
             f"{s.parity or '?'}{s.stopbits or '?'}"
         )
+    from rich.table import Table  # noqa: PLC0415
+
     table = Table(show_lines=False)
     for column in (
         "address",
@@ -189,6 +181,8 @@ def _simulation_settings(
     config: Path | None,
     overrides: dict[str, object],
 ) -> SimulationSettings:
+    from gateway.simulator import load_settings, parse_device_option, parse_settings  # noqa: PLC0415
+
     if config is not None:
         settings = load_settings(config)
         if devices:
@@ -228,6 +222,8 @@ def _simulation_settings(
 async def _simulate(
     settings: SimulationSettings, pty: Path | None, tcp: tuple[str, int] | None, stats: Path | None
 ) -> None:
+    from gateway.simulator import SimulatorServer, build_bus  # noqa: PLC0415
+
     bus = build_bus(settings)
     server = SimulatorServer(bus, stats_path=stats)
     stop = asyncio.Event()
@@ -386,6 +382,8 @@ def read(
         }
         sys.stdout.write(json.dumps(data, indent=2, ensure_ascii=False) + "\n")
     else:
+        from rich.table import Table  # noqa: PLC0415
+
         table = Table(title=escape(f"{profile} at address {address} on {port}"))
         for column in ("point", "value", "unit", "quality"):
             table.add_column(column, overflow="fold")
@@ -491,6 +489,19 @@ def scan_command(
     ] = False,
 ) -> None:
     """Find the sensors on a line and print them with a config snippet; exit 1 if none."""
+    from rich.progress import (  # noqa: PLC0415
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+    from rich.table import Table  # noqa: PLC0415
+
+    from gateway.line.scan import parse_addresses, scan_formats  # noqa: PLC0415
+    from gateway.line.scan import scan as scan_bus  # noqa: PLC0415
+
     try:
         formats = scan_formats(
             baudrate=baudrate, parity=parity, stopbits=stopbits, every=all_formats

@@ -188,6 +188,8 @@ class Schedule:
             deadline = state.next_due[name]
             if name in state.fresh:  # the first cycle after a (re)start reads everything
                 state.fresh.discard(name)
+                if not state.fresh:  # an emptied set keeps its table: 8 KiB for an H10
+                    state.fresh = set()
                 deadline = now
             if deadline > now:  # read early, along with due diagnostics: take their phase
                 state.next_due[name] = now + interval

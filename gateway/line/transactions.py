@@ -80,15 +80,19 @@ class Transactions:
         self.availability = availability
         self.decoder = decoder
         self.late_answer_window_s = late_answer_window_s
-        self._planners = {
-            name: Planner(
-                state.profile,
-                CostModel.for_device(
-                    state.profile, line.format, extra_gap_s=state.target.extra_gap_s
-                ),
+        # One planner (and its cache of plans) for the devices of one profile and cost: a
+        # plan depends on nothing else, and a bus of sixteen sensors of four families kept
+        # sixteen caches of the same plans.
+        shared: dict[tuple[str, CostModel], Planner] = {}
+        self._planners: dict[str, Planner] = {}
+        for name, state in devices.items():
+            cost = CostModel.for_device(
+                state.profile, line.format, extra_gap_s=state.target.extra_gap_s
             )
-            for name, state in devices.items()
-        }
+            key = (state.profile.id, cost)
+            if key not in shared:
+                shared[key] = Planner(state.profile, cost)
+            self._planners[name] = shared[key]
         # Read requests by (device, address, count): the same few blocks are asked again
         # and again, and building one through pymodbus costs more than the rest of a read.
         self._read_requests: dict[tuple[int, int, int], frames.Request] = {}

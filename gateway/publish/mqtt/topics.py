@@ -35,15 +35,6 @@ if TYPE_CHECKING:
     from gateway.publish.state import GatewayState
 
 
-@dataclass(frozen=True, slots=True, kw_only=True)
-class _Route:
-    """A point's value topic and publish settings, worked out once."""
-
-    topic: str  # {device}/{point}
-    full_topic: str  # {base}/{device}/{point}
-    settings: PublishSettings
-
-
 @dataclass(slots=True)
 class _Published:
     """What was last published on a value topic, for the change and deadband modes."""
@@ -90,10 +81,13 @@ class Topics:
         self.state = state
         self.base = settings.base_topic
         self.client_id = client_id
+        # Only the points whose settings are not the default need an entry.
         self._publish = dict(publish or {})
         self._default_publish = PublishSettings()
         self._last: dict[str, _Published] = {}  # the change modes' last publish per topic
-        self._routes: dict[tuple[str, str], _Route] = {}
+        # Each point's value topic, {base}/{device}/{point}, made at its first sample: by
+        # device, then point, so that tens of thousands of points keep one string each.
+        self._topics: dict[str, dict[str, str]] = {}
         self._flags: dict[str, bool] = {}
         self._fault_cleared: set[str] = set()
         self._discovered: set[tuple[str, str]] = set()
@@ -150,41 +144,40 @@ class Topics:
             retain=retain,
         )
 
-    def _route(self, sample: Sample) -> _Route:
-        """What a point's value messages need, worked out at its first sample."""
-        key = (sample.device, sample.point)
-        route = self._routes[key] = _Route(
-            topic=f"{sample.device}/{sample.point}",
-            full_topic=f"{self.base}/{sample.device}/{sample.point}",
-            settings=self._publish.get(key, self._default_publish),
-        )
-        return route
+    def _topic(self, sample: Sample) -> str:
+        """A point's value topic, made at its first sample."""
+        topic = f"{self.base}/{sample.device}/{sample.point}"
+        self._topics.setdefault(sample.device, {})[sample.point] = topic
+        return topic
 
     def _value_messages(self, sample: Sample, messages: list[Message]) -> None:
         """Append a sample's value (and status bit) messages to ``messages``."""
-        route = self._routes.get((sample.device, sample.point)) or self._route(sample)
-        topic = route.topic
+        topics = self._topics.get(sample.device)
+        topic = topics.get(sample.point) if topics is not None else None
+        if topic is None:
+            topic = self._topic(sample)
         value_qos = self.settings.value_qos
         if sample.quality is not Quality.GOOD:
             # No number for a fault or a failed read: clear the retained value once.
             if topic not in self._fault_cleared:
                 self._fault_cleared.add(topic)
                 self._last.pop(topic, None)
-                messages.append(
-                    Message(topic=route.full_topic, payload=b"", qos=value_qos, retain=True)
-                )
+                messages.append(Message(topic=topic, payload=b"", qos=value_qos, retain=True))
             return
         if self._fault_cleared:
             self._fault_cleared.discard(topic)
+        settings = (
+            self._publish.get((sample.device, sample.point), self._default_publish)
+            if self._publish
+            else self._default_publish
+        )
         value = sample.value
-        if route.settings.mode is PublishMode.EVERY_POLL or self._due(topic, route, sample):
-            if route.settings.mode is not PublishMode.EVERY_POLL:
+        if settings.mode is PublishMode.EVERY_POLL or self._due(topic, settings, sample):
+            if settings.mode is not PublishMode.EVERY_POLL:
                 self._last[topic] = _Published(value=value, at=sample.monotonic)
             payload = repr(value) if type(value) is float else _payload(value)
             messages.append(
-                Message(
-                    topic=route.full_topic, payload=payload.encode(), qos=value_qos, retain=True
-                )
+                Message(topic=topic, payload=payload.encode(), qos=value_qos, retain=True)
             )
         if isinstance(value, BitfieldValue):
             for flag, on in value.flags:
@@ -193,9 +186,8 @@ class Topics:
                     self._flags[key] = on
                     messages.append(self._message(key, "true" if on else "false", retain=True))
 
-    def _due(self, topic: str, route: _Route, sample: Sample) -> bool:
+    def _due(self, topic: str, settings: PublishSettings, sample: Sample) -> bool:
         """Whether a change mode wants this value out now."""
-        settings = route.settings
         last = self._last.get(topic)
         if last is None:
             return True
