@@ -11,14 +11,19 @@ import os
 import signal
 import subprocess
 import sys
-from typing import TYPE_CHECKING, Any
+import time
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Any, Self
 
+import aiomqtt
 import pytest
 
 from gateway.app import run
-from gateway.config import parse_config
+from gateway.config import MqttConfig, parse_config
 from gateway.errors import PublishError
-from gateway.publish.state import GatewayState
+from gateway.line.samples import Quality, Sample
+from gateway.publish.mqtt import MqttSink
+from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.rigs import ListSink
@@ -27,7 +32,6 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
     from pathlib import Path
 
-    from gateway.line.samples import Sample
 
 SENSORS = [
     {
@@ -334,3 +338,112 @@ async def test_home_assistant_discovery(tmp_path: Path, broker: Broker) -> None:
     assert config["device_class"] == "temperature"
     assert config["device"]["model"] == "JUMO digiLine O-DO S10"
     assert {a["topic"] for a in config["availability"]} == {"gw/status", "gw/aeration/availability"}
+
+
+class TurnCounter:
+    """Counts the event loop's turns: a callback that puts itself back on every turn.
+
+    While it runs the loop never sleeps, so a timer of any length would take thousands of
+    turns to fire: a message sent within a few turns was sent at once, not by a timer.
+    """
+
+    def __init__(self) -> None:
+        self.turns = 0
+        self._handle: asyncio.Handle | None = None
+
+    def __enter__(self) -> Self:
+        self._handle = asyncio.get_running_loop().call_soon(self._tick)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        if self._handle is not None:
+            self._handle.cancel()
+
+    def _tick(self) -> None:
+        self.turns += 1
+        self._handle = asyncio.get_running_loop().call_soon(self._tick)
+
+
+async def test_a_handed_over_cycle_is_published_at_once_not_by_a_timer(
+    tmp_path: Path, broker: Broker, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Values are published as soon as a cycle is decoded: no batching that waits a timer.
+
+    Each cycle's messages must reach the client within a few turns of the loop after the
+    bus task hands it over, the second cycle too while the first waits for its PUBACKs.
+    """
+    state = GatewayState()
+    state.add_device(
+        DeviceInfo(
+            bus="line1",
+            name="basin",
+            profile="reiss-m0c",
+            address=10,
+            intervals={"concentration": 1.0},
+        )
+    )
+    sink = MqttSink(
+        MqttConfig(host="127.0.0.1", port=broker.port, base_topic="gw"),
+        state,
+        state_dir=tmp_path / "state",
+    )
+    recorder = StateSink(state)
+    counter = TurnCounter()
+    sent: list[tuple[str, bytes, int]] = []  # topic, payload, the turn it reached the client
+    client_publish = aiomqtt.Client.publish
+
+    async def spy(client: aiomqtt.Client, topic: str, payload: Any, **kwargs: Any) -> None:
+        sent.append((topic, payload, counter.turns))
+        await client_publish(client, topic, payload, **kwargs)
+
+    monkeypatch.setattr(aiomqtt.Client, "publish", spy)
+    task = asyncio.create_task(sink.run())
+    try:
+        async with asyncio.timeout(10):
+            while not state.mqtt.connected:  # noqa: ASYNC110 - the sink's task sets it
+                await asyncio.sleep(0.01)
+        handed_over = {}
+        with counter:
+            for value in (0.25, 0.5):
+                cycle = [concentration_sample(value)]
+                await recorder.publish(cycle)  # the state the document shows, as in the app
+                handed_over[value] = counter.turns
+                await sink.publish(cycle)
+                await asyncio.sleep(0)  # one turn: the first cycle then waits for PUBACKs
+            async with asyncio.timeout(10):
+                while state.mqtt.published < 4:  # noqa: ASYNC110 - the sink's task counts
+                    await asyncio.sleep(0)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    assert state.mqtt.published == 4  # two cycles of a value and a state document each
+    for value, at in handed_over.items():
+        cycle = [(topic, turn) for topic, payload, turn in sent if carries(topic, payload, value)]
+        assert {topic for topic, _ in cycle} == {"gw/basin/concentration", "gw/basin/state"}
+        assert all(turn - at <= 3 for _, turn in cycle), (value, at, cycle)
+
+
+def carries(topic: str, payload: bytes, value: float) -> bool:
+    """Whether a message of the sink is the value's own or its cycle's state document."""
+    if topic == "gw/basin/concentration":
+        return float(payload) == value
+    if topic == "gw/basin/state":
+        return bool(json.loads(payload)["values"]["concentration"] == value)
+    return False
+
+
+def concentration_sample(value: float) -> Sample:
+    return Sample(
+        bus="line1",
+        device="basin",
+        profile="reiss-m0c",
+        point="concentration",
+        value=value,
+        fault=None,
+        unit="mg/l",
+        quality=Quality.GOOD,
+        monotonic=time.monotonic(),
+        time=datetime.now(tz=UTC),
+        group="process",
+    )
