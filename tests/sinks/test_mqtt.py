@@ -419,9 +419,9 @@ async def test_a_handed_over_cycle_is_published_at_once_not_by_a_timer(
             await task
     assert state.mqtt.published == 4  # two cycles of a value and a state document each
     for value, at in handed_over.items():
-        cycle = [(topic, turn) for topic, payload, turn in sent if carries(topic, payload, value)]
-        assert {topic for topic, _ in cycle} == {"gw/basin/concentration", "gw/basin/state"}
-        assert all(turn - at <= 3 for _, turn in cycle), (value, at, cycle)
+        out = [(topic, turn) for topic, payload, turn in sent if carries(topic, payload, value)]
+        assert {topic for topic, _ in out} == {"gw/basin/concentration", "gw/basin/state"}
+        assert all(turn - at <= 3 for _, turn in out), (value, at, out)
 
 
 def carries(topic: str, payload: bytes, value: float) -> bool:
