@@ -92,6 +92,8 @@ async def one(
         # Messages waiting to be sent: flat when MQTT keeps up with the polling.
         "mqtt_queue_growth_per_s": (depth - depth0) / wall,
         "gateway_cpu_share": cpu / wall,
+        # All of it (polling, decoding, MQTT, metrics) over the transactions on the lines.
+        "cpu_us_per_transaction": 1e6 * cpu / max(requests - requests0, 1),
         "gateway_rss_mib": rss,
         "simulators_cpu_share": sim / wall,
         "worst_poll_lag_s": worst_lag,
@@ -133,6 +135,7 @@ def main() -> None:
     (RESULTS / "scale.json").write_text(json.dumps(results, indent=2), encoding="utf-8")
     header = (
         f"{'buses':>5} {'devices':>7} {'tx/s':>7} {'msg/s':>7} {'queue/s':>7} {'CPU':>6} "
+        f"{'µs CPU/tx':>9} "
         f"{'RSS MiB':>8} "
         f"{'sim CPU':>8} {'worst lag s':>11} {'missed':>6}  intervals met"
     )
@@ -141,7 +144,7 @@ def main() -> None:
         print(
             f"{r['buses']:>5} {r['devices']:>7} {r['transactions_per_s']:>7.0f} "
             f"{r['mqtt_messages_per_s']:>7.0f} {r['mqtt_queue_growth_per_s']:>7.0f} "
-            f"{r['gateway_cpu_share']:>6.0%} "
+            f"{r['gateway_cpu_share']:>6.0%} {r['cpu_us_per_transaction']:>9.0f} "
             f"{r['gateway_rss_mib']:>8.1f} {r['simulators_cpu_share']:>8.0%} "
             f"{r['worst_poll_lag_s']:>11.2f} {r['missed_deadlines']:>6}  "
             f"{'yes' if r['meets_intervals'] else 'no'}"
