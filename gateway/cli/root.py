@@ -21,6 +21,7 @@ from gateway.cli import operations as cli_operations
 from gateway.cli import write as cli_write
 from gateway.cli.demo import LOCAL_BIND, run_demo
 from gateway.cli.device import fail
+from gateway.cli.heap import return_large_blocks
 from gateway.config import check_config, load_config
 from gateway.control.link import open_link
 from gateway.errors import ConfigError, GatewayError
@@ -420,6 +421,7 @@ def demo(
 ) -> None:
     """Try it all with no hardware: simulated sensors, MQTT, metrics and a live table."""
     try:
+        return_large_blocks()
         asyncio.run(run_demo(mqtt_port=mqtt_port, metrics_port=metrics_port, bind=bind, live=live))
     except GatewayError as exc:
         raise fail(exc) from exc
@@ -454,6 +456,7 @@ def run(
     except GatewayError as exc:
         raise fail(exc) from exc
     configure_logging(settings.logging)
+    return_large_blocks()
     console = show if show is not None else sys.stdout.isatty()
     try:
         asyncio.run(run_gateway(settings, [ConsoleSink()] if console else []))
