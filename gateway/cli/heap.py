@@ -7,8 +7,8 @@ gateway builds large blocks now and then and keeps few: a scrape of ``/metrics``
 devices is some 6 MB of text built a family at a time, the start's first read of every
 point a burst of thousands of messages, and the heap keeps what they took (at 16 x 16,
 ``bench/publish.py``, three runs each: 93-96 MiB after a scrape, 85-90 with the threshold
-fixed). Setting the threshold with ``mallopt`` fixes it at 128 KiB. Python's own small objects are not
-concerned (its allocator takes arenas of its own).
+fixed). Setting the threshold with ``mallopt`` fixes it at 128 KiB. Python's own small
+objects are not concerned (its allocator takes arenas of its own).
 
 Where the C library is not glibc (musl has no ``mallopt``), nothing changes.
 """
