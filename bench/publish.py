@@ -248,6 +248,19 @@ def plant_config(
     return "\n".join(lines) + "\n"
 
 
+def gateway_config(
+    directory: Path, ports: list[Path], devices: int, broker: int
+) -> tuple[Path, int]:
+    """The plant's config for `gateway run` in ``directory``; its path and metrics port."""
+    directory.mkdir(parents=True, exist_ok=True)
+    metrics_port = free_port()
+    config = directory / "gateway.yaml"
+    config.write_text(
+        plant_config(ports, devices, broker, directory, metrics_port), encoding="utf-8"
+    )
+    return config, metrics_port
+
+
 TIMED_GATEWAY = """
 import atexit, json, sys, time
 from gateway.publish.mqtt import MqttSink
@@ -303,12 +316,7 @@ async def plant(
 
     handed_file, log = directory / "handed.json", directory / "plant.log"
     async with simulators(directory, buses, devices) as (ports, _):
-        metrics_port = free_port()
-        config = directory / "plant.yaml"
-        config.write_text(
-            plant_config(ports, devices, broker, directory / "plant", metrics_port),
-            encoding="utf-8",
-        )
+        config, metrics_port = gateway_config(directory / "plant", ports, devices, broker)
         listener = asyncio.create_task(subscribe())
         process = await asyncio.create_subprocess_exec(
             sys.executable,
@@ -394,12 +402,7 @@ async def memory(
     )
     imported, _ = await importer.communicate()
     async with simulators(directory, buses, devices) as (ports, _):
-        metrics_port = free_port()
-        config = directory / "memory.yaml"
-        config.write_text(
-            plant_config(ports, devices, broker, directory / "memory", metrics_port),
-            encoding="utf-8",
-        )
+        config, metrics_port = gateway_config(directory / "memory", ports, devices, broker)
         process = await asyncio.create_subprocess_exec(
             sys.executable,
             "-m",
