@@ -52,7 +52,9 @@ from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
 
+    from gateway.line.plan import ReadBlock
     from gateway.line.samples import DeviceEvent, Sample
+    from gateway.profiles import Point
 
 PLANT = [
     ("s10", "jumo-digiline-odo-s10", 1),
@@ -103,15 +105,22 @@ def transaction_s(line: LineFormat, request_bytes: int, answer_bytes: int, gap_s
     return gap_s + line.wire_s(request_bytes) + TYPICAL_PROCESSING_S + line.wire_s(answer_bytes)
 
 
+def planned_cycle(line: LineFormat) -> list[tuple[DeviceTarget, list[Point], list[ReadBlock]]]:
+    """Each device of the plant at ``line``: its polled points and the reads of its plan."""
+    cycle = []
+    for target in targets(1.0):
+        profile = target.profile
+        points = [profile.point(n) for n in target.intervals]
+        blocks = plan_reads(points, profile, CostModel.for_device(profile, line))
+        cycle.append((target, points, list(blocks)))
+    return cycle
+
+
 def plan_figures(line: LineFormat) -> dict[str, float]:
     planned_frames = per_point_frames = 0
     planned_s = per_point_s = 0.0
-    for target in targets(1.0):
-        profile = target.profile
-        gap = line.frame_gap_s(profile.timing.min_gap_s)
-        cost = CostModel.for_device(profile, line)
-        points = [profile.point(n) for n in target.intervals]
-        blocks = plan_reads(points, profile, cost)
+    for target, points, blocks in planned_cycle(line):
+        gap = line.frame_gap_s(target.profile.timing.min_gap_s)
         planned_frames += len(blocks)
         planned_s += sum(transaction_s(line, 8, 5 + 2 * b.count, gap) for b in blocks)
         per_point_frames += len(points)
@@ -124,15 +133,13 @@ def plan_figures(line: LineFormat) -> dict[str, float]:
     }
 
 
-def plan_reads_of() -> list[tuple[int, int, int]]:
-    """The reads of one cycle of the plan: (device, address, count) of each block."""
-    reads = []
-    for target in targets(1.0):
-        profile = target.profile
-        cost = CostModel.for_device(profile, LineFormat(baudrate=9600, parity="E", stopbits=1))
-        blocks = plan_reads([profile.point(n) for n in target.intervals], profile, cost)
-        reads += [(target.address, b.address, b.count) for b in blocks]
-    return reads
+def planned_reads(line: LineFormat) -> list[tuple[int, int, int]]:
+    """The reads of one cycle of the plan at ``line``: (device, address, count) of each."""
+    return [
+        (target.address, b.address, b.count)
+        for target, _, blocks in planned_cycle(line)
+        for b in blocks
+    ]
 
 
 def plan_gap_s(line: LineFormat) -> float:
@@ -248,7 +255,7 @@ def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
     # referee's verdict above is the gateway's alone.
     with simulated_line(line) as (port, _):
         gap_s = plan_gap_s(line)
-        floor = asyncio.run(measure_bare(port, line.baudrate, gap_s, plan_reads_of(), seconds))
+        floor = asyncio.run(measure_bare(port, line.baudrate, gap_s, planned_reads(line), seconds))
     floor |= asyncio.run(wake_cost(gap_s))
     cycles_per_s = measured["transactions_per_s"] / figures["frames_per_cycle"]
     measured_cycle_s = 1.0 / cycles_per_s

@@ -15,8 +15,9 @@
    `import gateway.app` alone takes.
 
 Printed, and written to bench/results/publish.json.
-Run: .venv/bin/python bench/publish.py [--seconds 20] [--buses 16] [--devices 16]
-     [--parts throughput,plant,memory]
+Run from the repository root:
+.venv/bin/python -m bench.publish [--seconds 20] [--buses 16] [--devices 16]
+[--parts throughput,plant,memory]
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from typing import TYPE_CHECKING, Any
 import aiomqtt
 from prometheus_client import CollectorRegistry, generate_latest
 
+from bench.soak import process_figures
 from gateway.config import MqttConfig
 from gateway.line.samples import Quality, Sample
 from gateway.profiles import get_profile
@@ -284,12 +286,6 @@ main()
 """
 
 
-def cpu_ticks(pid: int) -> int:
-    """The CPU time of a process (user and system), in clock ticks, from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()
-    return int(fields[11]) + int(fields[12])
-
-
 async def plant(
     broker: int, directory: Path, buses: int, devices: int, seconds: float
 ) -> dict[str, float]:
@@ -333,9 +329,9 @@ async def plant(
             # latency measured is the steady state's.
             await settled(metrics_port)
             measuring = True
-            ticks0 = cpu_ticks(process.pid)
+            cpu0 = process_figures(process.pid)[1]
             await asyncio.sleep(seconds)
-            ticks = cpu_ticks(process.pid) - ticks0
+            cpu = process_figures(process.pid)[1] - cpu0
             measuring = False
         finally:
             process.terminate()
@@ -358,7 +354,7 @@ async def plant(
         "latency_p99_ms": percentile_ms(latencies, 0.99),
         "decoded_latency_p50_ms": percentile_ms(decoded, 0.5),
         "decoded_latency_p99_ms": percentile_ms(decoded, 0.99),
-        "gateway_cpu_share": ticks / os.sysconf("SC_CLK_TCK") / seconds,
+        "gateway_cpu_share": cpu / seconds,
     }
 
 

@@ -283,3 +283,17 @@ def run_deploy_script(script: Path, *, timeout_s: float, cleanup_s: float) -> tu
                 output, _ = process.communicate()
             output += f"\n({script.name}: stopped after {timeout_s - cleanup_s:.0f} s)\n"
     return process.returncode, output
+
+
+def assert_deploy_checks_pass(script: Path, *, timeout_s: float, cleanup_s: float) -> str:
+    """Run a check script of ``deploy/``; assert every check passed; return its output.
+
+    The output goes to stdout too, so that pytest shows every ok/FAIL line of a failure.
+    """
+    code, output = run_deploy_script(script, timeout_s=timeout_s, cleanup_s=cleanup_s)
+    sys.stdout.write(output)
+    failed = [line for line in output.splitlines() if line.startswith("FAIL: ")]
+    assert code == 0, "\n".join(failed) or output[-3000:]
+    assert f"deploy/{script.name}: every check passed" in output
+    assert not failed
+    return output

@@ -14,12 +14,11 @@ fails with it: a skipped check would pass CI unseen (the rule of ``tests/test_de
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
-from tests.rigs import run_deploy_script
+from tests.rigs import assert_deploy_checks_pass
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "deploy" / "test-systemd"
@@ -35,12 +34,7 @@ CLEANUP_S = 60
 
 @pytest.mark.timeout(TIMEOUT_S)
 def test_unit_runs_under_systemd() -> None:
-    code, output = run_deploy_script(SCRIPT, timeout_s=TIMEOUT_S, cleanup_s=CLEANUP_S)
-    sys.stdout.write(output)  # pytest shows it when the test fails: every ok/FAIL line
-    failed = [line for line in output.splitlines() if line.startswith("FAIL: ")]
-    assert code == 0, "\n".join(failed) or output[-3000:]
-    assert "deploy/test-systemd: every check passed" in output
-    assert not failed
+    output = assert_deploy_checks_pass(SCRIPT, timeout_s=TIMEOUT_S, cleanup_s=CLEANUP_S)
     # The checks that make it a test of the unit, not of a container that merely started.
     for check in (
         "ok: systemd is PID 1",

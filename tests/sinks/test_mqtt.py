@@ -11,8 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
-from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any, Self
 
 import aiomqtt
@@ -21,17 +19,18 @@ import pytest
 from gateway.app import run
 from gateway.config import MqttConfig, parse_config
 from gateway.errors import PublishError
-from gateway.line.samples import Quality, Sample
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.rigs import ListSink
+from tests.sinks.test_prometheus import sample
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
     from pathlib import Path
 
+    from gateway.line.samples import Sample
 
 SENSORS = [
     {
@@ -405,7 +404,7 @@ async def test_a_handed_over_cycle_is_published_at_once_not_by_a_timer(
         handed_over = {}
         with counter:
             for value in (0.25, 0.5):
-                cycle = [concentration_sample(value)]
+                cycle = [sample("basin", "reiss-m0c", "concentration", value, unit="mg/l")]
                 await recorder.publish(cycle)  # the state the document shows, as in the app
                 handed_over[value] = counter.turns
                 await sink.publish(cycle)
@@ -431,19 +430,3 @@ def carries(topic: str, payload: bytes, value: float) -> bool:
     if topic == "gw/basin/state":
         return bool(json.loads(payload)["values"]["concentration"] == value)
     return False
-
-
-def concentration_sample(value: float) -> Sample:
-    return Sample(
-        bus="line1",
-        device="basin",
-        profile="reiss-m0c",
-        point="concentration",
-        value=value,
-        fault=None,
-        unit="mg/l",
-        quality=Quality.GOOD,
-        monotonic=time.monotonic(),
-        time=datetime.now(tz=UTC),
-        group="process",
-    )
