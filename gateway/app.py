@@ -17,8 +17,10 @@ from gateway.control.command_router import CommandRouter
 from gateway.control.feeds import FeedEngine
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.control.link import DeviceLink
+from gateway.control.shared_bus import SharedBusServer, units
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
+from gateway.line.foreign import SharePolicy
 from gateway.line.port import Line
 from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
@@ -139,6 +141,30 @@ def _wire_writes(
     return feeds
 
 
+def shared_bus_server(
+    config: GatewayConfig, workers: Sequence[BusWorker], ledger: FlashLedger, state: GatewayState
+) -> SharedBusServer | None:
+    """Other masters on the buses (``shared_bus:``), if configured; their share opened."""
+    shared = config.shared_bus
+    if not shared.enabled:
+        return None
+    policy = SharePolicy(
+        share=shared.bus_share, max_wait_s=shared.max_wait, max_pending=shared.max_pending
+    )
+    caching = any(client.cache_max_age is not None for client in shared.clients)
+    for worker in workers:
+        worker.foreign.open(policy)
+        worker.transactions.cache.enabled = caching
+    return SharedBusServer(
+        shared,
+        units=units(config),
+        workers={worker.name: worker for worker in workers},
+        ledger=ledger,
+        flash_budgets={device.name: device.flash_write_budget for device in config.devices},
+        state=state,
+    )
+
+
 def _stop_on_signals() -> asyncio.Event:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -204,6 +230,7 @@ async def run(
     ledger = FlashLedger(state_directory(config) / LEDGER_FILE)
     workers = build_workers(config, all_sinks, state)
     feeds = _wire_writes(config, state, workers, ledger, mqtt)
+    shared = shared_bus_server(config, workers, ledger, state)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
@@ -214,6 +241,7 @@ async def run(
             stack.callback(metrics.stop)
         for worker in workers:
             stack.push_async_callback(worker.line.close)
+        await stack.enter_async_context(shared or contextlib.nullcontext())
         bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
         sink_tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
         if feeds is not None:

@@ -15,7 +15,8 @@
     ├── DeviceExceptionError        the device answered with a Modbus exception code
     ├── BusError                    the line itself
     │   ├── BusTimeoutError         no (complete) answer in time
-    │   └── BusClosedError          the port is closed or went away
+    │   ├── BusClosedError          the port is closed or went away
+    │   └── BusBusyError            no bus time for another master's request now
     ├── PublishError                a sink could not deliver
     ├── CommandRejectedError        a write command failed validation; nothing was sent
     ├── CalibrationInterruptedError a calibration stopped part-way (what was written)
@@ -113,6 +114,10 @@ class BusTimeoutError(BusError):
 
 class BusClosedError(BusError):
     """The port is closed locally or went away (adapter unplugged)."""
+
+
+class BusBusyError(BusError):
+    """Another master's request found no bus time: its share is spent or its queue full."""
 
 
 class PublishError(GatewayError):

@@ -108,9 +108,45 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
         bus = bus_models.get(model.bus)
         if bus is not None:
             yield from _check_timeout(here, model, bus)
+    yield from _check_shared_bus(data.get("shared_bus"), devices)
     mqtt = data.get("mqtt")
     mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
     yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
+
+
+def _check_shared_bus(
+    raw: object, devices: Sequence[_Entry[DeviceConfig]]
+) -> Iterator[tuple[KeyPath, str]]:
+    """Unit ids other masters can tell apart; write grants of devices that exist."""
+    if not isinstance(raw, dict):
+        return
+    names = [n for entry in devices if (n := entry.text("name")) is not None]
+    clients = raw.get("clients")
+    for index, client in enumerate(clients if isinstance(clients, list) else []):
+        grants = client.get("writes") if isinstance(client, dict) else None
+        for number, grant in enumerate(grants if isinstance(grants, list) else []):
+            device = grant.get("device") if isinstance(grant, dict) else None
+            if isinstance(device, str) and device not in names:
+                where: KeyPath = ("shared_bus", "clients", index, "writes", number, "device")
+                yield where, f"unknown device {device!r}; devices: {', '.join(names) or 'none'}"
+    if not raw.get("listen"):
+        return
+    units: dict[int, _Entry[DeviceConfig]] = {}
+    for device in devices:
+        model = device.model
+        if model is None:
+            continue
+        unit = model.unit_id if model.unit_id is not None else model.address
+        first = units.setdefault(unit, device)
+        if first is not device:
+            key = "unit_id" if model.unit_id is not None else "address"
+            yield (
+                ("devices", device.index, key),
+                (
+                    f"other masters reach devices[{first.index}] ({first.text('name')}) as unit "
+                    f"{unit} already: give one of them a unit_id of its own for the shared bus"
+                ),
+            )
 
 
 def _check_flash_writes(

@@ -45,6 +45,7 @@ from pydantic_settings import (
 )
 
 from gateway.config.flash_policy import FlashPolicy
+from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
 from gateway.wire.codec import WordOrder  # noqa: TC001 - pydantic resolves it at run time
@@ -281,6 +282,8 @@ class DeviceConfig(_Model):
     min_response_time_ms: Annotated[int, Field(ge=0, le=MAX_MIN_RESPONSE_TIME_MS)] = 0
     inter_frame_gap_ms: Annotated[float, Field(ge=0, le=1000)] = 0.0
     retries: Retries | None = None  # None: the bus retries
+    # The unit id other masters reach it by on the shared bus; None: its address.
+    unit_id: Annotated[int, Field(ge=1, le=247)] | None = None
     offline_after: Annotated[int, Field(ge=1, le=1000)] = 3
     publish: PublishSettings = PublishSettings()
     # Flash-backed points that commands may write, by name; every other flash-backed point
@@ -483,6 +486,7 @@ class GatewayConfig(BaseSettings):
     logging: LoggingConfig = LoggingConfig()
     commands: CommandsConfig = CommandsConfig()
     feeds: list[FeedConfig] = []
+    shared_bus: SharedBusConfig = SharedBusConfig()
     # Where the gateway keeps what must survive a restart (the MQTT queue, write counters);
     # None: $STATE_DIRECTORY (systemd), else ./state.
     state_dir: Path | None = None

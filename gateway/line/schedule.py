@@ -102,6 +102,29 @@ class Schedule:
         state.attempts.clear()
         self.touch(state)
 
+    def reread(self, state: DeviceState, address: int, count: int, now: float) -> None:
+        """Read the polled points within written registers again, at once.
+
+        Another master wrote them: what the gateway holds may be old. A register other
+        values depend on (a unit, the float format) or an identity point is read before
+        the values, as at a start.
+        """
+        last = address + count - 1
+        profile = state.profile
+        depended_on = {p.unit_from for p in profile.points if p.unit_from is not None}
+        if profile.float_order_register is not None:
+            depended_on.add(profile.float_order_register.point)
+        for point in profile.points:
+            if point.last < address or point.address > last:
+                continue
+            name = point.name
+            if name in depended_on or state.target.intervals.get(name, 0.0) is None:
+                state.identity_pending.add(name)
+            elif name in state.target.intervals:
+                state.next_due[name] = now
+        state.deadline_cache.clear()
+        self.touch(state)
+
     @staticmethod
     def is_slow(state: DeviceState, name: str) -> bool:
         """Whether a point belongs to the slow class (identity never does)."""

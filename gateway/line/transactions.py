@@ -25,6 +25,7 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.line.plan import CostModel, Planner
+from gateway.line.register_cache import RegisterCache
 from gateway.wire import codec, frames
 
 if TYPE_CHECKING:
@@ -98,6 +99,8 @@ class Transactions:
         self._read_requests: dict[tuple[int, int, int], frames.Request] = {}
         self._gaps: dict[str, float] = {}
         self._timeouts: dict[tuple[str, int], float] = {}
+        # What each device last answered, for other masters' reads (off unless asked for).
+        self.cache = RegisterCache()
 
     def timeout_for(self, state: DeviceState, response_bytes: int) -> float:
         """How long to wait for an answer of ``response_bytes`` from the device."""
@@ -232,6 +235,8 @@ class Transactions:
         await self.availability.answered(state, "answered")
         for point in block.points:
             state.attempts.pop(point.name, None)
+        if self.cache.enabled:
+            self.cache.store(state.target.name, block.address, response.registers, time.monotonic())
         return self.decoder.decode(state, block, response.registers)
 
     def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
@@ -302,6 +307,7 @@ class Transactions:
         self, state: DeviceState, point: Point, request: frames.Request
     ) -> frames.Response:
         """Send a write; the device's post-write wait follows, answered or not."""
+        self.cache.forget(state.target.name, request.address, request.count)
         try:
             return await self.transact(state, request, 8)
         finally:

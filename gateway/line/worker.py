@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Final
 from gateway.errors import BusClosedError
 from gateway.line.decode import Decoder
 from gateway.line.devices import DeviceState
+from gateway.line.foreign import ForeignQueue
 from gateway.line.health import Availability
 from gateway.line.jobs import JobQueue
 from gateway.line.samples import DeviceEvent
@@ -88,6 +89,14 @@ class BusWorker:
         self.jobs = JobQueue(
             bus=name, devices=self.devices, transactions=self.transactions, wake=self._wake
         )
+        # Other masters' requests (shared_bus:), refused until the gateway opens it.
+        self.foreign = ForeignQueue(
+            bus=name,
+            devices=self.devices,
+            transactions=self.transactions,
+            schedule=self.schedule,
+            wake=self._wake,
+        )
         self._port_failures_in_a_row = 0
         self._stopping = False
         self._stop_requested = asyncio.Event()
@@ -102,7 +111,10 @@ class BusWorker:
             await self._run(delay)
         finally:
             self.jobs.running = False
-            self.jobs.fail_all(BusClosedError(f"bus {self.name} stopped"))
+            self.foreign.accepting = False
+            stopped = BusClosedError(f"bus {self.name} stopped")
+            self.jobs.fail_all(stopped)
+            self.foreign.fail_all(stopped)
 
     async def _run(self, delay: float) -> None:
         while not self._stopping:
@@ -120,6 +132,7 @@ class BusWorker:
                 self._port_failures_in_a_row += 1
                 self.line.stats.port_failures += 1
                 self.jobs.fail_all(exc)  # a command waits for no reconnection: it says why now
+                self.foreign.fail_all(exc)
                 log = _LOGGER.warning if self._port_failures_in_a_row == 1 else _LOGGER.debug
                 log("%s: %s; retrying in %.1f s", self.name, exc, delay)
                 await self.availability.all_offline(str(exc))
@@ -139,6 +152,7 @@ class BusWorker:
         """Finish the transaction in flight, then leave :meth:`run` (SIGTERM, SIGINT)."""
         self._stopping = True
         self.jobs.stopping = True
+        self.foreign.accepting = False
         self._stop_requested.set()
         self._wake.set()
 
@@ -228,10 +242,13 @@ class BusWorker:
     # --- polling ----------------------------------------------------------------------
 
     async def _poll_forever(self) -> None:
-        """Writes first, then due values (earliest deadline first), then diagnostics.
+        """Writes, due values (earliest deadline first), other masters, then diagnostics.
+
+        Other masters' requests are served within their share of bus time.
 
         Diagnostics and configuration only fill the time values leave free, one read at a
-        time, so a long logbook read never delays a measured value.
+        time, so a long logbook read never delays a measured value; nor does another
+        master's request, which waits for a moment no value is due.
         """
         while not self._stopping:
             now = time.monotonic()
@@ -243,13 +260,15 @@ class BusWorker:
                 else:
                     await self._poll(state, now, slow=False)
                 continue
+            if await self.foreign.run_next(now):
+                continue
             if (state := self.schedule.pick(now, slow=True)) is not None:
                 await self._poll(state, now, slow=True)
                 continue
             await self._sleep_until_next(now)
 
     async def _sleep_until_next(self, now: float) -> None:
-        wake_at = self.jobs.wake_at(self.schedule.wake_at(now), now)
+        wake_at = self.foreign.wake_at(self.jobs.wake_at(self.schedule.wake_at(now), now), now)
         self._wake.clear()
         timeout = max(0.0, wake_at - now)
         if math.isinf(timeout):

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
     from datetime import date
 
+    from gateway.line.foreign import ForeignStats
     from gateway.line.health import DeviceHealth
     from gateway.line.port import LineStats
     from gateway.line.samples import DeviceEvent, Sample
@@ -93,6 +94,49 @@ class WriteStatus:
     feeds: dict[str, FeedStatus] = field(default_factory=dict)
 
 
+WAIT_BUCKETS_S = (0.01, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 5.0)
+
+
+@dataclass(slots=True)
+class SharedBusClient:
+    """What one client of the shared bus did (its configured name, or ``other``)."""
+
+    requests: Counter[int] = field(default_factory=Counter)  # by function code
+    exceptions: Counter[int] = field(default_factory=Counter)  # by the code answered
+    refused: Counter[str] = field(default_factory=Counter)  # writes refused, by reason
+    received_bytes: int = 0
+    sent_bytes: int = 0
+    cache_answers: int = 0  # reads answered from what the device last sent
+    wait_buckets: Counter[float] = field(default_factory=Counter)  # queue wait histogram
+    wait_sum_s: float = 0.0
+    peers: dict[str, float] = field(default_factory=dict)  # connected now: "host:port" -> since
+
+    def observe_wait(self, seconds: float) -> None:
+        """Add one request's wait for the line to the histogram."""
+        self.wait_sum_s += seconds
+        for bound in (*WAIT_BUCKETS_S, float("inf")):
+            if seconds <= bound:
+                self.wait_buckets[bound] += 1
+
+
+@dataclass(slots=True)
+class SharedBusStatus:
+    """The shared bus (other masters through the gateway), for ``/healthz`` and the metrics."""
+
+    enabled: bool = False
+    listening: list[str] = field(default_factory=list)  # "tcp://127.0.0.1:1502"
+    share: float = 0.0
+    clients: dict[str, SharedBusClient] = field(default_factory=dict)
+    buses: dict[str, ForeignStats] = field(default_factory=dict)
+
+    def client(self, name: str) -> SharedBusClient:
+        """The counters of a client, created at its first request."""
+        found = self.clients.get(name)
+        if found is None:
+            found = self.clients[name] = SharedBusClient()
+        return found
+
+
 @dataclass(slots=True)
 class GatewayState:
     """Latest samples, device availability, line statistics and the MQTT status."""
@@ -104,6 +148,8 @@ class GatewayState:
     health_sources: dict[str, Callable[[], list[DeviceHealth]]] = field(default_factory=dict)
     mqtt: MqttStatus = field(default_factory=MqttStatus)
     writes: WriteStatus = field(default_factory=WriteStatus)
+    # Shared, not copied by a snapshot: counters of the event loop's, read as the lines'.
+    shared_bus: SharedBusStatus = field(default_factory=SharedBusStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
@@ -171,6 +217,7 @@ class GatewayState:
                     flash_budgets=dict(self.writes.flash_budgets),
                     feeds={k: replace(v) for k, v in self.writes.feeds.items()},
                 ),
+                shared_bus=self.shared_bus,
                 started=self.started,
             )
 

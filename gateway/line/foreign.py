@@ -1,0 +1,250 @@
+"""Other masters' requests on the line: in the bus task's queue, within a share of bus time.
+
+An RS485 line has one master. Another master (a SCADA, the vendor's service software)
+reaches the sensors through the gateway instead (``shared_bus:``): its requests wait here
+and are sent by the bus task like the gateway's own, under the same rules (inter-frame
+gap, the device's minimum response time, post-write waits, the late-answer window, an
+offline device's backoff). They come after due values, so polling keeps its deadlines,
+and before diagnostics; and only while their share of bus time is not spent (a token
+bucket of bus seconds). A request that waits too long, or finds the queue full, is
+refused with :class:`BusBusyError` (Modbus exception 06 to the client); nothing collides.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Final
+
+from gateway.errors import (
+    BusBusyError,
+    BusClosedError,
+    BusTimeoutError,
+    DeviceExceptionError,
+    FrameError,
+    GatewayError,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from gateway.line.devices import DeviceState
+    from gateway.line.schedule import Schedule
+    from gateway.line.transactions import Transactions
+    from gateway.wire import frames
+
+BURST_S: Final = 2.0  # the share is kept over this window: a burst may use it at once
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SharePolicy:
+    """How much of a line other masters may have.
+
+    Example::
+
+        SharePolicy(share=0.25, max_wait_s=2.0, max_pending=16)
+    """
+
+    share: float = 0.25  # of bus time, over a window of ``BURST_S``
+    max_wait_s: float = 2.0  # a request not sent by then is refused (busy)
+    max_pending: int = 16  # requests waiting on the line; more are refused at once
+
+
+@dataclass(slots=True)
+class ForeignStats:
+    """What other masters did on one line (read by the metrics)."""
+
+    busy_s: float = 0.0  # bus time their transactions took, gaps included
+    sent: int = 0
+    refused: Counter[str] = field(default_factory=Counter)  # by reason: queue_full, no_share
+
+
+@dataclass(slots=True)
+class ForeignJob:
+    """One request of another master, framed for the line, waiting for its turn."""
+
+    device: str
+    request: frames.Request
+    queued_at: float
+    done: asyncio.Future[frames.Response]
+    sent_at: float | None = None  # when it got the line
+
+
+class BusTimeBucket:
+    """Bus seconds other masters may still spend: refilled at ``share`` per second."""
+
+    def __init__(self, share: float, *, now: float) -> None:
+        """Start full: a client's first requests need not wait."""
+        self.share = share
+        self.capacity_s = share * BURST_S
+        self._credit_s = self.capacity_s
+        self._at = now
+
+    def credit(self, now: float) -> float:
+        """Seconds left now (negative after an overspend, until it is paid back)."""
+        self._credit_s = min(self.capacity_s, self._credit_s + (now - self._at) * self.share)
+        self._at = now
+        return self._credit_s
+
+    def spend(self, seconds: float, now: float) -> None:
+        """Take the bus time a transaction used."""
+        self._credit_s = self.credit(now) - seconds
+
+    def available_at(self, now: float) -> float:
+        """When the credit is positive again."""
+        credit = self.credit(now)
+        if credit > 0:
+            return now
+        return now + (-credit) / self.share if self.share > 0 else float("inf")
+
+
+class ForeignQueue:
+    """The requests of other masters on one line, served by its bus task."""
+
+    def __init__(
+        self,
+        *,
+        bus: str,
+        devices: Mapping[str, DeviceState],
+        transactions: Transactions,
+        schedule: Schedule,
+        wake: asyncio.Event,
+    ) -> None:
+        """No other master until :meth:`open` gives the line's share."""
+        self.bus = bus
+        self.devices = devices
+        self.transactions = transactions
+        self.schedule = schedule
+        self.policy = SharePolicy(share=0.0)
+        self.stats = ForeignStats()
+        self._bucket = BusTimeBucket(0.0, now=time.monotonic())
+        self._jobs: list[ForeignJob] = []
+        self._wake = wake
+        self.accepting = False  # False: refused as busy (not shared, or the bus stops)
+
+    def open(self, policy: SharePolicy) -> None:
+        """Let other masters in, within ``policy``."""
+        self.policy = policy
+        self._bucket = BusTimeBucket(policy.share, now=time.monotonic())
+        self.accepting = True
+
+    def submit(self, device: str, request: frames.Request) -> ForeignJob:
+        """Queue a request for the device; :class:`BusBusyError` at once if it cannot wait.
+
+        The job's ``done`` holds the device's answer, or the error of the transaction
+        (:class:`DeviceExceptionError`, :class:`BusTimeoutError`, a :class:`FrameError`,
+        :class:`BusBusyError` when its wait ran out, :class:`BusClosedError`).
+        """
+        if device not in self.devices:
+            raise GatewayError(f"bus {self.bus} has no device {device!r}")
+        if not self.transactions.line.is_open:
+            raise BusClosedError(f"bus {self.bus}: {self.transactions.line.port} is not open")
+        if not self.accepting:
+            self.stats.refused["closed"] += 1
+            raise BusBusyError(f"bus {self.bus} takes no requests of other masters now")
+        if len(self._jobs) >= self.policy.max_pending:
+            self.stats.refused["queue_full"] += 1
+            raise BusBusyError(f"bus {self.bus}: {len(self._jobs)} requests already wait")
+        done: asyncio.Future[frames.Response] = asyncio.get_running_loop().create_future()
+        job = ForeignJob(device=device, request=request, queued_at=time.monotonic(), done=done)
+        self._jobs.append(job)
+        self._wake.set()
+        return job
+
+    def wake_at(self, wake_at: float, now: float) -> float:
+        """``wake_at``, or earlier if a request may go (or time out) before."""
+        if not self._jobs:
+            return wake_at
+        expiry = min(job.queued_at for job in self._jobs) + self.policy.max_wait_s
+        ready = max(
+            self._bucket.available_at(now),
+            min(self.devices[job.device].not_before for job in self._jobs),
+        )
+        return min(wake_at, expiry, ready)
+
+    def fail_all(self, exc: Exception) -> None:
+        """Fail every waiting request (the port is gone, or the bus stops)."""
+        for job in self._jobs:
+            if not job.done.done():
+                job.done.set_exception(exc)
+        self._jobs.clear()
+
+    async def run_next(self, now: float) -> bool:
+        """Send one request if its device is free and the share allows; whether one went."""
+        if not self._jobs:
+            return False
+        self._expire(now)
+        if not self._jobs or self._bucket.credit(now) <= 0:
+            return False
+        for job in self._jobs:
+            state = self.devices[job.device]
+            if state.not_before > now:
+                continue
+            self._jobs.remove(job)
+            if job.done.cancelled():
+                return True  # the client went away
+            await self._send(state, job)
+            return True
+        return False
+
+    def _expire(self, now: float) -> None:
+        """Refuse the requests that waited longer than the policy allows."""
+        limit = now - self.policy.max_wait_s
+        for job in [j for j in self._jobs if j.queued_at <= limit]:
+            self._jobs.remove(job)
+            self.stats.refused["no_share"] += 1
+            if not job.done.done():
+                job.done.set_exception(
+                    BusBusyError(f"bus {self.bus}: no bus time within {self.policy.max_wait_s:g} s")
+                )
+
+    async def _send(self, state: DeviceState, job: ForeignJob) -> None:
+        request = job.request
+        line = self.transactions.line
+        if state.online is False:
+            # The device's backoff holds for every master: the gateway's probes find it
+            # again, and another master's requests would only wait out its timeout.
+            job.done.set_exception(BusTimeoutError(f"device {state.target.name} is offline"))
+            return
+        job.sent_at = time.monotonic()
+        busy_before = line.stats.busy_s
+        if request.is_write:
+            self.transactions.cache.forget(state.target.name, request.address, request.count)
+        try:
+            response = await self.transactions.transact(state, request, _answer_bytes(request))
+        except DeviceExceptionError as exc:
+            await self.transactions.availability.answered(state, "answered")
+            job.done.set_exception(exc)
+        except (BusTimeoutError, FrameError) as exc:
+            await self.transactions.availability.failed(state, str(exc))
+            job.done.set_exception(exc)
+        except BusClosedError as exc:
+            job.done.set_exception(exc)
+            raise
+        else:
+            await self.transactions.availability.answered(state, "answered")
+            if not request.is_write:
+                self.transactions.cache.store(
+                    state.target.name, request.address, response.registers, time.monotonic()
+                )
+            job.done.set_result(response)
+        finally:
+            now = time.monotonic()
+            if request.is_write:
+                # The device's post-write wait holds whoever wrote (H10/H20 6.1.5); what
+                # was written is read again, in case values depend on it (units, format).
+                wait = state.profile.post_write_wait(request.address, request.count)
+                state.not_before = max(state.not_before, now + wait)
+                self.schedule.reread(state, request.address, request.count, now)
+            # The line's busy time (request to answer or timeout) and the gap before it.
+            used = line.stats.busy_s - busy_before + self.transactions.gap_s(state)
+            self._bucket.spend(used, now)
+            self.stats.busy_s += used
+            self.stats.sent += 1
+
+
+def _answer_bytes(request: frames.Request) -> int:
+    """The length of the device's answer, for its timeout."""
+    return 8 if request.is_write else 5 + 2 * request.count
