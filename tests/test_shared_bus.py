@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import socket
 import struct
 import subprocess
+import urllib.request
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import run
@@ -24,6 +27,7 @@ from gateway.config import parse_config
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames
+from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
@@ -68,7 +72,7 @@ def _listen_port(state: GatewayState, framing: str) -> int:
 
 @contextlib.asynccontextmanager
 async def plant(
-    tmp_path: Path, shared_bus: str, *, poll_interval: float = 1.0
+    tmp_path: Path, shared_bus: str, *, poll_interval: float = 1.0, metrics_port: int = 0
 ) -> AsyncIterator[Plant]:
     simulator = SimulatorServer(build_bus(parse_settings({"devices": SIMULATED, "line": LINE})))
     port = tmp_path / "ttyRS485"
@@ -82,8 +86,12 @@ async def plant(
         f"  - {{name: oxygen, bus: basin, address: {H10}, profile: jumo-digiline-odo-h10,"
         f" poll_interval: {poll_interval}}}\n"
         "mqtt: {enabled: false}\n"
-        "prometheus: {enabled: false}\n"
-        f"state_dir: {tmp_path / 'state'}\n"
+        + (
+            f"prometheus: {{host: 127.0.0.1, port: {metrics_port}}}\n"
+            if metrics_port
+            else "prometheus: {enabled: false}\n"
+        )
+        + f"state_dir: {tmp_path / 'state'}\n"
         f"{shared_bus}",
         environ={},
     )
@@ -328,3 +336,40 @@ async def test_garbage_on_the_socket_closes_that_connection_and_nothing_reaches_
         logged = list(p.simulator.bus.frame_log)[before:]
     assert answer[7:9] == b"\x03\x04"
     assert all(f.outcome == "answered" for f in logged), {f.outcome for f in logged}
+
+
+def _get(url: str) -> str:
+    with urllib.request.urlopen(url, timeout=5) as response:  # noqa: S310 - a local test URL
+        return str(response.read().decode())
+
+
+async def test_clients_show_in_healthz_and_their_requests_in_the_metrics(tmp_path: Path) -> None:
+    port = free_port()
+    async with plant(tmp_path, SHARED, metrics_port=port) as p:
+        reader, writer = await asyncio.open_connection("127.0.0.1", p.tcp_port)
+        for transaction in range(3):
+            writer.write(_mbap(transaction, TECLINE, bytes.fromhex("0300000002")))
+            await asyncio.wait_for(reader.readexactly(13), timeout=5)
+        writer.write(_mbap(9, 99, bytes.fromhex("0300000002")))
+        await asyncio.wait_for(reader.readexactly(9), timeout=5)
+        local = "%s:%d" % writer.get_extra_info("sockname")[:2]  # noqa: UP031
+        health = json.loads(await asyncio.to_thread(_get, f"http://127.0.0.1:{port}/healthz"))
+        text = await asyncio.to_thread(_get, f"http://127.0.0.1:{port}/metrics")
+        writer.close()
+    samples = {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
+    assert health["shared_bus"]["clients"] == {"service": [local]}
+    assert health["shared_bus"]["listening"] == [f"tcp://127.0.0.1:{p.tcp_port}"]
+    service = (("client", "service"),)
+    assert samples["gateway_shared_bus_requests_total", (*service, ("function", "03"))] == 4
+    assert samples["gateway_shared_bus_exceptions_total", (*service, ("code", "0A"))] == 1
+    assert samples["gateway_shared_bus_refused_total", (*service, ("reason", "unknown_unit"))] == 1
+    assert samples["gateway_shared_bus_received_bytes_total", service] == 4 * 12
+    assert samples["gateway_shared_bus_sent_bytes_total", service] == 3 * 13 + 9
+    assert samples["gateway_shared_bus_queue_wait_seconds_count", service] == 3
+    assert samples["gateway_shared_bus_connections", service] == 1
+    assert samples["gateway_shared_bus_busy_seconds_total", (("bus", "basin"),)] > 0
+    assert samples["gateway_shared_bus_share", (("bus", "basin"),)] == 0.25

@@ -9,6 +9,7 @@ from prometheus_client.metrics_core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from gateway.publish.prometheus.health import device_families, line_families
+from gateway.publish.prometheus.shared_bus import shared_bus_families
 from gateway.publish.prometheus.values import value_families
 from gateway.publish.prometheus.writes import mqtt_families, write_families
 
@@ -56,3 +57,4 @@ class GatewayCollector(Collector):
         yield from line_families(snapshot, health, now)
         yield from mqtt_families(snapshot)
         yield from write_families(snapshot, now)
+        yield from shared_bus_families(snapshot)

@@ -98,6 +98,7 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         "status": "unhealthy" if reasons else "ok",
         "reasons": reasons,
         "buses": buses,
+        **_shared_bus(snapshot),
         "mqtt": {
             "enabled": mqtt.enabled,
             "connected": mqtt.connected,
@@ -110,6 +111,17 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         },
     }
     return not reasons, body
+
+
+def _shared_bus(snapshot: GatewayState) -> dict[str, object]:
+    """The shared bus's addresses and the clients connected now (only if it is on)."""
+    shared = snapshot.shared_bus
+    if not shared.enabled:
+        return {}
+    clients = {
+        name: sorted(dict(client.peers)) for name, client in sorted(dict(shared.clients).items())
+    }
+    return {"shared_bus": {"listening": list(shared.listening), "clients": clients}}
 
 
 # --- the HTTP server -------------------------------------------------------------------------

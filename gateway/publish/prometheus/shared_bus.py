@@ -1,0 +1,111 @@
+"""The families of the shared bus: other masters' requests per client, and their bus time."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from prometheus_client.metrics_core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+)
+
+from gateway.publish.state import WAIT_BUCKETS_S
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+    from gateway.publish.state import GatewayState
+
+
+def shared_bus_families(snapshot: GatewayState) -> Iterator[Metric]:
+    """Requests, bytes, exceptions and queue wait per client; bus time per bus (if enabled).
+
+    The counters belong to the event loop; each is copied whole (``dict()``, atomic in
+    CPython) before it is read here, as the lines' counters are.
+    """
+    shared = snapshot.shared_bus
+    if not shared.enabled:
+        return
+    clients = dict(shared.clients)
+    requests = CounterMetricFamily(
+        "gateway_shared_bus_requests",
+        "Requests of other masters, by client and Modbus function code",
+        labels=["client", "function"],
+    )
+    exceptions = CounterMetricFamily(
+        "gateway_shared_bus_exceptions",
+        "Exception answers to other masters, by client and code (the device's or the gateway's)",
+        labels=["client", "code"],
+    )
+    refused = CounterMetricFamily(
+        "gateway_shared_bus_refused",
+        "Requests the gateway answered itself, by client and reason",
+        labels=["client", "reason"],
+    )
+    received = CounterMetricFamily(
+        "gateway_shared_bus_received_bytes", "Bytes received from other masters", labels=["client"]
+    )
+    sent = CounterMetricFamily(
+        "gateway_shared_bus_sent_bytes", "Bytes sent to other masters", labels=["client"]
+    )
+    cached = CounterMetricFamily(
+        "gateway_shared_bus_cache_answers",
+        "Reads answered from registers the device sent within the client's age",
+        labels=["client"],
+    )
+    connections = GaugeMetricFamily(
+        "gateway_shared_bus_connections", "Connections open now", labels=["client"]
+    )
+    wait = HistogramMetricFamily(
+        "gateway_shared_bus_queue_wait_seconds",
+        "Time other masters' requests waited for the line",
+        labels=["client"],
+    )
+    for name, client in sorted(clients.items()):
+        for function, count in sorted(dict(client.requests).items()):
+            requests.add_metric([name, f"{function:02d}"], count)
+        for code, count in sorted(dict(client.exceptions).items()):
+            exceptions.add_metric([name, f"{code:02X}"], count)
+        for reason, count in sorted(dict(client.refused).items()):
+            refused.add_metric([name, reason], count)
+        received.add_metric([name], client.received_bytes)
+        sent.add_metric([name], client.sent_bytes)
+        cached.add_metric([name], client.cache_answers)
+        connections.add_metric([name], len(dict(client.peers)))
+        buckets = dict(client.wait_buckets)
+        wait.add_metric(
+            [name],
+            [(_bound(b), buckets.get(b, 0)) for b in (*WAIT_BUCKETS_S, float("inf"))],
+            sum_value=client.wait_sum_s,
+        )
+    yield from (requests, exceptions, refused, received, sent, cached, connections, wait)
+    yield from _bus_families(snapshot)
+
+
+def _bus_families(snapshot: GatewayState) -> Iterator[Metric]:
+    shared = snapshot.shared_bus
+    busy = CounterMetricFamily(
+        "gateway_shared_bus_busy_seconds",
+        "Bus time other masters' transactions took, gaps included",
+        labels=["bus"],
+    )
+    share = GaugeMetricFamily(
+        "gateway_shared_bus_share", "The share of bus time other masters may take", labels=["bus"]
+    )
+    refused = CounterMetricFamily(
+        "gateway_shared_bus_busy_answers",
+        "Requests answered with exception 06: no bus time within the wait, or the queue full",
+        labels=["bus", "reason"],
+    )
+    for bus, stats in sorted(dict(shared.buses).items()):
+        busy.add_metric([bus], stats.busy_s)
+        share.add_metric([bus], shared.share)
+        for reason, count in sorted(dict(stats.refused).items()):
+            refused.add_metric([bus, reason], count)
+    yield from (busy, share, refused)
+
+
+def _bound(seconds: float) -> str:
+    return "+Inf" if seconds == float("inf") else repr(seconds)
