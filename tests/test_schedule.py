@@ -106,3 +106,32 @@ def test_nothing_due_is_nothing_picked() -> None:
     assert schedule.pick(10.0, slow=False) is None
     assert schedule.wake_at(10.0) > 10.0
     assert not math.isinf(schedule.wake_at(10.0))
+
+
+def test_what_another_master_wrote_is_read_again_the_format_before_the_values() -> None:
+    profile = get_profile("jumo-digiline-odo-h10")
+    intervals: dict[str, float | None] = {
+        "oxygen": 1.0,
+        "compensation_temperature": 60.0,
+        "float_format": 300.0,
+        "serial_number": None,
+    }
+    state = DeviceState(
+        target=DeviceTarget(name="h10", address=2, profile=profile, intervals=intervals)
+    )
+    schedule = Schedule({"h10": state})
+    schedule.restart(0.0)
+    state.identity_pending.clear()  # read: everything is polled on its interval now
+    state.next_due.update({"oxygen": 1.0, "compensation_temperature": 60.0, "float_format": 300})
+    state.deadline_cache.clear()
+
+    schedule.reread(state, 0x2013, 2, now=5.0)  # compensation_temperature, by another master
+    assert state.next_due["compensation_temperature"] == 5.0
+    assert state.next_due["float_format"] == 300
+    assert state.identity_pending == set()
+
+    schedule.reread(state, 0x0300, 0x10, now=6.0)  # a block holding the float format (0x0307)
+    # Read before any value, as at a start: values decoded after it follow the new format.
+    assert "float_format" in state.identity_pending
+    assert schedule.next_deadline(state, slow=False) == 0.0
+    assert state.next_due["oxygen"] == 1.0  # unwritten points keep their deadlines

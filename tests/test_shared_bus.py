@@ -373,3 +373,31 @@ async def test_clients_show_in_healthz_and_their_requests_in_the_metrics(tmp_pat
     assert samples["gateway_shared_bus_connections", service] == 1
     assert samples["gateway_shared_bus_busy_seconds_total", (("bus", "basin"),)] > 0
     assert samples["gateway_shared_bus_share", (("bus", "basin"),)] == 0.25
+
+
+async def test_a_device_that_stopped_answering_gets_0b_and_then_no_bus_time(
+    tmp_path: Path,
+) -> None:
+    async with plant(tmp_path, SHARED, poll_interval=0.2) as p:
+        p.simulator.bus.silence(TECLINE, 30.0, asyncio.get_running_loop().time())
+        # The first request waits out the device's timeout on the wire: 0B.
+        first = await _raw(p.tcp_port, _mbap(1, TECLINE, bytes.fromhex("0300000002")))
+        for _ in range(100):  # the gateway's polls fail too: offline after 3 in a row
+            if p.state.devices["basin", "cl2"].online is False:
+                break
+            await asyncio.sleep(0.1)
+        online = p.state.devices["basin", "cl2"].online
+        count = len(p.frames_to(TECLINE))
+        later = [
+            await _raw(p.tcp_port, _mbap(2 + n, TECLINE, bytes.fromhex("0300000002")))
+            for n in range(5)
+        ]
+        sent_for_them = len(p.frames_to(TECLINE)) - count
+        oxygen = await _raw(p.tcp_port, _mbap(9, H10, bytes.fromhex("0300000002")))
+    assert first == _mbap(1, TECLINE, bytes.fromhex("830B"))
+    assert online is False
+    assert later == [_mbap(2 + n, TECLINE, bytes.fromhex("830B")) for n in range(5)]
+    # Offline: answered at once; only the gateway's own probes (a few per second at most)
+    # reach the silent device meanwhile.
+    assert sent_for_them <= 2
+    assert oxygen[7:9] == b"\x03\x04"  # the other sensor on the line is still served

@@ -56,7 +56,7 @@ class SharePolicy:
 class ForeignStats:
     """What other masters did on one line (read by the metrics)."""
 
-    busy_s: float = 0.0  # bus time their transactions took, gaps included
+    busy_s: float = 0.0  # line time their transactions took (part of the line's busy time)
     sent: int = 0
     refused: Counter[str] = field(default_factory=Counter)  # by reason: queue_full, no_share
 
@@ -176,6 +176,7 @@ class ForeignQueue:
         if not self._jobs:
             return False
         self._expire(now)
+        self._refuse_offline()
         if not self._jobs or self._bucket.credit(now) <= 0:
             return False
         for job in self._jobs:
@@ -200,14 +201,20 @@ class ForeignQueue:
                     BusBusyError(f"bus {self.bus}: no bus time within {self.policy.max_wait_s:g} s")
                 )
 
+    def _refuse_offline(self) -> None:
+        """Answer the requests for offline devices at once, without the wire.
+
+        The device's backoff holds for every master: the gateway's probes find it again,
+        and another master's requests would only wait out its timeout.
+        """
+        for job in [j for j in self._jobs if self.devices[j.device].online is False]:
+            self._jobs.remove(job)
+            if not job.done.done():
+                job.done.set_exception(BusTimeoutError(f"device {job.device} is offline"))
+
     async def _send(self, state: DeviceState, job: ForeignJob) -> None:
         request = job.request
         line = self.transactions.line
-        if state.online is False:
-            # The device's backoff holds for every master: the gateway's probes find it
-            # again, and another master's requests would only wait out its timeout.
-            job.done.set_exception(BusTimeoutError(f"device {state.target.name} is offline"))
-            return
         job.sent_at = time.monotonic()
         busy_before = line.stats.busy_s
         if request.is_write:
@@ -238,10 +245,11 @@ class ForeignQueue:
                 wait = state.profile.post_write_wait(request.address, request.count)
                 state.not_before = max(state.not_before, now + wait)
                 self.schedule.reread(state, request.address, request.count, now)
-            # The line's busy time (request to answer or timeout) and the gap before it.
-            used = line.stats.busy_s - busy_before + self.transactions.gap_s(state)
-            self._bucket.spend(used, now)
-            self.stats.busy_s += used
+            # The line's busy time (request to answer or timeout; counted in the line's
+            # busy time too), and for the share the silent gap before it as well.
+            busy = line.stats.busy_s - busy_before
+            self._bucket.spend(busy + self.transactions.gap_s(state), now)
+            self.stats.busy_s += busy
             self.stats.sent += 1
 
 

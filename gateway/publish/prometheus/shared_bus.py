@@ -88,7 +88,7 @@ def _bus_families(snapshot: GatewayState) -> Iterator[Metric]:
     shared = snapshot.shared_bus
     busy = CounterMetricFamily(
         "gateway_shared_bus_busy_seconds",
-        "Bus time other masters' transactions took, gaps included",
+        "Bus time other masters' transactions took (part of gateway_bus_busy_seconds)",
         labels=["bus"],
     )
     share = GaugeMetricFamily(
