@@ -401,3 +401,41 @@ async def test_a_device_that_stopped_answering_gets_0b_and_then_no_bus_time(
     # reach the silent device meanwhile.
     assert sent_for_them <= 2
     assert oxygen[7:9] == b"\x03\x04"  # the other sensor on the line is still served
+
+
+async def test_a_pymodbus_client_writes_where_granted_and_reads_it_back(tmp_path: Path) -> None:
+    async with plant(tmp_path, SHARED) as p:
+        client = AsyncModbusTcpClient("127.0.0.1", port=p.tcp_port, timeout=3)
+        await client.connect()
+        # compensation_temperature of the H10 (0x2013, float CDAB, volatile): 12.5 °C.
+        written = await client.write_registers(0x2013, [0x0000, 0x4148], device_id=H10)
+        back = await client.read_holding_registers(0x2013, count=2, device_id=H10)
+        refused = await client.write_register(0x2013, 1, device_id=TECLINE)
+        client.close()
+        log = [w.values for w in p.device(H10).write_log if w.address == 0x2013]
+        violations = _violations(p)
+    assert not written.isError()
+    assert back.registers == [0x0000, 0x4148]
+    assert refused.isError()
+    assert refused.exception_code == 0x01  # writes to the tecLine are not granted
+    assert log == [(0x0000, 0x4148)]
+    assert violations == []
+
+
+async def test_connections_beyond_the_limit_are_closed_and_the_others_served(
+    tmp_path: Path,
+) -> None:
+    shared = "shared_bus:\n  listen: [{host: 127.0.0.1, port: 0}]\n  max_connections: 2\n"
+    async with plant(tmp_path, shared) as p:
+        held = [await asyncio.open_connection("127.0.0.1", p.tcp_port) for _ in range(2)]
+        await asyncio.sleep(0.2)
+        reader, writer = await asyncio.open_connection("127.0.0.1", p.tcp_port)
+        closed = await asyncio.wait_for(reader.read(), timeout=5)
+        writer.close()
+        held_reader, held_writer = held[0]
+        held_writer.write(_mbap(1, TECLINE, bytes.fromhex("0300000002")))
+        answer = await asyncio.wait_for(held_reader.readexactly(13), timeout=5)
+        for _, w in held:
+            w.close()
+    assert closed == b""
+    assert answer[7:9] == b"\x03\x04"
