@@ -24,6 +24,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import run
 from gateway.config import parse_config
+from gateway.errors import ConfigError
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames
@@ -102,6 +103,8 @@ async def plant(
         for _ in range(100):
             if len(state.shared_bus.listening) == len(config.shared_bus.listen):
                 break
+            if task.done():
+                await task  # it failed to start: its error is the test's
             await asyncio.sleep(0.05)
         tcp = _listen_port(state, "tcp") if "framing: rtu" not in shared_bus else 0
         rtu = _listen_port(state, "rtu") if "framing: rtu" in shared_bus else 0
@@ -439,3 +442,17 @@ async def test_connections_beyond_the_limit_are_closed_and_the_others_served(
             w.close()
     assert closed == b""
     assert answer[7:9] == b"\x03\x04"
+
+
+async def test_an_address_taken_by_another_program_is_a_clear_error(tmp_path: Path) -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        shared = f"shared_bus:\n  listen: [{{host: 127.0.0.1, port: {port}}}]\n"
+        with pytest.raises(ConfigError) as error:
+            async with plant(tmp_path, shared):
+                pass
+    assert str(error.value) == (
+        f"shared_bus.listen[0]: cannot listen on 127.0.0.1:{port}: address already in use"
+    )

@@ -223,12 +223,12 @@ class ForeignQueue:
             response = await self.transactions.transact(state, request, _answer_bytes(request))
         except DeviceExceptionError as exc:
             await self.transactions.availability.answered(state, "answered")
-            job.done.set_exception(exc)
+            _settle(job, exc)
         except (BusTimeoutError, FrameError) as exc:
             await self.transactions.availability.failed(state, str(exc))
-            job.done.set_exception(exc)
+            _settle(job, exc)
         except BusClosedError as exc:
-            job.done.set_exception(exc)
+            _settle(job, exc)
             raise
         else:
             await self.transactions.availability.answered(state, "answered")
@@ -236,7 +236,7 @@ class ForeignQueue:
                 self.transactions.cache.store(
                     state.target.name, request.address, response.registers, time.monotonic()
                 )
-            job.done.set_result(response)
+            _settle(job, response)
         finally:
             now = time.monotonic()
             if request.is_write:
@@ -251,6 +251,16 @@ class ForeignQueue:
             self._bucket.spend(busy + self.transactions.gap_s(state), now)
             self.stats.busy_s += busy
             self.stats.sent += 1
+
+
+def _settle(job: ForeignJob, outcome: frames.Response | Exception) -> None:
+    """Hand the outcome to the waiting client, unless it stopped waiting (its connection closed)."""
+    if job.done.done():
+        return
+    if isinstance(outcome, Exception):
+        job.done.set_exception(outcome)
+    else:
+        job.done.set_result(outcome)
 
 
 def _answer_bytes(request: frames.Request) -> int:

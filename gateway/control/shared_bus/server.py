@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+import os
 import time
 from typing import TYPE_CHECKING, Final, Self
 
@@ -101,9 +102,10 @@ class SharedBusServer:
                 )
             except OSError as exc:
                 await self.close()
+                reason = os.strerror(exc.errno).lower() if exc.errno else str(exc)
                 raise ConfigError(
-                    f"cannot listen on {listen.host}:{listen.port}: {exc.strerror or exc}",
-                    key=f"shared_bus.listen.{index}",
+                    f"cannot listen on {listen.host}:{listen.port}: {reason}",
+                    key=f"shared_bus.listen[{index}]",
                 ) from exc
             self._servers.append(server)
             for sock in server.sockets:
