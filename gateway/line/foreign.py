@@ -167,8 +167,7 @@ class ForeignQueue:
     def fail_all(self, exc: Exception) -> None:
         """Fail every waiting request (the port is gone, or the bus stops)."""
         for job in self._jobs:
-            if not job.done.done():
-                job.done.set_exception(exc)
+            _settle(job, exc)
         self._jobs.clear()
 
     async def run_next(self, now: float) -> bool:
@@ -196,10 +195,8 @@ class ForeignQueue:
         for job in [j for j in self._jobs if j.queued_at <= limit]:
             self._jobs.remove(job)
             self.stats.refused["no_share"] += 1
-            if not job.done.done():
-                job.done.set_exception(
-                    BusBusyError(f"bus {self.bus}: no bus time within {self.policy.max_wait_s:g} s")
-                )
+            wait = self.policy.max_wait_s
+            _settle(job, BusBusyError(f"bus {self.bus}: no bus time within {wait:g} s"))
 
     def _refuse_offline(self) -> None:
         """Answer the requests for offline devices at once, without the wire.
@@ -209,8 +206,7 @@ class ForeignQueue:
         """
         for job in [j for j in self._jobs if self.devices[j.device].online is False]:
             self._jobs.remove(job)
-            if not job.done.done():
-                job.done.set_exception(BusTimeoutError(f"device {job.device} is offline"))
+            _settle(job, BusTimeoutError(f"device {job.device} is offline"))
 
     async def _send(self, state: DeviceState, job: ForeignJob) -> None:
         request = job.request
@@ -254,7 +250,7 @@ class ForeignQueue:
 
 
 def _settle(job: ForeignJob, outcome: frames.Response | Exception) -> None:
-    """Hand the outcome to the waiting client, unless it stopped waiting (its connection closed)."""
+    """Hand the outcome to the waiting client, unless it stopped waiting (it disconnected)."""
     if job.done.done():
         return
     if isinstance(outcome, Exception):
