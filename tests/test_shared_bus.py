@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import json
 import socket
+import sqlite3
 import struct
 import subprocess
 import urllib.request
@@ -24,6 +25,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import run
 from gateway.config import parse_config
+from gateway.control.flash import LEDGER_FILE
 from gateway.errors import ConfigError
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -73,7 +75,12 @@ def _listen_port(state: GatewayState, framing: str) -> int:
 
 @contextlib.asynccontextmanager
 async def plant(
-    tmp_path: Path, shared_bus: str, *, poll_interval: float = 1.0, metrics_port: int = 0
+    tmp_path: Path,
+    shared_bus: str,
+    *,
+    poll_interval: float = 1.0,
+    metrics_port: int = 0,
+    cl2_options: str = "",
 ) -> AsyncIterator[Plant]:
     simulator = SimulatorServer(build_bus(parse_settings({"devices": SIMULATED, "line": LINE})))
     port = tmp_path / "ttyRS485"
@@ -83,7 +90,7 @@ async def plant(
         f"  - {{name: basin, port: {port}, baudrate: 9600, parity: E}}\n"
         "devices:\n"
         f"  - {{name: cl2, bus: basin, address: {TECLINE}, profile: jumo-tecline-cl2,"
-        f" poll_interval: {poll_interval}}}\n"
+        f" poll_interval: {poll_interval}{cl2_options}}}\n"
         f"  - {{name: oxygen, bus: basin, address: {H10}, profile: jumo-digiline-odo-h10,"
         f" poll_interval: {poll_interval}}}\n"
         "mqtt: {enabled: false}\n"
@@ -456,3 +463,29 @@ async def test_an_address_taken_by_another_program_is_a_clear_error(tmp_path: Pa
     assert str(error.value) == (
         f"shared_bus.listen[0]: cannot listen on 127.0.0.1:{port}: address already in use"
     )
+
+
+async def test_writes_to_flash_count_against_the_devices_budget(tmp_path: Path) -> None:
+    shared = (
+        "shared_bus:\n"
+        "  listen: [{host: 127.0.0.1, port: 0}]\n"
+        "  clients:\n"
+        "    - name: service\n"
+        "      networks: [127.0.0.1/32]\n"
+        "      writes: [{device: cl2, registers: ['0x0206-0x020B']}]\n"
+    )
+    # X_Zero (tecLine 0x0206, float CDAB, flash) = 2.0 nA, twice, with a budget of one a day.
+    write = bytes.fromhex("10 0206 0002 04 0000 4000")
+    async with plant(tmp_path, shared, cl2_options=", flash_write_budget: 1") as p:
+        first = await _raw(p.tcp_port, _mbap(1, TECLINE, write))
+        second = await _raw(p.tcp_port, _mbap(2, TECLINE, write))
+        log = [w.values for w in p.device(TECLINE).write_log if w.address == 0x0206]
+        refused = p.state.shared_bus.clients["service"].refused
+    assert first == _mbap(1, TECLINE, bytes.fromhex("10 0206 0002"))
+    assert second == _mbap(2, TECLINE, bytes.fromhex("90 01"))
+    assert log == [(0x0000, 0x4000)]  # the second never reached the sensor
+    assert refused["flash_budget"] == 1
+    ledger = sqlite3.connect(tmp_path / "state" / LEDGER_FILE)
+    rows = ledger.execute("SELECT device, point, count FROM flash_writes").fetchall()
+    ledger.close()
+    assert rows == [("cl2", "x_zero", 1)]  # the same ledger as the gateway's own writes

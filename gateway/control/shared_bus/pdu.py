@@ -20,6 +20,7 @@ if TYPE_CHECKING:
 ILLEGAL_FUNCTION: Final = 0x01
 ILLEGAL_ADDRESS: Final = 0x02
 ILLEGAL_VALUE: Final = 0x03
+DEVICE_FAILURE: Final = 0x04  # the gateway cannot do it (the flash ledger cannot count a write)
 DEVICE_BUSY: Final = 0x06  # no bus time for the request now
 PATH_UNAVAILABLE: Final = 0x0A  # no device answers to that unit id, or its bus is down
 TARGET_FAILED: Final = 0x0B  # the device did not answer (timeout, CRC, offline)

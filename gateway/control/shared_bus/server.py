@@ -22,6 +22,7 @@ from gateway.control.flash import utc_today
 from gateway.control.shared_bus.framing import FramingError, framer_for
 from gateway.control.shared_bus.pdu import (
     DEVICE_BUSY,
+    DEVICE_FAILURE,
     ILLEGAL_FUNCTION,
     PATH_UNAVAILABLE,
     TARGET_FAILED,
@@ -39,6 +40,7 @@ from gateway.errors import (
     BusBusyError,
     BusClosedError,
     BusTimeoutError,
+    CommandRejectedError,
     ConfigError,
     DeviceExceptionError,
     FrameError,
@@ -282,8 +284,11 @@ class SharedBusServer:
                     f"{target.device}/{point.name} is spent",
                     label="flash_budget",
                 )
-        for point in touched:
-            self.ledger.record(target.device, point.name, today)
+        try:
+            for point in touched:
+                self.ledger.record(target.device, point.name, today)
+        except CommandRejectedError as exc:  # the ledger cannot count it: it is not sent
+            raise RequestRefusedError(DEVICE_FAILURE, exc.reason, label="flash_ledger") from exc
 
     async def _forward(
         self,
