@@ -225,3 +225,15 @@ def test_the_sparkplug_section_is_off_by_default_and_checked() -> None:
     assert ("sparkplug.surprise", 8) in found
     messages = " ".join(p.message for p in info.value.problems)
     assert "did you mean 'temperature'" in messages
+
+
+def test_a_unit_read_after_the_birth_is_told_by_a_new_dbirth() -> None:
+    report = reporter()
+    first = cycle(report, s10("oxygen", 8.0))  # the unit register not read yet
+    assert "engUnit" not in decode(first[0].payload).by_name()["oxygen"].properties
+    again = cycle(report, s10("oxygen", 8.0, unit="mg/l"))
+    assert [m.topic for m in again] == ["spBv1.0/plant/DBIRTH/gw1/tank"]
+    assert decode(again[0].payload).by_name()["oxygen"].properties["engUnit"] == "mg/l"
+    assert cycle(report, s10("oxygen", 8.0, unit="mg/l")) == []
+    changed = cycle(report, s10("oxygen", 8.0, unit="%"))
+    assert decode(changed[0].payload).by_name()["oxygen"].properties["engUnit"] == "%"

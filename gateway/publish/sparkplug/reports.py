@@ -68,6 +68,8 @@ class Reporter:
         self.topics = topics
         self.born: set[str] = set()
         self._last: dict[str, dict[int, Reported]] = {d: {} for d in catalogue.devices}
+        # The engineering unit each metric's last DBIRTH announced, where it had one.
+        self._units: dict[str, dict[int, str | None]] = {d: {} for d in catalogue.devices}
 
     def last(self, device: str) -> dict[int, Reported]:
         """What was last reported of each metric of ``device``, by alias."""
@@ -102,6 +104,7 @@ class Reporter:
         """A device's birth: every metric with name, alias, type, unit, description, value."""
         metrics = self.catalogue.devices[device]
         last = self._last[device]
+        units = self._units[device] = {}
         payload = payloads.new_payload(now_ms)
         for spec in metrics.metrics:
             reported = last.get(spec.alias)
@@ -119,6 +122,7 @@ class Reporter:
                 quality = reported.quality
             payloads.set_property(metric, payloads.QUALITY, SpType.INT32, quality)
             unit = reported.unit if reported is not None and reported.unit else spec.unit
+            units[spec.alias] = unit
             if unit:
                 payloads.set_property(metric, payloads.ENG_UNIT, SpType.STRING, unit)
             if spec.description:
@@ -153,9 +157,22 @@ class Reporter:
                 self.born.add(device)
                 return []
             return [self.dbirth(device, now_ms)]
+        if live and self._unit_changed(device, changed):
+            # A unit is a property of the birth: a new one (a unit register read after the
+            # birth, or changed on the sensor) is told by a new DBIRTH.
+            return [self.dbirth(device, now_ms)]
         if not changed:
             return []
         return [self.ddata(device, changed, historical=not live, now_ms=now_ms)]
+
+    def _unit_changed(
+        self, device: str, changed: Iterable[tuple[MetricSpec, Reported, int | None]]
+    ) -> bool:
+        units = self._units[device]
+        return any(
+            reported.unit is not None and units.get(spec.alias) != reported.unit
+            for spec, reported, _ in changed
+        )
 
     def ddata(
         self,
@@ -237,6 +254,8 @@ class Reporter:
 def _differs(spec: MetricSpec, before: Reported | None, now: Reported) -> bool:
     """Whether ``now`` is news to the host: a new quality, or a value past the deadband."""
     if before is None or before.quality != now.quality:
+        return True
+    if now.unit is not None and now.unit != before.unit:
         return True
     if before.value is None or now.value is None:
         return before.value is not now.value
