@@ -182,7 +182,14 @@ async def test_births_name_every_point_with_type_unit_and_alias(
     ):
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/aeration")
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/basin")
-        await seen.wait_for(f"{NODE}/DDATA/{EDGE}/basin")
+
+        def unit_told() -> bool:
+            births = seen.on(f"{NODE}/DBIRTH/{EDGE}/basin")
+            return "engUnit" in births[-1].by_name()["concentration"].properties
+
+        # The unit of a concentration is in a register of its own: read after the first
+        # cycle, it comes with a new DBIRTH.
+        await seen.wait_until(unit_told)
     nbirth = seen.on(f"{NODE}/NBIRTH/{EDGE}")[0]
     node = nbirth.by_name()
     assert node["bdSeq"].datatype == "Int64"
@@ -196,7 +203,7 @@ async def test_births_name_every_point_with_type_unit_and_alias(
 
     aliases: set[int] = set()
     for device, profile_id in (("aeration", "jumo-digiline-odo-s10"), ("basin", "reiss-m0c")):
-        birth = seen.on(f"{NODE}/DBIRTH/{EDGE}/{device}")[0]
+        birth = seen.on(f"{NODE}/DBIRTH/{EDGE}/{device}")[-1]
         metrics = birth.by_name()
         points = polled_points(profile_id)
         assert set(points) <= set(metrics)
@@ -230,8 +237,9 @@ async def test_births_name_every_point_with_type_unit_and_alias(
     assert aeration["oxygen"].properties["Quality"] == 0
     assert aeration["oxygen"].properties["fault"] == "overrange"
     assert aeration["status/cap_missing"].value is True
-    basin = seen.on(f"{NODE}/DBIRTH/{EDGE}/basin")[0].by_name()
+    basin = seen.on(f"{NODE}/DBIRTH/{EDGE}/basin")[-1].by_name()
     assert abs(float(basin["concentration"].value) - 0.168) < 1e-6  # type: ignore[arg-type]
+    assert basin["concentration"].properties["engUnit"] == "ppm"
     assert_seq_never_skips(seen)
 
 
