@@ -370,16 +370,26 @@ async def test_dcmd_writes_through_the_safe_path_and_bad_input_writes_nothing(
             )
 
         await seen.wait_until(result_seen)
-    assert writes(server, 1), "nothing reached the simulator"
-    results = [
-        json.loads(str(m.value))
-        for d in seen.on(f"{NODE}/DDATA/{EDGE}/aeration")
-        for m in d.metrics
-        if m.alias == birth["Write/Result"].alias
-    ]
-    assert results[-1]["status"] == "ok"
-    assert results[-1]["metric"] == "compensation_temperature"
-    assert results[-1]["value"] == 21.5
+        assert len(writes(server, 1)) == 1, "nothing reached the simulator"
+        # A flash-backed point the device's flash_writes do not name: the flash guard
+        # refuses it, the result says so, and nothing is written.
+        await host.publish(dcmd, command(("analog_output_fixed_value", "Float", 5.0)), qos=1)
+        await seen.wait_until(lambda: len(results_of(seen, birth["Write/Result"].alias)) == 2)
+        # One bit of a bit field: that bit written, the others kept as the sensor holds them.
+        await host.publish(
+            dcmd, command(("compensation_control/salinity_from_ram", "Boolean", True)), qos=1
+        )
+        await seen.wait_until(lambda: len(results_of(seen, birth["Write/Result"].alias)) == 3)
+    results = results_of(seen, birth["Write/Result"].alias)
+    assert results[0]["status"] == "ok"
+    assert results[0]["metric"] == "compensation_temperature"
+    assert results[0]["value"] == 21.5
+    assert results[1]["status"] == "error"
+    assert "flash-backed point not allowed" in results[1]["reason"]
+    assert results[2]["status"] == "ok", results[2]
+    assert results[2]["value"]["salinity_from_ram"] is True
+    control = get_profile("jumo-digiline-odo-s10").point("compensation_control")
+    assert [(a, v) for _, a, v in writes(server, 1)][1:] == [(control.address, (0b010,))]
     read_back = [
         m.value
         for d in seen.on(f"{NODE}/DDATA/{EDGE}/aeration")
@@ -387,8 +397,19 @@ async def test_dcmd_writes_through_the_safe_path_and_bad_input_writes_nothing(
         if m.alias == compensation.alias
     ]
     assert read_back[-1] == 21.5
-    assert state.writes.outcomes["aeration", "sparkplug", "ok"] == 1
+    assert state.writes.outcomes["aeration", "sparkplug", "ok"] == 2
+    assert state.writes.outcomes["aeration", "sparkplug", "rejected"] == len(bad) + 1
     assert_seq_never_skips(seen)
+
+
+def results_of(seen: SpRecorder, alias: int | None) -> list[dict[str, Any]]:
+    """The ``Write/Result`` documents of the device ``aeration``, in order."""
+    return [
+        json.loads(str(m.value))
+        for d in seen.on(f"{NODE}/DDATA/{EDGE}/aeration")
+        for m in d.metrics
+        if m.alias == alias
+    ]
 
 
 async def test_ddeath_when_a_device_goes_offline_and_dbirth_when_it_returns(
