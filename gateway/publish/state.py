@@ -94,6 +94,21 @@ class WriteStatus:
 
 
 @dataclass(slots=True)
+class SparkplugStatus:
+    """The Sparkplug B session's state, for ``/healthz`` and the metrics."""
+
+    enabled: bool = False
+    connected: bool = False
+    host_online: bool = False  # the primary host's STATE (true without a primary host)
+    bd_seq: int = 0  # of the current or last session
+    births: int = 0  # NBIRTHs sent (sessions and rebirths)
+    published: int = 0  # messages handed to the broker
+    queue_depth: int = 0  # DDATA stored while the host or the broker is away
+    dropped: int = 0
+    last_error: str | None = None
+
+
+@dataclass(slots=True)
 class GatewayState:
     """Latest samples, device availability, line statistics and the MQTT status."""
 
@@ -104,6 +119,7 @@ class GatewayState:
     health_sources: dict[str, Callable[[], list[DeviceHealth]]] = field(default_factory=dict)
     mqtt: MqttStatus = field(default_factory=MqttStatus)
     writes: WriteStatus = field(default_factory=WriteStatus)
+    sparkplug: SparkplugStatus = field(default_factory=SparkplugStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
@@ -171,6 +187,7 @@ class GatewayState:
                     flash_budgets=dict(self.writes.flash_budgets),
                     feeds={k: replace(v) for k, v in self.writes.feeds.items()},
                 ),
+                sparkplug=replace(self.sparkplug),
                 started=self.started,
             )
 

@@ -19,7 +19,7 @@ import aiomqtt
 import pytest
 
 from gateway.profiles import get_profile
-from gateway.publish.prometheus import GatewayCollector
+from gateway.publish.prometheus import GatewayCollector, health_report
 from tests.mqtt_broker import Broker
 from tests.sinks.test_mqtt import gateway, simulated
 from tests.sparkplug_decoder import DecodedPayload, command, decode
@@ -444,15 +444,26 @@ async def test_primary_host_offline_stores_and_its_return_births_and_forwards(
         async with (
             simulated(tmp_path, sensors),
             sp_recording(broker.port) as seen,
-            gateway(sp_yaml(tmp_path, broker.port, sparkplug=", primary_host_id: scada")),
+            gateway(sp_yaml(tmp_path, broker.port, sparkplug=", primary_host_id: scada")) as state,
         ):
             await seen.wait_for(f"{NODE}/DDATA/{EDGE}/aeration")
+            assert state.sparkplug.host_online
+            assert state.sparkplug.births == 1
             await host.publish(
                 state_topic, b'{"online": false, "timestamp": 2}', qos=1, retain=True
             )
             await seen.wait_for(f"{NODE}/NDEATH/{EDGE}")
             stored_from = len(seen.messages)
             await asyncio.sleep(2.0)  # the host is away: nothing is published meanwhile
+            # ... and the metrics and /healthz say so, with what is stored.
+            healthy, health = health_report(state)
+            assert healthy
+            assert health["sparkplug"]["host_online"] is False  # type: ignore[index]
+            assert health["sparkplug"]["queue_depth"] > 0  # type: ignore[index]
+            families = {f.name: f for f in GatewayCollector(state).collect()}
+            assert families["gateway_sparkplug_host_online"].samples[0].value == 0
+            assert families["gateway_sparkplug_queue_depth"].samples[0].value > 0
+            assert families["gateway_sparkplug_connected"].samples[0].value == 1
             assert [m.kind for m in seen.messages[stored_from:] if m.kind != "STATE"] == []
             await host.publish(state_topic, b'{"online": true, "timestamp": 3}', qos=1, retain=True)
             await seen.wait_for(f"{NODE}/NBIRTH/{EDGE}", count=2)
@@ -463,6 +474,8 @@ async def test_primary_host_offline_stores_and_its_return_births_and_forwards(
                     for m in d.metrics
                 )
             )
+    assert state.sparkplug.queue_depth == 0  # forwarded
+    assert state.sparkplug.births == 2
     births = seen.on(f"{NODE}/NBIRTH/{EDGE}")
     deaths = seen.on(f"{NODE}/NDEATH/{EDGE}")
     first, second = (b.by_name()["bdSeq"].value for b in births[:2])

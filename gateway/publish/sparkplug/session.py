@@ -32,6 +32,7 @@ from gateway.errors import CommandRejectedError
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import REBIRTH, REBIRTH_ALIAS
 from gateway.publish.sparkplug.reports import ndeath_payload
+from gateway.publish.state import SparkplugStatus
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -92,6 +93,7 @@ class SparkplugSession:
         client_id: str,
         bd_seq_path: Path,
         on_rejected: DeviceCommandCounter | None = None,
+        status: SparkplugStatus | None = None,
     ) -> None:
         """Connect to ``broker`` as ``client_id``; keep messages in ``store`` while away."""
         self.broker = broker
@@ -102,10 +104,11 @@ class SparkplugSession:
         self.client_id = client_id
         self.bd_seq_path = bd_seq_path
         self.on_rejected = on_rejected
+        self.status = status or SparkplugStatus()
+        self.status.enabled = True
         self.commands: DeviceCommands | None = None
         self.bd_seq = _read_bd_seq(bd_seq_path)
         self.seq = 0
-        self.sent = 0
         self.connected = False
         self.host_online = topics.host is None
         self._live: deque[Message] = deque()
@@ -131,7 +134,17 @@ class SparkplugSession:
             dropped = self.store.append(data)
             if dropped:
                 _LOGGER.warning("Sparkplug queue full: dropped the %d oldest messages", dropped)
+            self._update_status()
         self._wake.set()
+
+    def _update_status(self) -> None:
+        """What ``/healthz`` and the metrics show of the session."""
+        status = self.status
+        status.connected = self.connected
+        status.host_online = self.host_online
+        status.bd_seq = self.bd_seq
+        status.queue_depth = len(self.store)
+        status.dropped = self.store.dropped
 
     def rebirth(self) -> None:
         """Send the births again, in this session (NCMD ``Node Control/Rebirth``)."""
@@ -144,6 +157,7 @@ class SparkplugSession:
         self.bd_seq = (self.bd_seq + 1) % BD_SEQ_MODULUS
         with contextlib.suppress(OSError):
             self.bd_seq_path.write_text(f"{self.bd_seq}\n", encoding="utf-8")
+        self.status.bd_seq = self.bd_seq
         return self.bd_seq
 
     def _client(self, bd_seq: int) -> aiomqtt.Client:
@@ -211,6 +225,7 @@ class SparkplugSession:
             live = [m for m in self._live if self.topics.device_of_data(m.topic) is not None]
             self.store.append([*live, *(m for _, m in backlog)])
             self._live.clear()
+        self._update_status()
 
     async def _say_dead(self, client: aiomqtt.Client, bd_seq: int) -> None:
         with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
@@ -220,6 +235,7 @@ class SparkplugSession:
     def _lost(self, exc: aiomqtt.MqttError) -> None:
         self._failures_in_a_row += 1
         reason = f"{self.broker.host}:{self.broker.port}: {exc}"
+        self.status.last_error = reason
         if self._failures_in_a_row == 1:
             _LOGGER.warning("Sparkplug: %s; storing data and retrying", reason)
         else:
@@ -229,12 +245,14 @@ class SparkplugSession:
         if self._failures_in_a_row:
             _LOGGER.info("Sparkplug: connected to %s again", self.broker.host)
         self._failures_in_a_row = 0
+        self.status.last_error = None
         topics = self.topics
         await client.subscribe(topics.ncmd, qos=1)
         await client.subscribe(topics.dcmd_filter, qos=1)
         if topics.state is not None:
             await client.subscribe(topics.state, qos=1)
         self.connected = True
+        self._update_status()
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._send_forever(client, bd_seq))
@@ -273,6 +291,7 @@ class SparkplugSession:
         self._live.clear()
         for message in self.births.births(bd_seq, _now_ms()):
             await self._publish(client, message)
+        self.status.births += 1
         _LOGGER.info("Sparkplug: births sent (bdSeq %d)", bd_seq)
 
     async def _drain(self, client: aiomqtt.Client) -> None:
@@ -283,12 +302,13 @@ class SparkplugSession:
                 if self.topics.device_of_data(message.topic) in born:
                     await self._publish(client, message)
             self.store.remove([i for i, _ in batch])
+            self._update_status()
 
     async def _publish(self, client: aiomqtt.Client, message: Message) -> None:
         payload = payloads.with_seq(message.payload, self.seq)
         self.seq = (self.seq + 1) % payloads.SEQ_MODULUS
         await client.publish(message.topic, payload, qos=0, retain=False)
-        self.sent += 1
+        self.status.published += 1
 
     # --- receiving -------------------------------------------------------------------
 
@@ -315,9 +335,12 @@ class SparkplugSession:
         if online and not self.host_online:
             _LOGGER.info("Sparkplug: primary host %s is online", self.topics.host)
             self.host_online = True
+            self._update_status()
             self._wake.set()
         elif not online and self.host_online:
             _LOGGER.warning("Sparkplug: primary host %s is offline; storing data", self.topics.host)
+            self.host_online = False
+            self._update_status()
             raise HostOfflineError
 
     def _node_command(self, payload: bytes) -> None:

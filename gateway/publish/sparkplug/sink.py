@@ -69,6 +69,7 @@ class SparkplugSink:
             client_id=settings.client_id or f"spb-{settings.group_id}-{edge}",
             bd_seq_path=state_dir / BD_SEQ_FILE,
             on_rejected=self.count_rejected,
+            status=state.sparkplug if state is not None else None,
         )
 
     # --- the sink -------------------------------------------------------------------
