@@ -18,6 +18,7 @@ from gateway.control.feeds import FeedEngine
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.control.link import DeviceLink
 from gateway.control.shared_bus import SharedBusServer, units
+from gateway.control.sparkplug_commands import SparkplugCommands
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
 from gateway.line.foreign import SharePolicy
@@ -25,6 +26,7 @@ from gateway.line.port import Line
 from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
+from gateway.publish.sparkplug import SparkplugSink
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
@@ -165,6 +167,34 @@ def shared_bus_server(
     )
 
 
+def sparkplug_sink(config: GatewayConfig, state: GatewayState) -> SparkplugSink:
+    """The Sparkplug B edge node of every configured device (the points each polls)."""
+    devices = [
+        (target.name, target.profile, target.intervals.keys())
+        for bus in config.buses
+        for target in (device_target(d, bus) for d in config.devices_on(bus.name))
+    ]
+    return SparkplugSink(
+        config.sparkplug,
+        config.mqtt,
+        devices,
+        state_dir=state_directory(config),
+        state=state,
+    )
+
+
+def _wire_sparkplug_commands(
+    config: GatewayConfig,
+    workers: Sequence[BusWorker],
+    ledger: FlashLedger,
+    sparkplug: SparkplugSink | None,
+) -> None:
+    """DCMD writes through each device's safe write path (unless commands are off)."""
+    if sparkplug is not None and config.commands.enabled:
+        writers = build_writers(config, workers, ledger)
+        sparkplug.session.commands = SparkplugCommands(sparkplug, writers)
+
+
 def _stop_on_signals() -> asyncio.Event:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -227,10 +257,13 @@ async def run(
             config.mqtt, state, state_dir=state_directory(config), publish=publish_settings(config)
         )
         all_sinks.append(mqtt)
+    sparkplug = sparkplug_sink(config, state) if config.sparkplug.enabled else None
+    all_sinks.extend([sparkplug] if sparkplug is not None else [])
     ledger = FlashLedger(state_directory(config) / LEDGER_FILE)
     workers = build_workers(config, all_sinks, state)
     feeds = _wire_writes(config, state, workers, ledger, mqtt)
     shared = shared_bus_server(config, workers, ledger, state)
+    _wire_sparkplug_commands(config, workers, ledger, sparkplug)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
@@ -246,6 +279,9 @@ async def run(
         sink_tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
         if feeds is not None:
             sink_tasks.append(asyncio.create_task(feeds.run(), name="feeds"))
+        sink_tasks += (
+            [asyncio.create_task(sparkplug.run(), name="sink[sparkplug]")] if sparkplug else []
+        )
         waiter = asyncio.create_task(stop.wait(), name="gateway.stop")
         try:
             done, _ = await asyncio.wait(

@@ -109,6 +109,7 @@ class Broker:
     port: int = field(default_factory=free_port)
     users: dict[str, str] = field(default_factory=dict)
     tls: TlsFiles | None = None  # a TLS listener that requires a client certificate
+    extra: list[str] = field(default_factory=list)  # more lines of mosquitto.conf
     process: subprocess.Popen[bytes] | None = None
 
     def start(self) -> None:
@@ -125,6 +126,7 @@ class Broker:
             f"persistence_location {self.directory}/",
             "max_queued_messages 1000000",
         ]
+        lines += self.extra
         if self.tls is not None:
             lines += [
                 f"cafile {self.tls.ca}",

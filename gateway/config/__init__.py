@@ -39,6 +39,7 @@ from gateway.config.model import (
     ResponseTimeout,
     Retries,
     Seconds,
+    SparkplugConfig,
     TcpPort,
     TlsConfig,
 )
@@ -76,6 +77,7 @@ __all__ = [
     "ResponseTimeout",
     "Retries",
     "Seconds",
+    "SparkplugConfig",
     "TcpPort",
     "TlsConfig",
     "check_config",

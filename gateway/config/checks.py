@@ -112,6 +112,31 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
     mqtt = data.get("mqtt")
     mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
     yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
+    yield from _check_sparkplug_deadbands(data.get("sparkplug"), devices)
+
+
+def _check_sparkplug_deadbands(
+    sparkplug: object, devices: Sequence[_Entry[DeviceConfig]]
+) -> Iterator[tuple[KeyPath, str]]:
+    """``sparkplug.deadbands`` names configured devices and points of their profiles."""
+    deadbands = sparkplug.get("deadbands") if isinstance(sparkplug, dict) else None
+    if not isinstance(deadbands, dict):
+        return
+    profiles = {n: d.text("profile") for d in devices if (n := d.text("name")) is not None}
+    for device, points in deadbands.items():
+        here: KeyPath = ("sparkplug", "deadbands", device)
+        if device not in profiles:
+            yield here, f"no device {device!r}; devices: {_names(profiles)}"
+            continue
+        profile = _profile_or_none(profiles[device] or "")
+        if profile is None or not isinstance(points, dict):
+            continue
+        for point in points:
+            if not profile.has_point(point):
+                names = [p.name for p in profile.points]
+                close = difflib.get_close_matches(str(point), names, n=1)
+                hint = f"; did you mean {close[0]!r}?" if close else ""
+                yield (*here, point), f"{profile.id} has no point {point!r}{hint}"
 
 
 def _check_shared_bus(

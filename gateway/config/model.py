@@ -433,6 +433,36 @@ class MqttConfig(_Model):
     discovery: DiscoveryConfig = DiscoveryConfig()
 
 
+def _sparkplug_id(value: str) -> str:
+    """A Sparkplug group, edge node or host id: one topic level (Sparkplug 3.0, 4.1.1)."""
+    if not value or {"/", "+", "#"} & set(value):
+        raise ValueError(f"{value!r} is not a Sparkplug id: one topic level, no '/', '+' or '#'")
+    return value
+
+
+SparkplugId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_sparkplug_id)]
+Deadband = Annotated[float, Field(ge=0)]
+
+
+class SparkplugConfig(_Model):
+    """Sparkplug B: the gateway as an edge node, beside the plain topics (README: Sparkplug B).
+
+    It connects to the broker of ``mqtt:`` (host, port, credentials, TLS, keep-alive) with a
+    client of its own, whose last will is the NDEATH; ``mqtt.enabled: false`` leaves it on.
+    ``deadband`` applies to every Float metric, ``deadbands`` per device and point (in the
+    point's unit); a change smaller than it is not reported by exception.
+    """
+
+    enabled: bool = False
+    group_id: SparkplugId = "water"
+    edge_node_id: SparkplugId | None = None  # None: the host name
+    primary_host_id: SparkplugId | None = None  # None: publish without waiting for a host
+    client_id: str | None = None  # None: spb-<group>-<edge node>
+    deadband: Deadband = 0.0
+    deadbands: dict[str, dict[str, Deadband]] = {}  # device -> point -> deadband
+    queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
+
+
 class PrometheusConfig(_Model):
     """Where ``/metrics`` and ``/healthz`` are served."""
 
@@ -487,6 +517,7 @@ class GatewayConfig(BaseSettings):
     commands: CommandsConfig = CommandsConfig()
     feeds: list[FeedConfig] = []
     shared_bus: SharedBusConfig = SharedBusConfig()
+    sparkplug: SparkplugConfig = SparkplugConfig()
     # Where the gateway keeps what must survive a restart (the MQTT queue, write counters);
     # None: $STATE_DIRECTORY (systemd), else ./state.
     state_dir: Path | None = None

@@ -138,6 +138,21 @@ class SharedBusStatus:
 
 
 @dataclass(slots=True)
+class SparkplugStatus:
+    """The Sparkplug B session's state, for ``/healthz`` and the metrics."""
+
+    enabled: bool = False
+    connected: bool = False
+    host_online: bool = False  # the primary host's STATE (true without a primary host)
+    bd_seq: int = 0  # of the current or last session
+    births: int = 0  # NBIRTHs sent (sessions and rebirths)
+    published: int = 0  # messages handed to the broker
+    queue_depth: int = 0  # DDATA stored while the host or the broker is away
+    dropped: int = 0
+    last_error: str | None = None
+
+
+@dataclass(slots=True)
 class GatewayState:
     """Latest samples, device availability, line statistics and the MQTT status."""
 
@@ -150,6 +165,7 @@ class GatewayState:
     writes: WriteStatus = field(default_factory=WriteStatus)
     # Shared, not copied by a snapshot: counters of the event loop's, read as the lines'.
     shared_bus: SharedBusStatus = field(default_factory=SharedBusStatus)
+    sparkplug: SparkplugStatus = field(default_factory=SparkplugStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
@@ -218,6 +234,7 @@ class GatewayState:
                     feeds={k: replace(v) for k, v in self.writes.feeds.items()},
                 ),
                 shared_bus=self.shared_bus,
+                sparkplug=replace(self.sparkplug),
                 started=self.started,
             )
 

@@ -110,6 +110,18 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
             "last_error": mqtt.last_error,
         },
     }
+    sparkplug = snapshot.sparkplug
+    if sparkplug.enabled:
+        body["sparkplug"] = {
+            "connected": sparkplug.connected,
+            "host_online": sparkplug.host_online,
+            "bd_seq": sparkplug.bd_seq,
+            "births": sparkplug.births,
+            "published": sparkplug.published,
+            "queue_depth": sparkplug.queue_depth,
+            "dropped": sparkplug.dropped,
+            "last_error": sparkplug.last_error,
+        }
     return not reasons, body
 
 

@@ -1,4 +1,4 @@
-"""The families of what goes out: MQTT's connection and queue, writes, flash and feeds."""
+"""The families of what goes out: the MQTT and Sparkplug sessions and queues, writes, feeds."""
 
 from __future__ import annotations
 
@@ -31,6 +31,46 @@ def mqtt_families(snapshot: GatewayState) -> Iterator[Metric]:
     )
     yield CounterMetricFamily(
         "gateway_mqtt_published", "Messages delivered to the broker", value=mqtt.published
+    )
+
+
+def sparkplug_families(snapshot: GatewayState) -> Iterator[Metric]:
+    """The Sparkplug B session, when Sparkplug is enabled."""
+    sparkplug = snapshot.sparkplug
+    if not sparkplug.enabled:
+        return
+    yield GaugeMetricFamily(
+        "gateway_sparkplug_connected",
+        "1 while the Sparkplug session is connected to the broker",
+        value=float(sparkplug.connected),
+    )
+    yield GaugeMetricFamily(
+        "gateway_sparkplug_host_online",
+        "1 while the primary host's STATE says online (always 1 without a primary host)",
+        value=float(sparkplug.host_online),
+    )
+    yield GaugeMetricFamily(
+        "gateway_sparkplug_bdseq", "bdSeq of the current Sparkplug session", value=sparkplug.bd_seq
+    )
+    yield CounterMetricFamily(
+        "gateway_sparkplug_births",
+        "NBIRTHs sent (new sessions and rebirths)",
+        value=sparkplug.births,
+    )
+    yield CounterMetricFamily(
+        "gateway_sparkplug_published",
+        "Sparkplug messages handed to the broker",
+        value=sparkplug.published,
+    )
+    yield GaugeMetricFamily(
+        "gateway_sparkplug_queue_depth",
+        "Sparkplug data stored while the host or the broker is away",
+        value=sparkplug.queue_depth,
+    )
+    yield CounterMetricFamily(
+        "gateway_sparkplug_dropped",
+        "Sparkplug data dropped because the queue was full",
+        value=sparkplug.dropped,
     )
 
 

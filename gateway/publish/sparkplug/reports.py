@@ -1,0 +1,268 @@
+"""Births, data and deaths, without I/O: what the host is told, and what it was told last.
+
+:class:`Reporter` keeps, per device, whether it is born (a DBIRTH went out since the last
+NBIRTH or DDEATH) and the value, quality and unit last reported of each metric. A poll
+cycle becomes a DDATA of the metrics that changed (report by exception): a Float by at
+least its deadband, anything else by any change, any metric whose quality changed. A
+fault is a null value (``is_null``) with the ``Quality`` property 0 (bad) and the fault's
+name, never the fault float the sensor sent. Payloads are built without ``seq``; the
+session adds it as they go out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from gateway.line.samples import Quality
+from gateway.publish.message import Message
+from gateway.publish.sparkplug import payloads
+from gateway.publish.sparkplug.catalogue import BD_SEQ, REBIRTH, REBIRTH_ALIAS
+from gateway.publish.sparkplug.payloads import (
+    QUALITY_BAD,
+    QUALITY_GOOD,
+    QUALITY_STALE,
+    Payload,
+    Scalar,
+    SpType,
+)
+from gateway.wire.codec import BitfieldValue
+
+if TYPE_CHECKING:
+    from collections.abc import Iterable, Sequence
+
+    from gateway.line.samples import Sample
+    from gateway.publish.sparkplug.catalogue import Catalogue, DeviceMetrics, MetricSpec
+    from gateway.publish.sparkplug.topics import SparkplugTopics
+
+_QUALITY_OF = {Quality.GOOD: QUALITY_GOOD, Quality.STALE: QUALITY_STALE}
+
+
+@dataclass(frozen=True, slots=True)
+class Reported:
+    """A metric's value as reported: ``None`` with a quality below good for a fault."""
+
+    value: Scalar | None
+    quality: int
+    time_ms: int
+    fault: str | None = None
+    unit: str | None = None
+
+
+def ndeath_payload(bd_seq: int, now_ms: int) -> bytes:
+    """The NDEATH: the ``bdSeq`` of the session it ends, and no ``seq`` (Sparkplug 3.0, 6.4.2)."""
+    payload = payloads.new_payload(now_ms)
+    metric = payload.metrics.add()
+    metric.name = BD_SEQ
+    metric.datatype = SpType.INT64
+    metric.long_value = bd_seq
+    return bytes(payload.SerializeToString())
+
+
+class Reporter:
+    """Builds the node's messages and remembers what each device last reported."""
+
+    def __init__(self, catalogue: Catalogue, topics: SparkplugTopics) -> None:
+        """Report the metrics of ``catalogue`` on ``topics``."""
+        self.catalogue = catalogue
+        self.topics = topics
+        self.born: set[str] = set()
+        self._last: dict[str, dict[int, Reported]] = {d: {} for d in catalogue.devices}
+        # The engineering unit each metric's last DBIRTH announced, where it had one.
+        self._units: dict[str, dict[int, str | None]] = {d: {} for d in catalogue.devices}
+
+    def last(self, device: str) -> dict[int, Reported]:
+        """What was last reported of each metric of ``device``, by alias."""
+        return self._last[device]
+
+    # --- births and deaths -------------------------------------------------------------
+
+    def births(self, bd_seq: int, now_ms: int) -> list[Message]:
+        """NBIRTH, then a DBIRTH of every device born (Sparkplug 3.0, 5.8 and 5.9)."""
+        return [self.nbirth(bd_seq, now_ms), *(self.dbirth(d, now_ms) for d in self._born())]
+
+    def _born(self) -> list[str]:
+        return [d for d in self.catalogue.devices if d in self.born]
+
+    def nbirth(self, bd_seq: int, now_ms: int) -> Message:
+        """The node's birth: ``bdSeq`` (as in the will) and ``Node Control/Rebirth``."""
+        payload = payloads.new_payload(now_ms)
+        metric = payload.metrics.add()
+        metric.name = BD_SEQ
+        metric.timestamp = now_ms
+        metric.datatype = SpType.INT64
+        metric.long_value = bd_seq
+        rebirth = payload.metrics.add()
+        rebirth.name = REBIRTH
+        rebirth.alias = REBIRTH_ALIAS
+        rebirth.timestamp = now_ms
+        rebirth.datatype = SpType.BOOLEAN
+        rebirth.boolean_value = False
+        return self._message(self.topics.nbirth, payload)
+
+    def dbirth(self, device: str, now_ms: int) -> Message:
+        """A device's birth: every metric with name, alias, type, unit, description, value."""
+        metrics = self.catalogue.devices[device]
+        last = self._last[device]
+        units = self._units[device] = {}
+        payload = payloads.new_payload(now_ms)
+        for spec in metrics.metrics:
+            reported = last.get(spec.alias)
+            metric = payload.metrics.add()
+            metric.name = spec.name
+            metric.alias = spec.alias
+            metric.datatype = spec.datatype
+            if reported is None:
+                metric.timestamp = now_ms
+                metric.is_null = True
+                quality = QUALITY_GOOD if spec.point is None else QUALITY_STALE
+            else:
+                metric.timestamp = reported.time_ms
+                self._fill(metric, spec, reported)
+                quality = reported.quality
+            payloads.set_property(metric, payloads.QUALITY, SpType.INT32, quality)
+            unit = reported.unit if reported is not None and reported.unit else spec.unit
+            units[spec.alias] = unit
+            if unit:
+                payloads.set_property(metric, payloads.ENG_UNIT, SpType.STRING, unit)
+            if spec.description:
+                payloads.set_property(metric, payloads.DESCRIPTION, SpType.STRING, spec.description)
+            payloads.set_property(metric, payloads.READ_ONLY, SpType.BOOLEAN, not spec.writable)
+        self.born.add(device)
+        return self._message(self.topics.device("DBIRTH", device), payload)
+
+    def ddeath(self, device: str, now_ms: int) -> Message | None:
+        """A device's death, if it was born; what it reported is forgotten."""
+        self._last[device] = {}
+        if device not in self.born:
+            return None
+        self.born.discard(device)
+        return self._message(self.topics.device("DDEATH", device), payloads.new_payload(now_ms))
+
+    # --- data ----------------------------------------------------------------------------
+
+    def cycle(self, samples: Sequence[Sample], *, live: bool, now_ms: int) -> list[Message]:
+        """One device's poll cycle: a DBIRTH if it is not born, else a DDATA of the changes.
+
+        While not ``live`` (the host or the broker away) a device not born is only marked
+        born (the births sent when the host is back carry it), and a DDATA is historical.
+        """
+        device = samples[0].device
+        metrics = self.catalogue.devices.get(device)
+        if metrics is None:
+            return []
+        changed = self._changes(metrics, samples)
+        if device not in self.born:
+            if not live:
+                self.born.add(device)
+                return []
+            return [self.dbirth(device, now_ms)]
+        if live and self._unit_changed(device, changed):
+            # A unit is a property of the birth: a new one (a unit register read after the
+            # birth, or changed on the sensor) is told by a new DBIRTH.
+            return [self.dbirth(device, now_ms)]
+        if not changed:
+            return []
+        return [self.ddata(device, changed, historical=not live, now_ms=now_ms)]
+
+    def _unit_changed(
+        self, device: str, changed: Iterable[tuple[MetricSpec, Reported, int | None]]
+    ) -> bool:
+        units = self._units[device]
+        return any(
+            reported.unit is not None and units.get(spec.alias) != reported.unit
+            for spec, reported, _ in changed
+        )
+
+    def ddata(
+        self,
+        device: str,
+        changed: Iterable[tuple[MetricSpec, Reported, int | None]],
+        *,
+        historical: bool,
+        now_ms: int,
+    ) -> Message:
+        """A DDATA of ``(metric, reported, quality before)``; aliases only, no names."""
+        payload = payloads.new_payload(now_ms)
+        for spec, reported, before in changed:
+            metric = payload.metrics.add()
+            metric.alias = spec.alias
+            metric.timestamp = reported.time_ms
+            if historical:
+                metric.is_historical = True
+            self._fill(metric, spec, reported)
+            if reported.quality != QUALITY_GOOD or before != QUALITY_GOOD:
+                payloads.set_property(metric, payloads.QUALITY, SpType.INT32, reported.quality)
+        return self._message(self.topics.device("DDATA", device), payload)
+
+    def record(
+        self, device: str, spec: MetricSpec, reported: Reported
+    ) -> tuple[MetricSpec, Reported, int | None]:
+        """Take ``reported`` as the metric's last value; with the quality it had before."""
+        last = self._last[device]
+        before = last.get(spec.alias)
+        last[spec.alias] = reported
+        return spec, reported, None if before is None else before.quality
+
+    @staticmethod
+    def _fill(metric: payloads.Metric, spec: MetricSpec, reported: Reported) -> None:
+        if reported.value is None:
+            metric.is_null = True
+            if reported.fault:
+                payloads.set_property(metric, payloads.FAULT, SpType.STRING, reported.fault)
+        else:
+            payloads.set_value(metric, spec.datatype, reported.value)
+
+    def _changes(
+        self, metrics: DeviceMetrics, samples: Sequence[Sample]
+    ) -> list[tuple[MetricSpec, Reported, int | None]]:
+        """The metrics of the cycle that changed beyond their deadband, recorded as reported."""
+        last = self._last[metrics.device]
+        changed = []
+        for sample in samples:
+            spec = metrics.of_point.get(sample.point)
+            if spec is None:
+                continue
+            for target, reported in self._readings(metrics, spec, sample):
+                if _differs(target, last.get(target.alias), reported):
+                    changed.append(self.record(metrics.device, target, reported))
+        return changed
+
+    @staticmethod
+    def _readings(
+        metrics: DeviceMetrics, spec: MetricSpec, sample: Sample
+    ) -> list[tuple[MetricSpec, Reported]]:
+        """A sample as the reading of its metric (and of its bits' metrics)."""
+        time_ms = payloads.epoch_ms(sample.time)
+        value = sample.value if sample.quality in _QUALITY_OF else None
+        scalar = payloads.scalar_of(value, spec.datatype)
+        quality = _QUALITY_OF.get(sample.quality, QUALITY_BAD) if scalar is not None else 0
+        fault = sample.fault or (None if scalar is not None else sample.quality.value)
+        result = [(spec, Reported(scalar, quality, time_ms, fault, sample.unit))]
+        flags = dict(value.flags) if isinstance(value, BitfieldValue) else {}
+        for bit in metrics.bits_of.get(spec.name, ()):
+            state = flags.get(bit.bit or "")
+            result.append(
+                (bit, Reported(state, quality if state is not None else 0, time_ms, fault))
+            )
+        return result
+
+    def _message(self, topic: str, payload: Payload) -> Message:
+        return Message(topic=topic, payload=payload.SerializeToString(), qos=0)
+
+
+def _differs(spec: MetricSpec, before: Reported | None, now: Reported) -> bool:
+    """Whether ``now`` is news to the host: a new quality, or a value past the deadband."""
+    if before is None or before.quality != now.quality:
+        return True
+    if now.unit is not None and now.unit != before.unit:
+        return True
+    if before.value is None or now.value is None:
+        return before.value is not now.value
+    if (
+        spec.deadband > 0
+        and isinstance(now.value, int | float)
+        and isinstance(before.value, int | float)
+    ):
+        return abs(float(now.value) - float(before.value)) >= spec.deadband
+    return now.value != before.value

@@ -1,0 +1,402 @@
+"""The edge node's MQTT session: will, births, seq, the primary host, commands, reconnects.
+
+One client of its own (not the plain topics' one: its last will is the NDEATH). Each
+connection takes the next ``bdSeq`` (0..255, kept on disk across restarts) and registers
+the NDEATH with it as the will, then subscribes NCMD, DCMD and, with a primary host, its
+STATE. Births go out when the host is online (at once without a primary host): NBIRTH with
+``seq`` 0, a DBIRTH per device born, then what was stored while the host or the broker was
+away (historical DDATA), then live messages; every message after the NBIRTH takes the next
+``seq``, 0..255 wrapping. A host that goes offline ends the session (the gateway publishes
+its NDEATH itself): messages are stored until it is back, and the new session births anew.
+A rebirth (NCMD ``Node Control/Rebirth``) sends the births again in the same session.
+
+Messages are published with QoS 0 and never retained (Sparkplug 3.0, 7.1); the will and
+the NDEATH with QoS 1.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import random
+import socket
+from collections import deque
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Final, Protocol
+
+import aiomqtt
+
+from gateway.errors import CommandRejectedError
+from gateway.publish.sparkplug import payloads
+from gateway.publish.sparkplug.catalogue import REBIRTH, REBIRTH_ALIAS
+from gateway.publish.sparkplug.reports import ndeath_payload
+from gateway.publish.state import SparkplugStatus
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+    from gateway.config import MqttConfig, SparkplugConfig
+    from gateway.publish.message import Message
+    from gateway.publish.sparkplug.topics import SparkplugTopics
+    from gateway.publish.store import MessageStore
+
+_LOGGER = logging.getLogger(__name__)
+
+CLIENT_TIMEOUT_S: Final = 4.0
+BACKOFF_FIRST_S: Final = 0.5
+BATCH: Final = 100  # stored messages read at a time while they drain
+BD_SEQ_MODULUS: Final = 256  # bdSeq runs 0..255 (Sparkplug 3.0, 6.4.3)
+
+
+class HostOfflineError(Exception):
+    """The primary host said it is offline: the session ends, and the next one waits."""
+
+
+class Births(Protocol):
+    """What the session asks for at every birth: the node's and its devices' births."""
+
+    def births(self, bd_seq: int, now_ms: int) -> list[Message]:
+        """NBIRTH, then a DBIRTH per device born; payloads without ``seq``."""
+        ...
+
+    def born_devices(self) -> set[str]:
+        """The devices born: stored data of others is not forwarded."""
+        ...
+
+
+class DeviceCommands(Protocol):
+    """Who takes the DCMDs (the control floor's writes)."""
+
+    async def device_command(self, device: str, payload: bytes) -> None:
+        """Take one DCMD payload for ``device``."""
+        ...
+
+
+def rejected(what: str, reason: str) -> None:
+    """The log line of a refused command (the caller counts it)."""
+    _LOGGER.warning("Sparkplug: %s refused, nothing written: %s", what, reason)
+
+
+class SparkplugSession:
+    """Keeps the edge node's session with the broker, in order, with its ``seq``."""
+
+    def __init__(
+        self,
+        broker: MqttConfig,
+        settings: SparkplugConfig,
+        topics: SparkplugTopics,
+        store: MessageStore,
+        *,
+        births: Births,
+        client_id: str,
+        bd_seq_path: Path,
+        on_rejected: DeviceCommandCounter | None = None,
+        status: SparkplugStatus | None = None,
+    ) -> None:
+        """Connect to ``broker`` as ``client_id``; keep messages in ``store`` while away."""
+        self.broker = broker
+        self.settings = settings
+        self.topics = topics
+        self.store = store
+        self.births = births
+        self.client_id = client_id
+        self.bd_seq_path = bd_seq_path
+        self.on_rejected = on_rejected
+        self.status = status or SparkplugStatus()
+        self.status.enabled = True
+        self.commands: DeviceCommands | None = None
+        self.bd_seq = _read_bd_seq(bd_seq_path)
+        self.seq = 0
+        self.connected = False
+        self.host_online = topics.host is None
+        self._live: deque[Message] = deque()
+        self._wake = asyncio.Event()
+        self._rebirth = False
+        self._handling: set[asyncio.Task[None]] = set()
+        self._rng = random.Random()  # noqa: S311 - jitter only
+        self._failures_in_a_row = 0
+
+    @property
+    def live(self) -> bool:
+        """Whether a message handed over now goes out as it is (not stored as history)."""
+        return self.connected and self.host_online
+
+    def enqueue(self, messages: list[Message]) -> None:
+        """Live messages to the sender; otherwise DDATA to the store (births are redone)."""
+        if not messages:
+            return
+        if self.live:
+            self._live.extend(messages)
+        else:
+            data = [m for m in messages if self.topics.device_of_data(m.topic) is not None]
+            dropped = self.store.append(data)
+            if dropped:
+                _LOGGER.warning("Sparkplug queue full: dropped the %d oldest messages", dropped)
+            self._update_status()
+        self._wake.set()
+
+    def _update_status(self) -> None:
+        """What ``/healthz`` and the metrics show of the session."""
+        status = self.status
+        status.connected = self.connected
+        status.host_online = self.host_online
+        status.bd_seq = self.bd_seq
+        status.queue_depth = len(self.store)
+        status.dropped = self.store.dropped
+
+    def rebirth(self) -> None:
+        """Send the births again, in this session (NCMD ``Node Control/Rebirth``)."""
+        self._rebirth = True
+        self._wake.set()
+
+    # --- the connection --------------------------------------------------------------
+
+    def _next_bd_seq(self) -> int:
+        self.bd_seq = (self.bd_seq + 1) % BD_SEQ_MODULUS
+        with contextlib.suppress(OSError):
+            self.bd_seq_path.write_text(f"{self.bd_seq}\n", encoding="utf-8")
+        self.status.bd_seq = self.bd_seq
+        return self.bd_seq
+
+    def _client(self, bd_seq: int) -> aiomqtt.Client:
+        broker = self.broker
+        tls = None
+        if broker.tls is not None:
+            tls = aiomqtt.TLSParameters(
+                ca_certs=str(broker.tls.ca) if broker.tls.ca else None,
+                certfile=str(broker.tls.cert) if broker.tls.cert else None,
+                keyfile=str(broker.tls.key) if broker.tls.key else None,
+            )
+        return aiomqtt.Client(
+            broker.host,
+            broker.port,
+            username=broker.username,
+            password=broker.password.get_secret_value() if broker.password else None,
+            identifier=self.client_id,
+            will=aiomqtt.Will(self.topics.ndeath, ndeath_payload(bd_seq, _now_ms()), qos=1),
+            clean_session=True,  # Sparkplug 3.0, 7.1: a clean session at every connect
+            keepalive=broker.keepalive,
+            tls_params=tls,
+            timeout=CLIENT_TIMEOUT_S,
+            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
+        )
+
+    async def run(self) -> None:
+        """Keep the session, reconnecting on a capped jittered backoff, until cancelled.
+
+        On cancellation the NDEATH is published (a clean disconnect does not fire the will).
+        """
+        delay = BACKOFF_FIRST_S
+        try:
+            while True:
+                bd_seq = self._next_bd_seq()
+                try:
+                    async with self._client(bd_seq) as client:
+                        try:
+                            await self._session(client, bd_seq)
+                        except asyncio.CancelledError:
+                            await self._say_dead(client, bd_seq)
+                            raise
+                        except HostOfflineError:
+                            await self._say_dead(client, bd_seq)
+                            delay = BACKOFF_FIRST_S
+                            continue
+                except aiomqtt.MqttError as exc:
+                    self._lost(exc)
+                finally:
+                    self._end_session()
+                await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
+                delay = min(delay * 2, self.broker.reconnect_max_s)
+        finally:
+            for task in self._handling:
+                task.cancel()
+            self.store.close()
+
+    def _end_session(self) -> None:
+        """Unsent live messages go to the store, as history, ahead of anything newer."""
+        self.connected = False
+        if self.topics.host is not None:
+            self.host_online = False
+        if self._live:
+            backlog = self.store.peek(len(self.store))
+            self.store.remove([i for i, _ in backlog])
+            live = [m for m in self._live if self.topics.device_of_data(m.topic) is not None]
+            self.store.append([*live, *(m for _, m in backlog)])
+            self._live.clear()
+        self._update_status()
+
+    async def _say_dead(self, client: aiomqtt.Client, bd_seq: int) -> None:
+        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            async with asyncio.timeout(2):
+                await client.publish(self.topics.ndeath, ndeath_payload(bd_seq, _now_ms()), qos=1)
+
+    def _lost(self, exc: aiomqtt.MqttError) -> None:
+        self._failures_in_a_row += 1
+        reason = f"{self.broker.host}:{self.broker.port}: {exc}"
+        self.status.last_error = reason
+        if self._failures_in_a_row == 1:
+            _LOGGER.warning("Sparkplug: %s; storing data and retrying", reason)
+        else:
+            _LOGGER.debug("Sparkplug: %s", reason)
+
+    async def _session(self, client: aiomqtt.Client, bd_seq: int) -> None:
+        if self._failures_in_a_row:
+            _LOGGER.info("Sparkplug: connected to %s again", self.broker.host)
+        self._failures_in_a_row = 0
+        self.status.last_error = None
+        topics = self.topics
+        await client.subscribe(topics.ncmd, qos=1)
+        await client.subscribe(topics.dcmd_filter, qos=1)
+        if topics.state is not None:
+            await client.subscribe(topics.state, qos=1)
+        self.connected = True
+        self._update_status()
+        try:
+            async with asyncio.TaskGroup() as group:
+                group.create_task(self._send_forever(client, bd_seq))
+                group.create_task(self._receive_forever(client))
+        except* HostOfflineError:
+            raise HostOfflineError from None
+        except* aiomqtt.MqttError as failed:
+            raise failed.exceptions[0] from None
+
+    # --- sending ---------------------------------------------------------------------
+
+    async def _send_forever(self, client: aiomqtt.Client, bd_seq: int) -> None:
+        """Births once the host is online, then the stored history, then live messages."""
+        wake = self._wake
+        while not self.host_online:
+            wake.clear()
+            await wake.wait()
+        await self._birth(client, bd_seq)
+        await self._drain(client)
+        while True:
+            wake.clear()
+            if self._rebirth:
+                await self._birth(client, bd_seq)
+            while self._live:
+                await self._publish(client, self._live[0])
+                self._live.popleft()
+                if self._rebirth:
+                    break
+            if not self._live and not self._rebirth:
+                await wake.wait()
+
+    async def _birth(self, client: aiomqtt.Client, bd_seq: int) -> None:
+        self._rebirth = False
+        self.seq = 0
+        # Data queued before the births is older than them: the births carry its values.
+        self._live.clear()
+        for message in self.births.births(bd_seq, _now_ms()):
+            await self._publish(client, message)
+        self.status.births += 1
+        _LOGGER.info("Sparkplug: births sent (bdSeq %d)", bd_seq)
+
+    async def _drain(self, client: aiomqtt.Client) -> None:
+        """The stored history, in order, of the devices born; removed once sent."""
+        born = self.births.born_devices()
+        while batch := self.store.peek(BATCH):
+            for _, message in batch:
+                if self.topics.device_of_data(message.topic) in born:
+                    await self._publish(client, message)
+            self.store.remove([i for i, _ in batch])
+            self._update_status()
+
+    async def _publish(self, client: aiomqtt.Client, message: Message) -> None:
+        payload = payloads.with_seq(message.payload, self.seq)
+        self.seq = (self.seq + 1) % payloads.SEQ_MODULUS
+        await client.publish(message.topic, payload, qos=0, retain=False)
+        self.status.published += 1
+
+    # --- receiving -------------------------------------------------------------------
+
+    async def _receive_forever(self, client: aiomqtt.Client) -> None:
+        async for message in client.messages:
+            topic = message.topic.value
+            payload = message.payload
+            data = payload if isinstance(payload, bytes) else str(payload or "").encode()
+            if topic == self.topics.state:
+                self._host_state(data)
+            elif topic == self.topics.ncmd:
+                self._node_command(data)
+            elif (device := self.topics.device_of(topic)) is not None:
+                self._device_command(device, data)
+
+    def _host_state(self, payload: bytes) -> None:
+        """``{"online": true|false, "timestamp": …}`` (3.0), or ``ONLINE``/``OFFLINE`` (2.2)."""
+        text = payload.decode("utf-8", "replace").strip()
+        try:
+            data = json.loads(text)
+            online = bool(data.get("online")) if isinstance(data, dict) else False
+        except ValueError:
+            online = text.upper() == "ONLINE"
+        if online and not self.host_online:
+            _LOGGER.info("Sparkplug: primary host %s is online", self.topics.host)
+            self.host_online = True
+            self._update_status()
+            self._wake.set()
+        elif not online and self.host_online:
+            _LOGGER.warning("Sparkplug: primary host %s is offline; storing data", self.topics.host)
+            self.host_online = False
+            self._update_status()
+            raise HostOfflineError
+
+    def _node_command(self, payload: bytes) -> None:
+        try:
+            metrics = _node_command_metrics(payload)
+        except CommandRejectedError as exc:
+            rejected("NCMD", str(exc))
+            if self.on_rejected is not None:
+                self.on_rejected(self.topics.edge)
+            return
+        if any(metrics):
+            _LOGGER.info("Sparkplug: rebirth requested")
+            self.rebirth()
+
+    def _device_command(self, device: str, payload: bytes) -> None:
+        if self.commands is None:
+            rejected(f"DCMD to {device}", "commands are disabled (commands.enabled: false)")
+            if self.on_rejected is not None:
+                self.on_rejected(device)
+            return
+        task = asyncio.create_task(self._handle(self.commands, device, payload))
+        self._handling.add(task)
+        task.add_done_callback(self._handling.discard)
+
+    @staticmethod
+    async def _handle(commands: DeviceCommands, device: str, payload: bytes) -> None:
+        try:
+            await commands.device_command(device, payload)
+        except Exception:
+            _LOGGER.exception("Sparkplug: DCMD to %s failed", device)
+
+
+class DeviceCommandCounter(Protocol):
+    """Counts a refused command of a device (or of the node, by its id)."""
+
+    def __call__(self, device: str) -> None:
+        """Count one."""
+
+
+def _node_command_metrics(payload: bytes) -> list[bool]:
+    """The values of an NCMD's metrics: ``Node Control/Rebirth`` (Boolean) is the one known."""
+    values = []
+    for metric in payloads.decode_command(payload):
+        if metric.name != REBIRTH and metric.alias != REBIRTH_ALIAS:
+            raise CommandRejectedError(f"the node has no metric {metric.label} to command")
+        values.append(bool(payloads.command_value(metric, payloads.SpType.BOOLEAN)))
+    return values
+
+
+def _read_bd_seq(path: Path) -> int:
+    """The last ``bdSeq`` used (the next session takes the one after); 255 if none."""
+    try:
+        return int(path.read_text(encoding="utf-8").strip()) % BD_SEQ_MODULUS
+    except (OSError, ValueError):
+        return BD_SEQ_MODULUS - 1
+
+
+def _now_ms() -> int:
+    return payloads.epoch_ms(datetime.now(UTC))

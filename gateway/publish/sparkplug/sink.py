@@ -1,0 +1,147 @@
+"""The Sparkplug sink: poll cycles and availability become the edge node's messages.
+
+:class:`SparkplugSink` is what the bus tasks and the app see. It owns the catalogue of
+metrics (:mod:`~gateway.publish.sparkplug.catalogue`), the reporter that remembers what the
+host was told (:mod:`~gateway.publish.sparkplug.reports`) and the session with the broker
+(:mod:`~gateway.publish.sparkplug.session`), and joins them: a cycle is handed to the
+session without waiting, a device going offline is a DDEATH, its return a DBIRTH.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING
+
+from gateway.publish.sparkplug import payloads
+from gateway.publish.sparkplug.catalogue import Catalogue
+from gateway.publish.sparkplug.reports import Reported, Reporter
+from gateway.publish.sparkplug.session import SparkplugSession
+from gateway.publish.sparkplug.topics import SparkplugTopics
+from gateway.publish.store import MessageStore
+
+if TYPE_CHECKING:
+    from collections.abc import Collection, Iterable, Sequence
+    from pathlib import Path
+
+    from gateway.config import MqttConfig, SparkplugConfig
+    from gateway.line.samples import DeviceEvent, Sample
+    from gateway.profiles.model import Profile
+    from gateway.publish.message import Message
+    from gateway.publish.sparkplug.catalogue import MetricSpec
+    from gateway.publish.state import GatewayState
+    from gateway.wire.codec import Decoded
+
+QUEUE_FILE = "sparkplug-queue.sqlite"
+BD_SEQ_FILE = "sparkplug-bdseq"
+REJECTED_KIND = "sparkplug"  # gateway_writes{kind="sparkplug", outcome="rejected"}
+
+
+class SparkplugSink:
+    """Publishes samples and availability as Sparkplug B; keeps the edge node's session."""
+
+    def __init__(
+        self,
+        settings: SparkplugConfig,
+        broker: MqttConfig,
+        devices: Iterable[tuple[str, Profile, Collection[str]]],
+        *,
+        state_dir: Path,
+        state: GatewayState | None = None,
+    ) -> None:
+        """The metrics of ``devices`` (name, profile, points polled) on ``broker``."""
+        self.settings = settings
+        self.state = state
+        edge = settings.edge_node_id or socket.gethostname().split(".")[0]
+        self.topics = SparkplugTopics(settings.group_id, edge, settings.primary_host_id)
+        self.catalogue = Catalogue.build(
+            devices, deadband=settings.deadband, deadbands=settings.deadbands
+        )
+        self.reporter = Reporter(self.catalogue, self.topics)
+        store = MessageStore(state_dir / QUEUE_FILE, max_messages=settings.queue_max)
+        self.session = SparkplugSession(
+            broker,
+            settings,
+            self.topics,
+            store,
+            births=self,
+            client_id=settings.client_id or f"spb-{settings.group_id}-{edge}",
+            bd_seq_path=state_dir / BD_SEQ_FILE,
+            on_rejected=self.count_rejected,
+            status=state.sparkplug if state is not None else None,
+        )
+
+    # --- the sink -------------------------------------------------------------------
+
+    async def publish(self, samples: Sequence[Sample]) -> None:
+        """One device's poll cycle: its DBIRTH, or a DDATA of what changed."""
+        if not samples:
+            return
+        live = self.session.live
+        self.session.enqueue(self.reporter.cycle(samples, live=live, now_ms=_now_ms()))
+
+    async def device_event(self, event: DeviceEvent) -> None:
+        """Offline: the device's DDEATH (its next cycle is a DBIRTH)."""
+        if event.online:
+            return
+        message = self.reporter.ddeath(event.device, _now_ms())
+        if message is not None:
+            self.session.enqueue([message])
+
+    async def run(self) -> None:
+        """Keep the session, until cancelled (see :meth:`SparkplugSession.run`)."""
+        await self.session.run()
+
+    # --- what the session asks ------------------------------------------------------
+
+    def births(self, bd_seq: int, now_ms: int) -> list[Message]:
+        """NBIRTH and the DBIRTH of every device born."""
+        return self.reporter.births(bd_seq, now_ms)
+
+    def born_devices(self) -> set[str]:
+        """The devices born."""
+        return set(self.reporter.born)
+
+    # --- what the commands report ---------------------------------------------------
+
+    def count_rejected(self, device: str) -> None:
+        """A refused NCMD or DCMD, in ``gateway_writes`` (kind ``sparkplug``)."""
+        if self.state is not None:
+            known = device in self.catalogue.devices or device == self.topics.edge
+            self.state.count_write(device if known else "unknown", REJECTED_KIND, "rejected")
+
+    def count_outcome(self, device: str, outcome: str) -> None:
+        """A DCMD write's outcome (ok, unchanged, failed), in ``gateway_writes``."""
+        if self.state is not None:
+            self.state.count_write(device, REJECTED_KIND, outcome)
+
+    def report_write(
+        self, device: str, spec: MetricSpec, value: Decoded | None, result: dict[str, object]
+    ) -> None:
+        """The outcome of a DCMD write: the value read back and ``Write/Result`` in a DDATA.
+
+        Sent whatever the deadband: the host sees what the device now holds.
+        """
+        metrics = self.catalogue.devices[device]
+        now = _now_ms()
+        changed = []
+        if spec.point is not None and value is not None and device in self.reporter.born:
+            point_spec = metrics.of_point[spec.point.name]
+            scalar = payloads.scalar_of(value, point_spec.datatype)  # type: ignore[arg-type]
+            if scalar is not None:
+                reported = Reported(scalar, payloads.QUALITY_GOOD, now, None, point_spec.unit)
+                changed.append(self.reporter.record(device, point_spec, reported))
+        if metrics.result is not None and device in self.reporter.born:
+            text = json.dumps(result, ensure_ascii=False, default=str)
+            reported = Reported(text, payloads.QUALITY_GOOD, now)
+            changed.append(self.reporter.record(device, metrics.result, reported))
+        if changed:
+            live = self.session.live
+            self.session.enqueue(
+                [self.reporter.ddata(device, changed, historical=not live, now_ms=now)]
+            )
+
+
+def _now_ms() -> int:
+    return payloads.epoch_ms(datetime.now(UTC))
