@@ -119,6 +119,8 @@ def _wire_writes(
     config: GatewayConfig,
     state: GatewayState,
     workers: Sequence[BusWorker],
+    *,
+    writers: dict[str, SafeWriter],
     ledger: FlashLedger,
     mqtt: MqttSink | None,
 ) -> FeedEngine | None:
@@ -129,7 +131,6 @@ def _wire_writes(
         for device in config.devices
         for point in device.flash_writes
     }
-    writers = build_writers(config, workers, ledger)
     feeds = FeedEngine(config.feeds, writers, state=state) if config.feeds else None
     if feeds is not None:
         for worker in workers:
@@ -184,14 +185,13 @@ def sparkplug_sink(config: GatewayConfig, state: GatewayState) -> SparkplugSink:
 
 
 def _wire_sparkplug_commands(
-    config: GatewayConfig,
-    workers: Sequence[BusWorker],
-    ledger: FlashLedger,
-    sparkplug: SparkplugSink | None,
+    config: GatewayConfig, writers: dict[str, SafeWriter], sparkplug: SparkplugSink | None
 ) -> None:
-    """DCMD writes through each device's safe write path (unless commands are off)."""
+    """DCMD writes through each device's safe write path (unless commands are off).
+
+    The same writers as MQTT's commands and the feeds: one write path per device.
+    """
     if sparkplug is not None and config.commands.enabled:
-        writers = build_writers(config, workers, ledger)
         sparkplug.session.commands = SparkplugCommands(sparkplug, writers)
 
 
@@ -261,9 +261,10 @@ async def run(
     all_sinks.extend([sparkplug] if sparkplug is not None else [])
     ledger = FlashLedger(state_directory(config) / LEDGER_FILE)
     workers = build_workers(config, all_sinks, state)
-    feeds = _wire_writes(config, state, workers, ledger, mqtt)
+    writers = build_writers(config, workers, ledger)
+    feeds = _wire_writes(config, state, workers, writers=writers, ledger=ledger, mqtt=mqtt)
     shared = shared_bus_server(config, workers, ledger, state)
-    _wire_sparkplug_commands(config, workers, ledger, sparkplug)
+    _wire_sparkplug_commands(config, writers, sparkplug)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
