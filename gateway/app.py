@@ -24,6 +24,7 @@ from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from gateway.web import LineScans, WebServer
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -139,6 +140,37 @@ def _wire_writes(
     return feeds
 
 
+def _web_page(
+    config: GatewayConfig,
+    state: GatewayState,
+    workers: Sequence[BusWorker],
+    ledger: FlashLedger,
+) -> WebServer | None:
+    """The commissioning and calibration page, if ``web.enabled``."""
+    if not config.web.enabled:
+        return None
+    formats = {bus.name: bus.line for bus in config.buses}
+    return WebServer(
+        config.web,
+        state,
+        build_writers(config, workers, ledger),
+        scans=LineScans(workers, formats),
+    )
+
+
+async def _start_sinks(
+    mqtt: MqttSink | None, feeds: FeedEngine | None, page: WebServer | None
+) -> list[asyncio.Task[None]]:
+    """The tasks of MQTT, the feeds and the web page, named."""
+    tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
+    if feeds is not None:
+        tasks.append(asyncio.create_task(feeds.run(), name="feeds"))
+    if page is not None:
+        await page.start()  # a port that is taken stops the start, with the reason
+        tasks.append(asyncio.create_task(page.run(), name="web"))
+    return tasks
+
+
 def _stop_on_signals() -> asyncio.Event:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -204,6 +236,7 @@ async def run(
     ledger = FlashLedger(state_directory(config) / LEDGER_FILE)
     workers = build_workers(config, all_sinks, state)
     feeds = _wire_writes(config, state, workers, ledger, mqtt)
+    page = _web_page(config, state, workers, ledger)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
@@ -215,9 +248,7 @@ async def run(
         for worker in workers:
             stack.push_async_callback(worker.line.close)
         bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
-        sink_tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
-        if feeds is not None:
-            sink_tasks.append(asyncio.create_task(feeds.run(), name="feeds"))
+        sink_tasks = await _start_sinks(mqtt, feeds, page)
         waiter = asyncio.create_task(stop.wait(), name="gateway.stop")
         try:
             done, _ = await asyncio.wait(

@@ -41,6 +41,7 @@ from gateway.config.model import (
     Seconds,
     TcpPort,
     TlsConfig,
+    WebConfig,
 )
 from gateway.config.problems import ConfigProblems, Problem
 
@@ -78,6 +79,7 @@ __all__ = [
     "Seconds",
     "TcpPort",
     "TlsConfig",
+    "WebConfig",
     "check_config",
     "load_config",
     "parse_config",
