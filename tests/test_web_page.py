@@ -7,7 +7,18 @@ from typing import TYPE_CHECKING
 
 import pytest
 
-from tests.web_rig import CHLORINE, DESKTOP, NAMES, OXYGEN, PHONE, browser, plant, sign_in
+from tests.web_rig import (
+    CHLORINE,
+    DESKTOP,
+    DIGESTER,
+    NAMES,
+    OXYGEN,
+    PHONE,
+    REISS,
+    browser,
+    plant,
+    sign_in,
+)
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -132,11 +143,24 @@ async def test_a_write_from_the_register_map_reaches_the_sensor(tmp_path: Path) 
         assert gateway.device(OXYGEN).get("compensation_pressure") == 1003.5
 
 
-async def _start(page: Page, url: str, procedure: str, inputs: dict[str, str]) -> None:
-    await page.goto(f"{url}#/calibrate/{NAMES[CHLORINE]}/{procedure}")
-    await page.locator("#settle [data-watch='cell_current'] .big").filter(has_text="nA").wait_for()
+async def _start(
+    page: Page,
+    url: str,
+    procedure: str,
+    inputs: dict[str, str],
+    *,
+    address: int = CHLORINE,
+    watch: tuple[str, str] = ("cell_current", "nA"),
+) -> None:
+    """Open a calibration, wait for the live reading, fill the form and start."""
+    await page.goto(f"{url}#/calibrate/{NAMES[address]}/{procedure}")
+    point, unit = watch
+    await page.locator(f"#settle [data-watch='{point}'] .big").filter(has_text=unit).wait_for()
     for name, value in inputs.items():
-        await page.fill(f"#f-{name}", value)
+        if await page.locator(f"select#f-{name}").count():
+            await page.select_option(f"#f-{name}", value)
+        else:
+            await page.fill(f"#f-{name}", value)
     await page.click("#start")
 
 
@@ -203,3 +227,99 @@ async def test_the_calibration_api_reports_the_steps_as_json(tmp_path: Path) -> 
         run = await page.evaluate(f"fetch('/api/calibrations/{run_id}').then(r => r.json())")
         assert "is not a number" in run["error"]
     assert gateway.writes(CHLORINE) == []
+
+
+async def test_a_scan_from_the_page_pauses_the_lines_polling_and_finds_its_sensors(
+    tmp_path: Path, screenshots: Path
+) -> None:
+    async with plant(tmp_path) as gateway, browser() as chromium:
+        page = await chromium.new_page(viewport=PHONE)
+        await sign_in(page, gateway.url)
+        await page.goto(f"{gateway.url}#/scan")
+        assert "polling stops" in await page.locator("p.warning").first.inner_text()
+        await page.locator("#scan-bus option[value='basin']").wait_for(state="attached")
+        await page.fill("#scan-addresses", "1-12,20")
+        await page.click("#scan-start")
+        paused = await page.wait_for_function(
+            "fetch('/api/state').then(r => r.json()).then(s => s.lines[0].paused)"
+        )
+        assert "scanned from the web page by ana" in await paused.json_value()
+        frames_paused = len(gateway.server.bus.frame_log)
+        await page.locator("#scan-progress", has_text="Done").wait_for(timeout=60_000)
+        await page.screenshot(path=screenshots / "scan-360.png", full_page=True)
+        found = page.locator("#scan-found tr")
+        assert sorted(
+            [
+                int(a or 0)
+                for a in await found.evaluate_all("rows => rows.map(r => r.dataset.address)")
+            ]
+        ) == [OXYGEN, REISS, CHLORINE]
+        assert "jumo-tecline-cl2" in await page.locator("#scan-found").inner_text()
+        await page.wait_for_function(
+            "fetch('/api/state').then(r => r.json()).then(s => s.lines[0].paused === null)"
+        )
+    # The scan's probes went out while paused; polling went on after it.
+    assert len(gateway.server.bus.frame_log) > frames_paused
+
+
+@pytest.mark.parametrize(
+    ("address", "procedure", "held", "inputs", "watch", "point", "expected"),
+    [
+        (
+            CHLORINE,
+            "zero",
+            {"cell_current": 0.168},
+            {"samples": "1"},
+            ("cell_current", "nA"),
+            "x_zero",
+            0.168,
+        ),
+        (CHLORINE, "nominal", {}, {}, ("concentration", "ppm"), "x_span", 22.0),
+        (
+            DIGESTER,
+            "oxygen_zero",
+            {"phase_shift": 41.25},
+            {"mode": "wet"},
+            ("temperature", "°C"),
+            "zero_point_phase",
+            41.25,
+        ),
+        (
+            DIGESTER,
+            "oxygen_end_value",
+            {"phase_shift": 20.5},
+            {"reference": "20.25", "unit": "percent_volume"},
+            ("temperature", "°C"),
+            "end_value_oxygen",
+            20.25,
+        ),
+    ],
+    ids=["tecline-zero", "tecline-nominal", "h10-zero", "h10-end-value"],
+)
+async def test_every_calibration_runs_from_the_page(
+    tmp_path: Path,
+    *,
+    address: int,
+    procedure: str,
+    held: dict[str, float],
+    inputs: dict[str, str],
+    watch: tuple[str, str],
+    point: str,
+    expected: float,
+) -> None:
+    async with plant(tmp_path) as gateway, browser() as chromium:
+        sensor = gateway.device(address)
+        if procedure == "nominal":
+            sensor.put("x_span", 30.0)  # a calibrated slope, to go back from
+        for name, value in held.items():
+            sensor.hold(name, value)
+        page = await chromium.new_page()
+        await sign_in(page, gateway.url)
+        await _start(page, gateway.url, procedure, inputs, address=address, watch=watch)
+        await page.locator("#question").wait_for(timeout=30_000)
+        assert gateway.writes(address) == []
+        await page.click("#confirm-write")
+        await page.locator("#phase[data-phase='done']").wait_for(timeout=30_000)
+        assert "calibrated" in await page.locator("#result h2").inner_text()
+    assert sensor.get(point) == pytest.approx(expected)
+    assert gateway.writes(address) != []

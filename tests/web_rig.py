@@ -33,6 +33,7 @@ if TYPE_CHECKING:
 PASSWORD = "correct horse battery"  # noqa: S105 - the test gateway's
 CHLORINE = 20  # tecLine Cl2
 OXYGEN = 3  # H20, its oxygen in fault
+DIGESTER = 2  # H10
 REISS = 10
 PLANT: list[dict[str, Any]] = [
     {
@@ -47,9 +48,15 @@ PLANT: list[dict[str, Any]] = [
         "animate": False,
         "values": {"oxygen": {"fault": "overrange"}, "temperature": 18.25},
     },
+    {"profile": "jumo-digiline-odo-h10", "address": DIGESTER, "animate": False},
     {"profile": "reiss-m0c", "address": REISS, "animate": False},
 ]
-NAMES = {CHLORINE: "pool_chlorine", OXYGEN: "fermenter_oxygen", REISS: "basin_chlorine"}
+NAMES = {
+    CHLORINE: "pool_chlorine",
+    OXYGEN: "fermenter_oxygen",
+    DIGESTER: "digester_oxygen",
+    REISS: "basin_chlorine",
+}
 LINE = {"baudrate": 19200, "parity": "E", "stopbits": 1}
 PHONE: ViewportSize = {"width": 360, "height": 780}
 DESKTOP: ViewportSize = {"width": 1280, "height": 900}

@@ -555,7 +555,8 @@ function scanPage() {
         status.replaceChildren(
           el("p", { id: "scan-progress" }, `${job.running ? "Scanning" : "Done"}: ${job.probed}/${job.total} addresses, ${job.found} found, ${job.elapsed_s} s`),
           job.error ? el("p", { class: "error", text: job.error }) : null,
-          found.length ? el("table", { id: "scan-found" }, el("tbody", {}, found.map((d) => el("tr", {}, el("td", { class: "num", text: d.address }), el("td", { text: d.profile || d.family || "?" }), el("td", { text: d.serial_number || "" }))))) : null,
+          job.running ? el("p", { class: "warning", role: "alert", id: "scan-paused", text: `Polling of line ${bus} is paused while it is scanned.` }) : null,
+          found.length ? el("table", { id: "scan-found" }, el("tbody", {}, found.map((d) => el("tr", { "data-address": d.address }, el("td", { class: "num", text: d.address }), el("td", { text: d.profile || d.family || "?" }), el("td", { class: "bits", text: Object.entries(d.details || {}).filter(([, v]) => v !== null).map(([k, v]) => `${k}=${v}`).join(", ") }))))) : null,
           job.report ? el("pre", { text: job.report.config }) : null,
         );
         if (!job.running) clearInterval(timer);
