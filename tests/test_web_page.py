@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import TYPE_CHECKING
 
@@ -68,6 +69,11 @@ async def test_the_live_table_shows_the_simulators_values_and_a_fault(
         assert await _value(page, oxygen, "temperature") == "18.25"
         card = page.locator(f"section[data-device='{chlorine}']")
         assert "online" in await card.inner_text()
+        # Live: a new value of the sensor reaches the open page by the event stream.
+        gateway.device(CHLORINE).hold("temperature", 23.75)
+        await temperature.filter(has_text="23.75").wait_for(timeout=10_000)
+        # The page is served from the gateway's own loop, as a named task.
+        assert "web" in {task.get_name() for task in asyncio.all_tasks()}
         # No wider than the phone: nothing scrolls sideways.
         width = await page.evaluate("document.documentElement.scrollWidth")
         assert width <= PHONE["width"]
