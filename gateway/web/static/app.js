@@ -163,17 +163,24 @@ function connect() {
 
 // --- the live page ------------------------------------------------------------------------
 
+// A name with a chance to wrap after each underscore (measurement_status on a phone).
+function breakable(text) {
+  const parts = String(text).split("_");
+  return parts.flatMap((part, i) => (i < parts.length - 1 ? [`${part}_`, el("wbr")] : [part]));
+}
+
 function valuesTable(device, values) {
   const rows = values.map((v) => {
     const bits = (v.bits || []).filter((b) => b.set).map((b) => b.name);
     const text = v.bits ? (bits.length ? bits.join(", ") : "no bit set") : v.text;
+    const isNumber = !v.bits && numeric(text);
     return el(
       "tr",
       { "data-point": v.point, class: `q-${v.quality}` },
-      el("th", { scope: "row", text: v.point }),
-      el("td", { class: v.bits ? "bits" : numeric(text) ? "num" : "", "data-value": v.point, text }),
-      el("td", { text: v.unit }),
-      el("td", { class: `q-${v.quality}`, text: v.quality === "good" ? "good" : v.fault || v.quality }),
+      el("th", { scope: "row" }, breakable(v.point)),
+      el("td", { class: isNumber ? "num" : "bits", "data-value": v.point }, breakable(text)),
+      el("td", { class: "unit", text: v.unit }),
+      el("td", { class: `q-${v.quality}`, text: v.quality === "fault" ? "fault" : v.quality.replace("_", " ") }),
     );
   });
   return el(
