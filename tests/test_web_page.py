@@ -15,7 +15,6 @@ from tests.web_rig import (
     NAMES,
     OXYGEN,
     PHONE,
-    REISS,
     browser,
     plant,
     sign_in,
