@@ -10,9 +10,11 @@ from aiohttp import web
 from aiohttp.test_utils import make_mocked_request
 
 from gateway.config import ConfigProblems, WebConfig, parse_config
+from gateway.errors import ConfigError
 from gateway.publish.state import GatewayState
 from gateway.web import Sessions, WebServer
 from gateway.web.auth import is_loopback
+from tests.mqtt_broker import free_port
 
 CONFIG = "buses: [{name: basin, port: /dev/null}]\n"
 PASSWORD = "s3cret"  # noqa: S105 - the tests' own
@@ -136,3 +138,16 @@ async def test_reading_from_another_machine_needs_a_session() -> None:
         transport=Peer("192.0.2.7"),
     )
     assert (await guarded(signed)).status == 200
+
+
+async def test_a_port_that_is_taken_is_a_config_error_naming_web_port() -> None:
+    first = WebServer(WebConfig.model_validate({"port": free_port()}), GatewayState(), {})
+    await first.start()
+    try:
+        assert first.port
+        taken = WebServer(WebConfig.model_validate({"port": first.port}), GatewayState(), {})
+        with pytest.raises(ConfigError, match=r"web: cannot listen on 127\.0\.0\.1:") as info:
+            await taken.start()
+        assert info.value.key == "web.port"
+    finally:
+        await first.stop()

@@ -79,6 +79,13 @@ async def test_the_live_table_shows_the_simulators_values_and_a_fault(
         await page.screenshot(path=screenshots / "live-360.png", full_page=True)
         await page.set_viewport_size(DESKTOP)
         await page.screenshot(path=screenshots / "live-1280.png", full_page=True)
+        # Dark, as the phone asks for it.
+        dark = await chromium.new_page(viewport=PHONE, color_scheme="dark")
+        await dark.goto(gateway.url)
+        await dark.locator(f"section[data-device='{chlorine}']").wait_for()
+        background = await dark.evaluate("getComputedStyle(document.body).backgroundColor")
+        assert background == "rgb(13, 17, 23)"
+        await dark.screenshot(path=screenshots / "live-dark-360.png", full_page=True)
         await page.goto(f"{gateway.url}#/health")
         await page.locator("section[data-line='basin']").wait_for()
         assert "Requests" in await page.locator("#health").inner_text()
@@ -214,6 +221,27 @@ async def test_cancelling_at_the_confirmation_leaves_the_sensor_as_it_was(
         assert "nothing was written" in await page.locator("#result").inner_text()
     assert sensor.write_log == []
     assert sensor.get("x_span") == before
+
+
+async def test_cancelling_while_the_cell_current_is_read_stops_before_any_write(
+    tmp_path: Path,
+) -> None:
+    async with plant(tmp_path) as gateway, browser() as chromium:
+        sensor = gateway.device(CHLORINE)
+        sensor.hold("cell_current", CELL_CURRENT_NA)
+        page = await chromium.new_page()
+        await sign_in(page, gateway.url)
+        inputs = {"reference": "0.5", "samples": "20", "every": "0.5"}
+        await _start(page, gateway.url, "slope", inputs)
+        await page.locator("#steps li", has_text="cell_current sample 1/20").wait_for()
+        await page.focus("#cancel")
+        await page.keyboard.press("Enter")
+        await page.locator("#phase[data-phase='cancelled']").wait_for(timeout=10_000)
+        steps = await page.locator("#steps").inner_text()
+        assert "sample 20/20" not in steps
+        assert "cancelled by the operator" in await page.locator("#result").inner_text()
+        assert await page.locator("#question").count() == 0
+    assert sensor.write_log == []
 
 
 async def test_the_calibration_api_reports_the_steps_as_json(tmp_path: Path) -> None:
