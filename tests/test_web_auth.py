@@ -36,18 +36,20 @@ def sessions(clock: Clock, password: str | None = PASSWORD) -> Sessions:
     return Sessions(password_digest=built._digest, lifetime_s=built.lifetime_s, clock=clock)
 
 
-def test_the_right_password_opens_a_session_that_expires_unused() -> None:
+def test_the_right_password_opens_a_session_that_expires_unless_it_writes() -> None:
     clock = Clock()
     keeper = sessions(clock)
     session = keeper.sign_in("  Ana   Lopes ", "s3cret", "127.0.0.1")
     assert session is not None
     assert session.who == "Ana Lopes"
     clock.now += 9 * 60
-    assert keeper.find(session.token) is session  # used: ten more minutes
+    assert keeper.find(session.token) is session  # read: no longer
+    assert keeper.find(session.token, touch=True) is session  # a write: ten more minutes
     clock.now += 9 * 60
     assert keeper.find(session.token) is session
-    clock.now += 10 * 60 + 1
+    clock.now += 1 * 60 + 1
     assert keeper.find(session.token) is None
+    assert keeper.sign_in("ana", "s3cret", "127.0.0.1") is not None
 
 
 def test_a_wrong_password_or_none_configured_opens_nothing() -> None:

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import json
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -21,6 +20,7 @@ from tests.web_rig import (
 )
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
     from pathlib import Path
 
     from playwright.async_api import Page
@@ -37,6 +37,18 @@ def screenshots(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.getbasetemp() / "web-screenshots"
     path.mkdir(exist_ok=True)
     return path
+
+
+async def _until(
+    page: Page, path: str, test: Callable[[Any], object], *, timeout_s: float = 30
+) -> Any:
+    """GET ``path`` from the page until ``test`` holds of its JSON; that JSON."""
+    async with asyncio.timeout(timeout_s):
+        while True:
+            data = await page.evaluate("path => fetch(path).then(r => r.json())", path)
+            if test(data):
+                return data
+            await asyncio.sleep(0.1)
 
 
 async def _value(page: Page, device: str, point: str) -> str:
@@ -99,7 +111,7 @@ async def test_the_live_table_shows_the_simulators_values_and_a_fault(
     assert {"live-360.png", "device-360.png"} <= {p.name for p in screenshots.iterdir()}  # noqa: ASYNC240 - after the loop's work
 
 
-async def _post(page: Page, path: str, body: object, csrf: str | None) -> dict[str, object]:
+async def _post(page: Page, path: str, body: object, csrf: str | None) -> dict[str, Any]:
     """A write as the page's own script sends it, with the CSRF token given (or none)."""
     result = await page.evaluate(
         """async ([path, body, csrf]) => {
@@ -252,12 +264,9 @@ async def test_the_calibration_api_reports_the_steps_as_json(tmp_path: Path) -> 
         body = {"device": NAMES[CHLORINE], "procedure": "slope", "inputs": {"reference": "x"}}
         started = await _post(page, "/api/calibrations", body, csrf)
         assert started["status"] == 201
-        run_id = json.loads(json.dumps(started["body"]))["id"]
-        await page.wait_for_function(
-            f"fetch('/api/calibrations/{run_id}').then(r => r.json())"
-            ".then(r => r.phase === 'refused')"
-        )
-        run = await page.evaluate(f"fetch('/api/calibrations/{run_id}').then(r => r.json())")
+        run_id = started["body"]["id"]
+        run = await _until(page, f"/api/calibrations/{run_id}", lambda r: r["phase"] != "running")
+        assert run["phase"] == "refused"
         assert "is not a number" in run["error"]
     assert gateway.writes(CHLORINE) == []
 
@@ -273,10 +282,8 @@ async def test_a_scan_from_the_page_pauses_the_lines_polling_and_finds_its_senso
         await page.locator("#scan-bus option[value='basin']").wait_for(state="attached")
         await page.fill("#scan-addresses", "1-12,20")
         await page.click("#scan-start")
-        paused = await page.wait_for_function(
-            "fetch('/api/state').then(r => r.json()).then(s => s.lines[0].paused)"
-        )
-        assert "scanned from the web page by ana" in await paused.json_value()
+        state = await _until(page, "/api/state", lambda s: s["lines"][0]["paused"])
+        assert "scanned from the web page by ana" in state["lines"][0]["paused"]
         frames_paused = len(gateway.server.bus.frame_log)
         await page.locator("#scan-progress", has_text="Done").wait_for(timeout=60_000)
         await page.screenshot(path=screenshots / "scan-360.png", full_page=True)
@@ -288,9 +295,7 @@ async def test_a_scan_from_the_page_pauses_the_lines_polling_and_finds_its_senso
             ]
         ) == sorted(NAMES)
         assert "jumo-tecline-cl2" in await page.locator("#scan-found").inner_text()
-        await page.wait_for_function(
-            "fetch('/api/state').then(r => r.json()).then(s => s.lines[0].paused === null)"
-        )
+        await _until(page, "/api/state", lambda s: s["lines"][0]["paused"] is None)
     # The scan's probes went out while paused; polling went on after it.
     assert len(gateway.server.bus.frame_log) > frames_paused
 

@@ -72,7 +72,7 @@ class Sessions:
         lifetime_s: float,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """Sessions that live ``lifetime_s`` from their last use; no password: none at all."""
+        """Sessions that live ``lifetime_s`` from their last write; no password: none at all."""
         self._digest = password_digest
         self.lifetime_s = lifetime_s
         self._clock = clock
@@ -115,13 +115,17 @@ class Sessions:
         _LOGGER.info("web: %s signed in from %s", who, remote)
         return session
 
-    def find(self, token: str | None) -> Session | None:
-        """The live session of a cookie's token; using it pushes its expiry back."""
+    def find(self, token: str | None, *, touch: bool = False) -> Session | None:
+        """The live session of a cookie's token.
+
+        ``touch`` (a write, a calibration step) pushes its expiry back; reading does not,
+        so a page left open on a phone does not keep its session alive.
+        """
         if not token:
             return None
         self._expire()
         session = self._sessions.get(token)
-        if session is not None:
+        if session is not None and touch:
             session.expires = self._clock() + self.lifetime_s
         return session
 

@@ -65,10 +65,21 @@ def _errors(stats: LineStats | None, address: int | None = None) -> dict[str, in
     return counts
 
 
+def _newest_good(state: GatewayState) -> dict[tuple[str, str], Sample]:
+    """Each device's newest good sample: its last good response (one pass over them all)."""
+    newest: dict[tuple[str, str], Sample] = {}
+    for (bus, device, _), sample in list(state.last_good.items()):
+        held = newest.get((bus, device))
+        if held is None or sample.monotonic > held.monotonic:
+            newest[bus, device] = sample
+    return newest
+
+
 def _device_view(
     info: DeviceInfo,
     state: GatewayState,
     health: DeviceHealth | None,
+    last_good: Sample | None,
     now: float,
 ) -> dict[str, object]:
     samples = state.device_samples(info.bus, info.name)
@@ -77,12 +88,6 @@ def _device_view(
         for s in samples.values()
         if s.group in LIVE_GROUPS
     ]
-    good = [
-        sample
-        for (bus, device, _), sample in state.last_good.items()
-        if (bus, device) == (info.bus, info.name)
-    ]
-    last_good = max(good, key=lambda s: s.monotonic, default=None)
     stats = state.lines.get(info.bus)
     return {
         "bus": info.bus,
@@ -130,9 +135,10 @@ def overview(state: GatewayState, paused: Mapping[str, str] | None = None) -> di
     paused = paused or {}
     health = {(h.bus, h.device): h for h in state.health()}
     lines = [_line_view(name, stats, paused.get(name), now) for name, stats in state.lines.items()]
+    newest = _newest_good(state)
     devices = [
-        _device_view(info, state, health.get((bus, name)), now)
-        for (bus, name), info in state.devices.items()
+        _device_view(info, state, health.get(key), newest.get(key), now)
+        for key, info in list(state.devices.items())
     ]
     return {
         "time": _iso(datetime.now(tz=UTC)),

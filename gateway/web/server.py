@@ -28,6 +28,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import time
 from importlib import resources
 from typing import TYPE_CHECKING, Final
 from urllib.parse import urlsplit
@@ -102,6 +103,7 @@ class WebServer:
         self.event_interval_s = event_interval_s
         self.port: int | None = None  # bound, once started (config port 0: any free one)
         self._closing = asyncio.Event()
+        self._latest: tuple[float, str] = (0.0, "")
         self._runner: web.AppRunner | None = None
 
     # --- running ----------------------------------------------------------------------
@@ -192,8 +194,8 @@ class WebServer:
                 response.headers.setdefault(name, value)
         return response
 
-    def _session(self, request: web.Request) -> Session | None:
-        return self.sessions.find(request.cookies.get(SESSION_COOKIE))
+    def _session(self, request: web.Request, *, touch: bool = False) -> Session | None:
+        return self.sessions.find(request.cookies.get(SESSION_COOKIE), touch=touch)
 
     def _reader(self, handler: Handler) -> Handler:
         """Open from this machine; from elsewhere only with a session."""
@@ -209,7 +211,7 @@ class WebServer:
         """A session, its CSRF token, and a same-origin request."""
 
         async def guarded(request: web.Request) -> web.StreamResponse:
-            session = self._session(request)
+            session = self._session(request, touch=True)
             if session is None:
                 _LOGGER.warning(
                     "web: %s %s refused from %s: no session",
@@ -313,12 +315,18 @@ class WebServer:
 
     # --- reading ----------------------------------------------------------------------
 
-    def _overview(self) -> dict[str, object]:
-        paused = self.scans.paused() if self.scans is not None else {}
-        return overview(self.state, paused)
+    def _overview(self) -> str:
+        """The overview as JSON, made at most once per half interval for every reader."""
+        now = time.monotonic()
+        made, text = self._latest
+        if now - made >= self.event_interval_s / 2 or not text:
+            paused = self.scans.paused() if self.scans is not None else {}
+            text = json.dumps(overview(self.state, paused), separators=(",", ":"))
+            self._latest = (now, text)
+        return text
 
     async def _state(self, _request: web.Request) -> web.StreamResponse:
-        return web.json_response(self._overview())
+        return web.Response(text=self._overview(), content_type="application/json")
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(
@@ -329,10 +337,12 @@ class WebServer:
             }
         )
         await response.prepare(request)
+        local = is_loopback(request.remote)
         with contextlib.suppress(ConnectionError):
             while not self._closing.is_set():
-                data = json.dumps(self._overview(), separators=(",", ":"))
-                await response.write(f"event: state\ndata: {data}\n\n".encode())
+                if not local and self._session(request) is None:
+                    break  # the session ended: reading from elsewhere needs a new one
+                await response.write(f"event: state\ndata: {self._overview()}\n\n".encode())
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(self.event_interval_s):
                         await self._closing.wait()
