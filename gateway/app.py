@@ -24,7 +24,6 @@ from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
-from gateway.web import LineScans, WebServer
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -36,6 +35,7 @@ if TYPE_CHECKING:
         LoggingConfig,
     )
     from gateway.line.samples import Sink
+    from gateway.web import WebServer
 
 _LOGGER = logging.getLogger(__name__)
 SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports
@@ -149,6 +149,10 @@ def _web_page(
     """The commissioning and calibration page, if ``web.enabled``."""
     if not config.web.enabled:
         return None
+    # Here, not at the top: without the page, `gateway run` holds neither aiohttp nor the
+    # calibrations and the scan in memory (tests/test_cli.py checks it).
+    from gateway.web import LineScans, WebServer  # noqa: PLC0415
+
     formats = {bus.name: bus.line for bus in config.buses}
     return WebServer(
         config.web,
