@@ -11,6 +11,7 @@ its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser 
     GET  /api/events                     R  the same, as server-sent events, every second
     GET  /api/devices/{device}           R  identity, register map, procedures
     POST /api/devices/{device}/points/{point}  W  {value}: a write through SafeWriter
+    POST /api/devices/{device}/read      W  every point read now (queued ahead of polls)
     POST /api/calibrations               W  {device, procedure, inputs}: a guided run
     GET  /api/calibrations/{id}          R  its steps, question, outcome
     POST /api/calibrations/{id}/answer   W  {confirm: bool}
@@ -39,7 +40,7 @@ from gateway.errors import CommandRejectedError, ConfigError, GatewayError, Prof
 from gateway.line.samples import json_value
 from gateway.web.auth import CSRF_HEADER, SESSION_COOKIE, Session, Sessions, is_loopback
 from gateway.web.calibration import Calibrations, procedures_for
-from gateway.web.live import overview, register_map
+from gateway.web.live import overview, register_map, sample_view
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable, Mapping
@@ -123,6 +124,7 @@ class WebServer:
                 get("/api/events", self._reader(self._events)),
                 get("/api/devices/{device}", self._reader(self._device)),
                 post("/api/devices/{device}/points/{point}", self._writer(self._write)),
+                post("/api/devices/{device}/read", self._writer(self._read_all)),
                 post("/api/calibrations", self._writer(self._start_calibration)),
                 get("/api/calibrations/{id}", self._reader(self._calibration)),
                 post("/api/calibrations/{id}/answer", self._writer(self._answer)),
@@ -358,6 +360,26 @@ class WebServer:
         data = register_map(info, profile, self.state, writable_by_page=self.sessions.enabled)
         data["procedures"] = [p.as_dict() for p in procedures_for(profile)]
         return web.json_response(data)
+
+    async def _read_all(self, request: web.Request) -> web.StreamResponse:
+        """Every point of the device read now, for the register map; nothing is published.
+
+        A session is asked for: a read of a whole map takes the line for a while.
+        """
+        device = request.match_info["device"]
+        writer = self.writers.get(device)
+        if writer is None:
+            return _error(404, f"no device {device!r}")
+        points = [point for point in writer.link.profile.points if not point.view]
+        _LOGGER.info("web: %s reads every point of %s", self._who(request), device)
+        try:
+            samples = await writer.link.worker.read_points(device, points)
+        except GatewayError as exc:
+            return _error(502, str(exc))
+        now = time.monotonic()
+        return web.json_response(
+            {"values": [sample_view(s, stale=False, now=now) for s in samples]}
+        )
 
     # --- writing ----------------------------------------------------------------------
 

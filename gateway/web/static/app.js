@@ -315,6 +315,31 @@ function writeForm(device, point) {
   return form;
 }
 
+function readAllButton(device) {
+  const status = el("span", { role: "status", "aria-live": "polite" });
+  const button = el("button", { type: "button", id: "read-all", text: "Read every register now" });
+  button.addEventListener("click", async () => {
+    button.disabled = true;
+    status.className = "";
+    status.textContent = "reading…";
+    try {
+      const result = await api("POST", `/api/devices/${encodeURIComponent(device)}/read`);
+      for (const v of result.values) {
+        const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(v.point)}"]`);
+        if (cell) cell.textContent = v.text;
+      }
+      status.className = "ok";
+      status.textContent = `${result.values.length} values read`;
+    } catch (error) {
+      status.className = "error";
+      status.textContent = error.message;
+    } finally {
+      button.disabled = false;
+    }
+  });
+  return el("div", { class: "actions" }, button, status);
+}
+
 async function devicePage(name) {
   let data;
   try {
@@ -337,7 +362,7 @@ async function devicePage(name) {
       { "data-point": p.name },
       el("td", { class: "num", text: p.address }),
       el("th", { scope: "row", title: p.description, text: p.name }),
-      el("td", { class: "num", "data-value": p.name, text: p.value ? p.value.text : "" }),
+      el("td", { class: "map-value", "data-value": p.name, text: p.value ? p.value.text : "" }),
       el("td", { text: p.unit }),
       el("td", { class: "wide-only", text: `${p.type} ${p.access}${p.storage ? " " + p.storage : ""}` }),
       el("td", {}, p.writable && session.signed_in ? writeForm(name, p) : ""),
@@ -353,6 +378,7 @@ async function devicePage(name) {
     needSession("Calibrating"),
     procedures,
     el("h2", { text: "Register map" }),
+    session.signed_in ? readAllButton(name) : null,
     el(
       "div",
       { class: "scroll" },
