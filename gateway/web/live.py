@@ -39,6 +39,8 @@ def sample_view(sample: Sample, *, stale: bool, now: float) -> dict[str, object]
         text = str(json_value(value) if not isinstance(value, BitfieldValue) else value)
         if isinstance(value, float):
             text = f"{value:.6g}"
+        elif value is None:
+            text = "-"  # a point that holds nothing (a stamp never set)
     else:
         text = sample.fault or sample.quality.value
     view: dict[str, object] = {

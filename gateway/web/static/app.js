@@ -50,7 +50,7 @@ async function api(method, path, body) {
 }
 
 function show(...nodes) {
-  view.replaceChildren(...nodes);
+  view.replaceChildren(...nodes.filter((node) => node !== null && node !== undefined && node !== ""));
 }
 
 function numeric(text) {
@@ -326,7 +326,7 @@ function readAllButton(device) {
       const result = await api("POST", `/api/devices/${encodeURIComponent(device)}/read`);
       for (const v of result.values) {
         const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(v.point)}"]`);
-        if (cell) cell.textContent = v.text;
+        if (cell) cell.replaceChildren(...breakable(v.text));
       }
       status.className = "ok";
       status.textContent = `${result.values.length} values read`;
@@ -362,7 +362,7 @@ async function devicePage(name) {
       { "data-point": p.name },
       el("td", { class: "num", text: p.address }),
       el("th", { scope: "row", title: p.description, text: p.name }),
-      el("td", { class: "map-value", "data-value": p.name, text: p.value ? p.value.text : "" }),
+      el("td", { class: "map-value", "data-value": p.name }, p.value ? breakable(p.value.text) : ""),
       el("td", { text: p.unit }),
       el("td", { class: "wide-only", text: `${p.type} ${p.access}${p.storage ? " " + p.storage : ""}` }),
       el("td", {}, p.writable && session.signed_in ? writeForm(name, p) : ""),
@@ -395,7 +395,7 @@ async function devicePage(name) {
       const fresh = await api("GET", `/api/devices/${encodeURIComponent(name)}`);
       for (const p of fresh.points) {
         const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(p.name)}"]`);
-        if (cell && p.value) cell.textContent = p.value.text;
+        if (cell && p.value && cell.textContent !== p.value.text) cell.replaceChildren(...breakable(p.value.text));
       }
     } catch { /* the next one */ }
   }, 3000);
