@@ -59,7 +59,7 @@ async def _value(page: Page, device: str, point: str) -> str:
 async def test_the_live_table_shows_the_simulators_values_and_a_fault(
     tmp_path: Path, screenshots: Path
 ) -> None:
-    async with plant(tmp_path) as gateway, browser() as chromium:
+    async with plant(tmp_path, absent=True) as gateway, browser() as chromium:
         simulated = gateway.device(CHLORINE).get("temperature")
         page = await chromium.new_page(viewport=PHONE)
         await page.goto(gateway.url)
@@ -80,6 +80,10 @@ async def test_the_live_table_shows_the_simulators_values_and_a_fault(
         assert await _value(page, oxygen, "temperature") == "18.25"
         card = page.locator(f"section[data-device='{chlorine}']")
         assert "online" in await card.inner_text()
+        # A sensor that does not answer: offline, its timeouts counted by kind.
+        missing = page.locator("section[data-device='missing_oxygen']")
+        await missing.locator(".badge.offline").wait_for(timeout=15_000)
+        assert "errors: timeout" in await missing.inner_text()
         # Live: a new value of the sensor reaches the open page by the event stream.
         gateway.device(CHLORINE).hold("temperature", 23.75)
         await temperature.filter(has_text="23.75").wait_for(timeout=10_000)

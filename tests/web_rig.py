@@ -87,13 +87,21 @@ class Plant:
         return list(self.device(address).write_log)
 
 
-def _config(tty: Path, port: int, state_dir: Path, *, password: str | None) -> str:
+ABSENT = 7  # configured, but no sensor answers there
+
+
+def _config(tty: Path, port: int, state_dir: Path, *, password: str | None, absent: bool) -> str:
     devices = "".join(
         f"  - {{name: {name}, bus: basin, address: {address}, "
         f"profile: {next(d['profile'] for d in PLANT if d['address'] == address)}, "
         "poll_interval: 0.5}\n"
         for address, name in NAMES.items()
     )
+    if absent:
+        devices += (
+            f"  - {{name: missing_oxygen, bus: basin, address: {ABSENT}, "
+            "profile: jumo-digiline-odo-s10, poll_interval: 0.5}\n"
+        )
     secret = f", password: {json.dumps(password)}" if password else ""
     return (
         f"buses:\n  - {{name: basin, port: {json.dumps(str(tty))}, baudrate: 19200, parity: E}}\n"
@@ -106,13 +114,19 @@ def _config(tty: Path, port: int, state_dir: Path, *, password: str | None) -> s
 
 
 @contextlib.asynccontextmanager
-async def plant(tmp_path: Path, *, password: str | None = PASSWORD) -> AsyncIterator[Plant]:
-    """The gateway with its page polling the simulated plant; stopped at the end."""
+async def plant(
+    tmp_path: Path, *, password: str | None = PASSWORD, absent: bool = False
+) -> AsyncIterator[Plant]:
+    """The gateway with its page polling the simulated plant; stopped at the end.
+
+    With ``absent``, one more device is configured where no sensor answers.
+    """
     server = SimulatorServer(build_bus(parse_settings({"devices": PLANT, "line": LINE})))
     tty = tmp_path / "ttyRS485"
     server.open_pty(tty)
     port = free_port()
-    config = parse_config(_config(tty, port, tmp_path / "state", password=password), environ={})
+    text = _config(tty, port, tmp_path / "state", password=password, absent=absent)
+    config = parse_config(text, environ={})
     state = GatewayState()
     stop = asyncio.Event()
     task = asyncio.create_task(run(config, state=state, stop=stop), name="test.gateway")
