@@ -307,7 +307,8 @@ class WebOperator:
         """Keep the step; a cancel asked for before the confirmation stops the flow here."""
         run = self._run
         run.steps.append({"kind": step.kind.value, "text": step.text})
-        if run.cancel_requested and run.phase is Phase.RUNNING:
+        if run.stop_at_next_step:
+            run.stop_at_next_step = False
             raise CommandRejectedError("cancelled by the operator: nothing was written")
 
     def confirm(self, question: str) -> Awaitable[bool]:
@@ -337,6 +338,7 @@ class CalibrationRun:
     question: str | None = None
     answer_future: asyncio.Future[bool] | None = None
     cancel_requested: bool = False
+    stop_at_next_step: bool = False
     outcome: dict[str, object] | None = None
     error: str | None = None
     task: asyncio.Task[None] | None = None
@@ -353,7 +355,9 @@ class CalibrationRun:
             "question": self.question if self.phase is Phase.CONFIRM else None,
             "outcome": self.outcome,
             "error": self.error,
-            "can_cancel": self.phase in {Phase.RUNNING, Phase.CONFIRM},
+            "can_cancel": self.phase in {Phase.RUNNING, Phase.CONFIRM}
+            and not self.cancel_requested
+            and not (self.answer_future is not None and self.answer_future.done()),
         }
 
     def answer(self, yes: bool, who: str) -> None:  # noqa: FBT001 - the answer is the point
@@ -373,7 +377,8 @@ class CalibrationRun:
 
     def cancel(self, who: str) -> None:
         """Stop before anything is written; refused once the writes have begun."""
-        if self.phase not in {Phase.RUNNING, Phase.CONFIRM}:
+        answered = self.answer_future is not None and self.answer_future.done()
+        if self.phase not in {Phase.RUNNING, Phase.CONFIRM} or answered or self.cancel_requested:
             raise CommandRejectedError(
                 f"the calibration is {self.phase.value}: it can no longer be cancelled"
             )
@@ -381,8 +386,11 @@ class CalibrationRun:
             "web: %s cancelled the %s calibration of %s", who, self.procedure.id, self.device
         )
         self.cancel_requested = True
-        if self.phase is Phase.CONFIRM and self.answer_future and not self.answer_future.done():
-            self.answer_future.set_result(False)
+        if self.phase is Phase.CONFIRM and self.answer_future is not None:
+            self.phase = Phase.RUNNING
+            self.answer_future.set_result(False)  # a "no": the flow ends declined
+        else:
+            self.stop_at_next_step = True  # reading: the flow stops at its next step
 
     async def execute(self, writer: SafeWriter) -> None:
         """Run the flow to its end and keep how it ended."""

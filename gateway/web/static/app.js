@@ -449,10 +449,6 @@ function watchPanel(device, points) {
   return { panel, render };
 }
 
-function stepList(steps) {
-  return el("ol", { class: "steps", id: "steps" }, steps.map((s) => el("li", { class: `s-${s.kind}` }, `${s.kind}: ${s.text}`)));
-}
-
 function outcomeView(run) {
   const o = run.outcome;
   if (!o) return el("p", { class: "error", id: "result", role: "alert", text: `${run.phase}: ${run.error}` });
@@ -514,35 +510,52 @@ async function calibratePage(device, procedureId) {
   if (latest) watch.render(latest);
 }
 
+// The run as it goes: steps are appended, and the controls are rebuilt only when the phase
+// or what may be done changes, so the keyboard focus stays where the operator left it.
 function follow(id, status, form) {
-  let shownPhase = null;
-  let shownSteps = -1;
+  const phase = el("p", { id: "phase" });
+  const steps = el("ol", { class: "steps", id: "steps" });
+  const controls = el("div");
+  const errors = el("div", { "aria-live": "assertive" });
+  status.replaceChildren(phase, steps, controls, errors);
+  let shownControls = null;
   const tick = async () => {
     let run;
     try {
       run = await api("GET", `/api/calibrations/${id}`);
     } catch (error) {
-      status.replaceChildren(el("p", { class: "error", text: error.message }));
+      errors.replaceChildren(el("p", { class: "error", text: error.message }));
       return;
     }
-    if (run.phase === shownPhase && run.steps.length === shownSteps) return;
-    shownPhase = run.phase;
-    shownSteps = run.steps.length;
-    const parts = [el("p", { id: "phase", "data-phase": run.phase }, `Phase: ${run.phase}`), stepList(run.steps)];
+    phase.dataset.phase = run.phase;
+    phase.textContent = `Phase: ${run.phase}`;
+    for (const step of run.steps.slice(steps.children.length)) {
+      steps.append(el("li", { class: `s-${step.kind}` }, `${step.kind}: ${step.text}`));
+    }
+    const state = `${run.phase}/${run.can_cancel}`;
+    if (state === shownControls) return;
+    shownControls = state;
+    const parts = [];
+    let focus = null;
     if (run.phase === "confirm") {
       const yes = el("button", { class: "primary", type: "button", id: "confirm-write", text: "Write to the sensor" });
       const no = el("button", { type: "button", id: "decline", text: "Do not write" });
-      yes.addEventListener("click", () => answer(id, true));
-      no.addEventListener("click", () => answer(id, false));
+      yes.addEventListener("click", () => answer(id, true, errors));
+      no.addEventListener("click", () => answer(id, false, errors));
       parts.push(el("section", { class: "warning", id: "question", role: "alertdialog", "aria-label": "Confirm the writes" }, el("p", { text: run.question }), el("div", { class: "actions" }, yes, no)));
-      setTimeout(() => yes.focus(), 0);
+      focus = yes;
     }
     if (run.can_cancel) {
       const cancel = el("button", { class: "danger", type: "button", id: "cancel", text: "Cancel (nothing is written)" });
       cancel.addEventListener("click", async () => {
-        try { await api("POST", `/api/calibrations/${id}/cancel`); } catch (error) { status.append(el("p", { class: "error", text: error.message })); }
+        try {
+          await api("POST", `/api/calibrations/${id}/cancel`);
+        } catch (error) {
+          errors.replaceChildren(el("p", { class: "error", text: error.message }));
+        }
       });
       parts.push(el("div", { class: "actions" }, cancel));
+      if (!focus && controls.contains(document.activeElement)) focus = cancel;
     }
     if (run.phase === "writing") parts.push(el("p", { class: "warning", text: "Writing: this cannot be cancelled now." }));
     const finished = !["running", "confirm", "writing"].includes(run.phase);
@@ -552,18 +565,19 @@ function follow(id, status, form) {
       clearInterval(timer);
       timer = null;
     }
-    status.replaceChildren(...parts);
+    controls.replaceChildren(...parts);
+    if (focus) focus.focus();
   };
   clearInterval(timer);
   timer = setInterval(tick, 400);
   tick();
 }
 
-async function answer(id, confirm) {
+async function answer(id, confirm, errors) {
   try {
     await api("POST", `/api/calibrations/${id}/answer`, { confirm });
   } catch (error) {
-    alert(error.message);
+    errors.replaceChildren(el("p", { class: "error", text: error.message }));
   }
 }
 
