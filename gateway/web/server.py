@@ -102,7 +102,7 @@ class WebServer:
         self.sessions = sessions or Sessions.from_config(config)
         self.calibrations = Calibrations(writers)
         self.event_interval_s = event_interval_s
-        self.port: int | None = None  # bound, once started (config port 0: any free one)
+        self.port: int | None = None  # the port bound, once started
         self._closing = asyncio.Event()
         self._latest: tuple[float, str] = (0.0, "")
         self._runner: web.AppRunner | None = None
