@@ -409,8 +409,7 @@ def demo(
         str,
         typer.Option(
             help="Address /metrics, the web page and the embedded MQTT broker listen on; "
-            "0.0.0.0 for every "
-            "interface (a container with published ports)."
+            "0.0.0.0 for every interface (a container with published ports)."
         ),
     ] = LOCAL_BIND,
     live: Annotated[
@@ -421,7 +420,7 @@ def demo(
         ),
     ] = True,
 ) -> None:
-    """Try it all with no hardware: simulated sensors, MQTT, metrics and a live table."""
+    """Try it all with no hardware: simulated sensors, MQTT, metrics, the web page, a live table."""
     try:
         return_large_blocks()
         asyncio.run(
