@@ -39,6 +39,7 @@ if TYPE_CHECKING:
         LoggingConfig,
     )
     from gateway.line.samples import Sink
+    from gateway.web import WebServer
 
 _LOGGER = logging.getLogger(__name__)
 SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports
@@ -195,6 +196,46 @@ def _wire_sparkplug_commands(
         sparkplug.session.commands = SparkplugCommands(sparkplug, writers)
 
 
+def _web_page(
+    config: GatewayConfig,
+    state: GatewayState,
+    workers: Sequence[BusWorker],
+    writers: dict[str, SafeWriter],
+) -> WebServer | None:
+    """The commissioning and calibration page, if ``web.enabled``."""
+    if not config.web.enabled:
+        return None
+    # Here, not at the top: without the page, `gateway run` holds neither aiohttp nor the
+    # calibrations and the scan in memory (tests/test_cli.py checks it).
+    from gateway.web import LineScans, WebServer  # noqa: PLC0415
+
+    formats = {bus.name: bus.line for bus in config.buses}
+    return WebServer(
+        config.web,
+        state,
+        writers,
+        scans=LineScans(workers, formats),
+    )
+
+
+async def _start_sinks(
+    mqtt: MqttSink | None,
+    sparkplug: SparkplugSink | None,
+    feeds: FeedEngine | None,
+    page: WebServer | None,
+) -> list[asyncio.Task[None]]:
+    """The tasks of MQTT, Sparkplug, the feeds and the web page, named."""
+    tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
+    if sparkplug is not None:
+        tasks.append(asyncio.create_task(sparkplug.run(), name="sink[sparkplug]"))
+    if feeds is not None:
+        tasks.append(asyncio.create_task(feeds.run(), name="feeds"))
+    if page is not None:
+        await page.start()  # a port that is taken stops the start, with the reason
+        tasks.append(asyncio.create_task(page.run(), name="web"))
+    return tasks
+
+
 def _stop_on_signals() -> asyncio.Event:
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -265,6 +306,7 @@ async def run(
     feeds = _wire_writes(config, state, workers, writers=writers, ledger=ledger, mqtt=mqtt)
     shared = shared_bus_server(config, workers, ledger, state)
     _wire_sparkplug_commands(config, writers, sparkplug)
+    page = _web_page(config, state, workers, writers)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
@@ -277,12 +319,7 @@ async def run(
             stack.push_async_callback(worker.line.close)
         await stack.enter_async_context(shared or contextlib.nullcontext())
         bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
-        sink_tasks = [asyncio.create_task(mqtt.run(), name="sink[mqtt]")] if mqtt else []
-        if feeds is not None:
-            sink_tasks.append(asyncio.create_task(feeds.run(), name="feeds"))
-        sink_tasks += (
-            [asyncio.create_task(sparkplug.run(), name="sink[sparkplug]")] if sparkplug else []
-        )
+        sink_tasks = await _start_sinks(mqtt, sparkplug, feeds, page)
         waiter = asyncio.create_task(stop.wait(), name="gateway.stop")
         try:
             done, _ = await asyncio.wait(

@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).parent.parent / "gateway"
 # The floors, low to high: a module may import its own floor and the floors it lists.
 # The simulator stands beside the gateway, on the wire and the profiles only; the command
 # line is the one floor that starts it.
-_ORDER = ("root", "wire", "profiles", "config", "line", "publish", "control", "app", "cli")
+_ORDER = ("root", "wire", "profiles", "config", "line", "publish", "control", "web", "app", "cli")
 MAY_IMPORT: dict[str, frozenset[str]] = {
     floor: frozenset(_ORDER[:rank]) for rank, floor in enumerate(_ORDER)
 }
@@ -35,6 +35,7 @@ FLOOR_OF = {
     "gateway.line": "line",
     "gateway.publish": "publish",
     "gateway.control": "control",
+    "gateway.web": "web",
     "gateway.app": "app",
     "gateway.cli": "cli",
     "gateway.simulator": "simulator",

@@ -354,6 +354,8 @@ def test_gateway_run_does_not_import_what_only_other_commands_need(tmp_path: Pat
         "gateway.simulator",
         "gateway.line.scan",
         "gateway.control.calibration",
+        "gateway.web",  # the page, and aiohttp with it, only when web.enabled
+        "aiohttp",
         "rich.progress",
         "rich.live",
     )

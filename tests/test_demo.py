@@ -36,7 +36,11 @@ WITHOUT_AMQTT = (
 
 @contextlib.asynccontextmanager
 async def demo(
-    *args: str, mqtt_port: int, metrics_port: int, without_amqtt: bool = False
+    *args: str,
+    mqtt_port: int,
+    metrics_port: int,
+    web_port: int | None = None,
+    without_amqtt: bool = False,
 ) -> AsyncIterator[tuple[str, asyncio.StreamReader]]:
     """Run ``gateway demo --no-live ARGS``; yield its banner and the rest of its output;
     Ctrl-C must end it cleanly.
@@ -53,6 +57,8 @@ async def demo(
         str(mqtt_port),
         "--metrics-port",
         str(metrics_port),
+        "--web-port",
+        str(web_port or free_port()),
         *args,
         "--no-live",
         stdout=asyncio.subprocess.PIPE,
@@ -170,6 +176,20 @@ async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None
         assert listening_addresses(mqtt_port) == {"127.0.0.1"}
         assert refused(OTHER_ADDRESS, metrics_port)
         assert refused(OTHER_ADDRESS, mqtt_port)
+
+
+async def test_the_demo_serves_its_web_page_on_loopback_and_prints_its_url() -> None:
+    web_port = free_port()
+    async with demo(mqtt_port=free_port(), metrics_port=free_port(), web_port=web_port) as (
+        banner,
+        _,
+    ):
+        assert f"web page:    http://127.0.0.1:{web_port}/ (sign in with the password" in banner
+        page = await get_when_up(f"http://127.0.0.1:{web_port}/")
+        assert '<script src="/static/app.js" defer></script>' in page
+        state = json.loads(await get_when_up(f"http://127.0.0.1:{web_port}/api/state"))
+        assert {"pool_chlorine", "fermenter_oxygen"} <= {d["name"] for d in state["devices"]}
+        assert listening_addresses(web_port) == {"127.0.0.1"}
 
 
 async def test_bind_serves_metrics_and_mqtt_to_other_machines() -> None:

@@ -2,7 +2,8 @@
 
 A simulated line with one sensor of every family on a pseudo-terminal, the gateway polling
 it, an MQTT broker (the one on localhost if it answers, else an embedded amqtt broker from
-the ``demo`` extra), ``/metrics`` and ``/healthz``, and a live table in the terminal.
+the ``demo`` extra), ``/metrics`` and ``/healthz``, the web page (its password printed),
+and a live table in the terminal.
 
 What the demo serves listens on 127.0.0.1 unless ``bind`` says otherwise: in a container,
 ``-p 9108:9108`` reaches only what listens on the container's own interface.
@@ -19,6 +20,8 @@ import contextlib
 import importlib.util
 import ipaddress
 import json
+import os
+import secrets
 import socket
 import tempfile
 from dataclasses import dataclass
@@ -161,6 +164,26 @@ async def _broker(port: int, listen: Listen, console: Console) -> AsyncIterator[
         await broker.shutdown()
 
 
+@dataclass(frozen=True, slots=True)
+class WebPage:
+    """The demo's web page: its port and the password that signs in to calibrate."""
+
+    port: int
+    password: str
+
+    @classmethod
+    def make(cls, port: int) -> WebPage:
+        """``GATEWAY_WEB__PASSWORD`` if set, else a new password for this run."""
+        return cls(port, os.environ.get("GATEWAY_WEB__PASSWORD") or secrets.token_urlsafe(9))
+
+    def config(self, listen: Listen) -> str:
+        """The ``web:`` section."""
+        return (
+            f"web: {{enabled: true, host: {json.dumps(listen.host)}, port: {self.port}, "
+            f"password: {json.dumps(self.password)}}}\n"
+        )
+
+
 def _config(
     port: Path, mqtt_port: int | None, metrics_port: int, listen: Listen, state_dir: Path
 ) -> str:
@@ -244,7 +267,13 @@ def _table(state: GatewayState) -> Group:
 
 
 def _banner(
-    console: Console, *, pty: Path, listen: Listen, broker_port: int | None, metrics_port: int
+    console: Console,
+    *,
+    pty: Path,
+    listen: Listen,
+    broker_port: int | None,
+    metrics_port: int,
+    page: WebPage | None = None,
 ) -> None:
     """What runs where, and the commands to try it, ready to copy."""
     local = listen.client_host
@@ -262,6 +291,12 @@ def _banner(
     url = f"http://{Listen.in_url(local)}:{metrics_port}"
     _say(console, f"metrics:     curl {url}/metrics")
     _say(console, f"health:      curl {url}/healthz")
+    if page is not None:
+        _say(
+            console,
+            f"web page:    http://{Listen.in_url(local)}:{page.port}/ "
+            f"(sign in with the password {page.password} to write and calibrate)",
+        )
     if listen.bind.is_loopback:
         _say(console, f"listening on {listen.host} only: --bind 0.0.0.0 to serve other machines")
     else:
@@ -274,6 +309,7 @@ async def run_demo(
     *,
     mqtt_port: int = 1883,
     metrics_port: int = 9108,
+    web_port: int = 8080,
     bind: str = LOCAL_BIND,
     live: bool = True,
 ) -> None:
@@ -306,8 +342,10 @@ async def run_demo(
         simulator.open_pty(pty)
         try:
             async with _broker(mqtt_port, listen, console) as broker_port:
+                page = WebPage.make(web_port)
                 config = parse_config(
-                    _config(pty, broker_port, metrics_port, listen, directory / "state"),
+                    _config(pty, broker_port, metrics_port, listen, directory / "state")
+                    + page.config(listen),
                     environ={},
                 )
                 _banner(
@@ -316,6 +354,7 @@ async def run_demo(
                     listen=listen,
                     broker_port=broker_port,
                     metrics_port=metrics_port,
+                    page=page,
                 )
                 state = GatewayState()
                 table = live and console.is_terminal

@@ -404,11 +404,12 @@ def demo(
         int, typer.Option(help="MQTT port: a broker there, else an embedded one.")
     ] = 1883,
     metrics_port: Annotated[int, typer.Option(help="Port of /metrics and /healthz.")] = 9108,
+    web_port: Annotated[int, typer.Option(help="Port of the web page.")] = 8080,
     bind: Annotated[
         str,
         typer.Option(
-            help="Address /metrics and the embedded MQTT broker listen on; 0.0.0.0 for every "
-            "interface (a container with published ports)."
+            help="Address /metrics, the web page and the embedded MQTT broker listen on; "
+            "0.0.0.0 for every interface (a container with published ports)."
         ),
     ] = LOCAL_BIND,
     live: Annotated[
@@ -419,10 +420,18 @@ def demo(
         ),
     ] = True,
 ) -> None:
-    """Try it all with no hardware: simulated sensors, MQTT, metrics and a live table."""
+    """Try it all with no hardware: simulated sensors, MQTT, metrics, the web page, a live table."""
     try:
         return_large_blocks()
-        asyncio.run(run_demo(mqtt_port=mqtt_port, metrics_port=metrics_port, bind=bind, live=live))
+        asyncio.run(
+            run_demo(
+                mqtt_port=mqtt_port,
+                metrics_port=metrics_port,
+                web_port=web_port,
+                bind=bind,
+                live=live,
+            )
+        )
     except GatewayError as exc:
         raise fail(exc) from exc
 

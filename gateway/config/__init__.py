@@ -42,6 +42,7 @@ from gateway.config.model import (
     SparkplugConfig,
     TcpPort,
     TlsConfig,
+    WebConfig,
 )
 from gateway.config.problems import ConfigProblems, Problem
 
@@ -80,6 +81,7 @@ __all__ = [
     "SparkplugConfig",
     "TcpPort",
     "TlsConfig",
+    "WebConfig",
     "check_config",
     "load_config",
     "parse_config",

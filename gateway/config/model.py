@@ -471,6 +471,31 @@ class PrometheusConfig(_Model):
     host: Annotated[str, Field(min_length=1)] = "0.0.0.0"  # noqa: S104 - the documented default
 
 
+def _sha256_hex(value: str | None) -> str | None:
+    if value is not None and not re.fullmatch(r"[0-9a-fA-F]{64}", value):
+        raise ValueError("expected a SHA-256 digest as 64 hexadecimal digits")
+    return value.lower() if value is not None else None
+
+
+class WebConfig(_Model):
+    """The commissioning and calibration page in the browser (off unless enabled).
+
+    Reading is open to this machine only (loopback); from elsewhere, and for any write or
+    calibration, the page asks for the password, meant to come from the environment
+    (``GATEWAY_WEB__PASSWORD``) or given as its SHA-256 (``password_sha256``). Without
+    either, the page is read-only. Example::
+
+        web: {enabled: true, port: 8080}  # http://127.0.0.1:8080/
+    """
+
+    enabled: bool = False
+    host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
+    port: TcpPort = 8080
+    password: SecretStr | None = None
+    password_sha256: Annotated[str | None, AfterValidator(_sha256_hex)] = None
+    session_minutes: Annotated[float, Field(gt=0, le=24 * 60)] = 30.0
+
+
 class LoggingConfig(_Model):
     """Log level and format."""
 
@@ -513,6 +538,7 @@ class GatewayConfig(BaseSettings):
     devices: list[DeviceConfig] = []
     mqtt: MqttConfig = MqttConfig()
     prometheus: PrometheusConfig = PrometheusConfig()
+    web: WebConfig = WebConfig()
     logging: LoggingConfig = LoggingConfig()
     commands: CommandsConfig = CommandsConfig()
     feeds: list[FeedConfig] = []

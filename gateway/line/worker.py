@@ -21,7 +21,7 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.errors import BusClosedError
+from gateway.errors import BusClosedError, BusError
 from gateway.line.decode import Decoder
 from gateway.line.devices import DeviceState
 from gateway.line.foreign import ForeignQueue
@@ -32,7 +32,7 @@ from gateway.line.schedule import Schedule
 from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import AsyncIterator, Sequence
 
     from gateway.line.devices import DeviceTarget
     from gateway.line.health import DeviceHealth
@@ -99,7 +99,10 @@ class BusWorker:
         )
         self._port_failures_in_a_row = 0
         self._stopping = False
-        self._stop_requested = asyncio.Event()
+        self._stop_requested = asyncio.Event()  # also set to end a backoff for a pause
+        self._resume: asyncio.Event | None = None  # set while :meth:`paused` holds the line
+        self._released = asyncio.Event()
+        self.paused_for: str | None = None  # why polling is paused, while it is
 
     # --- running ----------------------------------------------------------------------
 
@@ -112,12 +115,16 @@ class BusWorker:
         finally:
             self.jobs.running = False
             self.foreign.accepting = False
+            self._released.set()  # a pause waiting for the line has it now
             stopped = BusClosedError(f"bus {self.name} stopped")
             self.jobs.fail_all(stopped)
             self.foreign.fail_all(stopped)
 
     async def _run(self, delay: float) -> None:
         while not self._stopping:
+            if self._resume is not None:
+                await self._hold(self._resume)
+                continue
             try:
                 if not self.line.is_open:
                     await self.line.open()
@@ -144,9 +151,13 @@ class BusWorker:
 
         SIGTERM with the line gone must not wait out a backoff of up to ``reconnect_max_s``.
         """
+        if self._resume is not None:
+            return
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(delay_s):
                 await self._stop_requested.wait()
+        if not self._stopping:
+            self._stop_requested.clear()  # it ended the backoff for a pause
 
     def request_stop(self) -> None:
         """Finish the transaction in flight, then leave :meth:`run` (SIGTERM, SIGINT)."""
@@ -155,6 +166,47 @@ class BusWorker:
         self.foreign.accepting = False
         self._stop_requested.set()
         self._wake.set()
+        if self._resume is not None:
+            self._resume.set()
+
+    # --- handing the line over --------------------------------------------------------
+
+    @contextlib.asynccontextmanager
+    async def paused(self, reason: str) -> AsyncIterator[None]:
+        """Stop polling and close the port while the block runs (a scan of the line).
+
+        Entered, the transaction in flight ends, the port is closed and nothing of this
+        worker touches the line; queued writes and reads wait. Left, the port is reopened
+        and polling goes on where its schedule says. Without :meth:`run` (the command
+        line) the worker holds no port, and the block runs at once. One pause at a time:
+        a second raises :class:`BusError`.
+        """
+        if self._resume is not None:
+            raise BusError(f"bus {self.name} is already paused: {self.paused_for}")
+        resume = self._resume = asyncio.Event()
+        self.paused_for = reason
+        self._released.clear()
+        self._wake.set()
+        self._stop_requested.set()  # ends a backoff
+        _LOGGER.warning("%s: polling paused: %s", self.name, reason)
+        try:
+            if self.running:
+                await self._released.wait()
+            yield
+        finally:
+            self._resume = None
+            self.paused_for = None
+            resume.set()
+            _LOGGER.info("%s: polling resumed", self.name)
+
+    async def _hold(self, resume: asyncio.Event) -> None:
+        """Let go of the line until :meth:`paused` ends (or the worker stops)."""
+        await self.line.close()
+        self._released.set()
+        await resume.wait()
+        self._released.clear()
+        if not self._stopping:
+            self._stop_requested.clear()  # it was set to end a backoff for the pause
 
     @property
     def running(self) -> bool:
@@ -250,7 +302,7 @@ class BusWorker:
         time, so a long logbook read never delays a measured value; nor does another
         master's request, which waits for a moment no value is due.
         """
-        while not self._stopping:
+        while not self._stopping and self._resume is None:
             now = time.monotonic()
             if await self.jobs.run_next(now):
                 continue
@@ -275,6 +327,8 @@ class BusWorker:
             timeout = 1.0
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        if self._resume is not None:
+            return  # a pause: the port is closed on purpose
         if not self.line.is_open:
             raise BusClosedError(f"{self.line.port} went away")
 

@@ -176,7 +176,7 @@ async def _activate_and_verify(
         )
     )
     flow.preflight(plans)
-    if not flow.confirm(plans):
+    if not await flow.confirm(plans):
         return flow.outcome(Status.DECLINED)
     await flow.write(plans, if_interrupted=_NOT_ACTIVE)
 

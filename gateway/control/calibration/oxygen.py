@@ -137,7 +137,7 @@ async def _trigger_and_verify(
     measurement went into; ``extra_checks`` are (name, point, expected value) after writing.
     """
     flow.preflight(plans)
-    if not flow.confirm(plans):
+    if not await flow.confirm(plans):
         return flow.outcome(Status.DECLINED)
     await flow.write(plans, if_interrupted=_TRIGGER_INTERRUPTED)
 

@@ -7,6 +7,7 @@ checks, so that each procedure reads as the manual's list of steps.
 from __future__ import annotations
 
 import asyncio
+import inspect
 import statistics
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -23,7 +24,7 @@ from gateway.profiles.model import Storage
 from gateway.wire import codec
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Mapping, Sequence
+    from collections.abc import Awaitable, Iterable, Mapping, Sequence
 
     from gateway.control.link import DeviceLink
     from gateway.control.writes import SafeWriter
@@ -57,12 +58,16 @@ class Step:
 
 
 class Operator(Protocol):
-    """Whoever runs a calibration: sees each step and confirms before anything is written."""
+    """Whoever runs a calibration: sees each step and confirms before anything is written.
+
+    A terminal answers at once (``bool``); a browser answers later, so ``confirm`` may
+    return an awaitable of the answer, which the flow waits for.
+    """
 
     def show(self, step: Step) -> None:
         """Show one step as it happens."""
 
-    def confirm(self, question: str) -> bool:
+    def confirm(self, question: str) -> bool | Awaitable[bool]:
         """Ask before writing; ``False`` stops the flow with nothing written."""
 
 
@@ -317,14 +322,17 @@ class Flow:
                     point=planned.point,
                 )
 
-    def confirm(self, plans: Sequence[PlannedWrite]) -> bool:
+    async def confirm(self, plans: Sequence[PlannedWrite]) -> bool:
         """Ask the operator to confirm the planned writes; whether they did."""
         flash = sum(p.flash for p in plans)
         question = (
             f"Write {len(plans)} register block(s) to {self.link.device} "
             f"({flash} to flash/EEPROM, counted against the daily budget)?"
         )
-        if self.operator.confirm(question):
+        answer = self.operator.confirm(question)
+        if inspect.isawaitable(answer):
+            answer = await answer
+        if answer:
             return True
         self.say(StepKind.NOTE, "declined: nothing was written")
         return False

@@ -1,0 +1,479 @@
+"""Guided calibration in the browser: the flows of ``gateway calibrate``, an operator at a page.
+
+A :class:`CalibrationRun` runs one flow of :mod:`gateway.control.calibration` in a task of
+the gateway's loop, with a :class:`WebOperator` that keeps every step for the page to
+fetch and answers the flow's confirmation when the operator clicks (an
+:class:`asyncio.Future` per question). The flows are the command line's, so the steps, the
+checks, the flash preflight and the confirmation before anything is written are the same.
+
+Cancelling is honoured at every step before the confirmation: while waiting for the answer
+it is a "no" (the flow ends declined, nothing written); while reading, the next step the
+flow shows stops it with :class:`CommandRejectedError`. Once the operator has confirmed,
+the writes run to their end: a half-written calibration is what cancelling must not leave.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+from dataclasses import dataclass, field
+from datetime import datetime
+from enum import StrEnum
+from typing import TYPE_CHECKING, Final
+
+from gateway.control import calibration
+from gateway.errors import CalibrationInterruptedError, CommandRejectedError, GatewayError
+
+if TYPE_CHECKING:
+    from collections.abc import Awaitable, Callable, Mapping
+
+    from gateway.control.calibration import CalibrationOutcome, Step
+    from gateway.control.writes import SafeWriter
+    from gateway.profiles import Profile
+
+_LOGGER = logging.getLogger(__name__)
+
+MAX_SAMPLES: Final = 100  # as `gateway calibrate --samples`
+MAX_EVERY_S: Final = 60.0
+KEEP_RUNS: Final = 20  # finished runs kept for the page to show
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FormField:
+    """One input of a procedure's form."""
+
+    name: str
+    label: str
+    kind: str  # "number", "integer", "choice", "text"
+    default: object = None
+    required: bool = False
+    choices: tuple[str, ...] = ()
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready, for the page's form."""
+        return {
+            "name": self.name,
+            "label": self.label,
+            "kind": self.kind,
+            "default": self.default,
+            "required": self.required,
+            "choices": list(self.choices),
+        }
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Procedure:
+    """A calibration the page offers: when it applies, its form, what to watch settle."""
+
+    id: str
+    title: str
+    needs: str  # a point the profile must have
+    watch: tuple[str, ...]  # live values shown while the reading settles
+    fields: tuple[FormField, ...]
+    hint: str
+    run: Callable[
+        [SafeWriter, calibration.Operator, Mapping[str, object]], Awaitable[CalibrationOutcome]
+    ]
+
+    def applies_to(self, profile: Profile) -> bool:
+        """Whether the device's profile has what the procedure needs."""
+        return profile.has_point(self.needs)
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready, for the page."""
+        return {
+            "id": self.id,
+            "title": self.title,
+            "watch": list(self.watch),
+            "fields": [f.as_dict() for f in self.fields],
+            "hint": self.hint,
+        }
+
+
+_REFERENCE = FormField(
+    name="reference",
+    label="Reference (photometer or titration, in the sensor's unit)",
+    kind="number",
+    required=True,
+)
+_SAMPLES = FormField(name="samples", label="Readings to average", kind="integer", default=3)
+_EVERY = FormField(name="every", label="Seconds between readings", kind="number", default=2.0)
+_MODE = FormField(
+    name="mode",
+    label="Calibration mode (0x3009)",
+    kind="choice",
+    default="as_configured",
+    choices=("as_configured", "wet", "dry"),
+)
+
+
+def _float(inputs: Mapping[str, object], name: str, default: float | None = None) -> float:
+    value = inputs.get(name, default)
+    if value is None or value == "":
+        if default is None:
+            raise CommandRejectedError(f"{name} is required")
+        return default
+    try:
+        return float(str(value))
+    except ValueError:
+        raise CommandRejectedError(f"{name}: {value!r} is not a number") from None
+
+
+def _sampling(inputs: Mapping[str, object]) -> tuple[int, float]:
+    samples = _float(inputs, "samples", 3.0)
+    every = _float(inputs, "every", 2.0)
+    if samples != int(samples) or not 1 <= samples <= MAX_SAMPLES:
+        raise CommandRejectedError(f"samples must be a whole number from 1 to {MAX_SAMPLES}")
+    if not 0 <= every <= MAX_EVERY_S:
+        raise CommandRejectedError(f"every must be from 0 to {MAX_EVERY_S:g} seconds")
+    return int(samples), every
+
+
+def _mode(inputs: Mapping[str, object]) -> str:
+    mode = str(inputs.get("mode") or "as_configured")
+    if mode not in _MODE.choices:
+        raise CommandRejectedError(f"mode must be one of {', '.join(_MODE.choices)}")
+    return mode
+
+
+def _now() -> datetime:
+    return datetime.now().astimezone()
+
+
+async def _slope(
+    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
+) -> CalibrationOutcome:
+    samples, every = _sampling(inputs)
+    return await calibration.calibrate_slope(
+        writer,
+        operator,
+        reference=_float(inputs, "reference"),
+        when=_now(),
+        samples=samples,
+        sample_interval_s=every,
+    )
+
+
+async def _zero(
+    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
+) -> CalibrationOutcome:
+    samples, every = _sampling(inputs)
+    return await calibration.calibrate_zero_point(
+        writer, operator, when=_now(), samples=samples, sample_interval_s=every
+    )
+
+
+async def _nominal(
+    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
+) -> CalibrationOutcome:
+    del inputs  # none
+    return await calibration.restore_nominal_slope(writer, operator, when=_now())
+
+
+async def _check(
+    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
+) -> CalibrationOutcome:
+    samples, every = _sampling(inputs)
+    return await calibration.check_slope(
+        writer,
+        operator,
+        reference=_float(inputs, "reference"),
+        samples=samples,
+        sample_interval_s=every,
+    )
+
+
+async def _oxygen_zero(
+    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
+) -> CalibrationOutcome:
+    return await calibration.calibrate_oxygen_zero(
+        writer, operator, when=_now(), mode=_mode(inputs)
+    )
+
+
+async def _oxygen_end_value(
+    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
+) -> CalibrationOutcome:
+    unit = str(inputs.get("unit") or "") or None
+    return await calibration.calibrate_oxygen_end_value(
+        writer,
+        operator,
+        reference=_float(inputs, "reference"),
+        when=_now(),
+        unit=unit,
+        mode=_mode(inputs),
+    )
+
+
+PROCEDURES: Final = (
+    Procedure(
+        id="slope",
+        title="Slope (tecLine/Reiss)",
+        needs="x_span",
+        watch=("concentration", "cell_current"),
+        fields=(_REFERENCE, _SAMPLES, _EVERY),
+        hint="Take the sample at the sensor, analyse it, and wait for the cell current to "
+        "settle before you start.",
+        run=_slope,
+    ),
+    Procedure(
+        id="zero",
+        title="Zero point (tecLine/Reiss)",
+        needs="x_zero",
+        watch=("cell_current",),
+        fields=(_SAMPLES, _EVERY),
+        hint="The sensor must be in water without disinfectant, its cell current settled.",
+        run=_zero,
+    ),
+    Procedure(
+        id="nominal",
+        title="Nominal slope (tecLine/Reiss)",
+        needs="nominal_slope",
+        watch=("concentration",),
+        fields=(),
+        hint="Restores the nominal slope and the zero point 0.",
+        run=_nominal,
+    ),
+    Procedure(
+        id="check",
+        title="Regular check (tecLine/Reiss, writes nothing)",
+        needs="nominal_slope",
+        watch=("concentration", "cell_current"),
+        fields=(_REFERENCE, _SAMPLES, _EVERY),
+        hint="Today's slope against the nominal one; nothing is written.",
+        run=_check,
+    ),
+    Procedure(
+        id="oxygen_zero",
+        title="Zero point (H10/H20)",
+        needs="zero_point_calibration_trigger",
+        watch=("oxygen", "temperature"),
+        fields=(_MODE,),
+        hint="The sensor must be in an oxygen-free medium, its reading settled.",
+        run=_oxygen_zero,
+    ),
+    Procedure(
+        id="oxygen_end_value",
+        title="End value / span (H10/H20)",
+        needs="end_value_calibration_trigger",
+        watch=("oxygen", "temperature"),
+        fields=(
+            FormField(
+                name="reference", label="Oxygen at the end value", kind="number", required=True
+            ),
+            FormField(
+                name="unit",
+                label="Unit of the reference (blank: the one the sensor holds)",
+                kind="choice",
+                default="",
+                choices=("", "percent_saturation", "percent_volume", "ppm", "ppb", "hpa"),
+            ),
+            _MODE,
+        ),
+        hint="The sensor must be in the reference medium (e.g. water-saturated air), its "
+        "reading settled.",
+        run=_oxygen_end_value,
+    ),
+)
+BY_ID: Final = {procedure.id: procedure for procedure in PROCEDURES}
+
+
+def procedures_for(profile: Profile) -> list[Procedure]:
+    """The procedures that apply to a device's profile."""
+    return [procedure for procedure in PROCEDURES if procedure.applies_to(profile)]
+
+
+class Phase(StrEnum):
+    """Where a run is."""
+
+    RUNNING = "running"  # reading and computing; cancel stops it
+    CONFIRM = "confirm"  # waiting for the operator's answer
+    WRITING = "writing"  # confirmed: the writes run to their end
+    DONE = "done"  # an outcome (calibrated, declined, verification failed, checked)
+    REFUSED = "refused"  # stopped before writing (bad input, budget, a read failed)
+    CANCELLED = "cancelled"  # stopped by the operator before writing
+    FAILED = "failed"  # stopped part-way through the writes
+
+
+class WebOperator:
+    """The operator at the page: steps kept for it to fetch, the answer awaited."""
+
+    def __init__(self, run: CalibrationRun) -> None:
+        """Tell ``run``."""
+        self._run = run
+
+    def show(self, step: Step) -> None:
+        """Keep the step; a cancel asked for before the confirmation stops the flow here."""
+        run = self._run
+        run.steps.append({"kind": step.kind.value, "text": step.text})
+        if run.stop_at_next_step:
+            run.stop_at_next_step = False
+            raise CommandRejectedError("cancelled by the operator: nothing was written")
+
+    def confirm(self, question: str) -> Awaitable[bool]:
+        """Ask the page; the answer comes from :meth:`CalibrationRun.answer`."""
+        run = self._run
+        if run.cancel_requested:
+            future: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+            future.set_result(False)
+            return future
+        run.question = question
+        run.phase = Phase.CONFIRM
+        run.answer_future = asyncio.get_running_loop().create_future()
+        return run.answer_future
+
+
+@dataclass(slots=True, kw_only=True)
+class CalibrationRun:
+    """One calibration started from the page: who, what, its steps, its end."""
+
+    id: str
+    device: str
+    procedure: Procedure
+    who: str
+    inputs: dict[str, object]
+    phase: Phase = Phase.RUNNING
+    steps: list[dict[str, str]] = field(default_factory=list)
+    question: str | None = None
+    answer_future: asyncio.Future[bool] | None = None
+    cancel_requested: bool = False
+    stop_at_next_step: bool = False
+    outcome: dict[str, object] | None = None
+    error: str | None = None
+    task: asyncio.Task[None] | None = None
+
+    def as_dict(self) -> dict[str, object]:
+        """What the page shows of it."""
+        return {
+            "id": self.id,
+            "device": self.device,
+            "procedure": self.procedure.as_dict(),
+            "who": self.who,
+            "phase": self.phase.value,
+            "steps": list(self.steps),
+            "question": self.question if self.phase is Phase.CONFIRM else None,
+            "outcome": self.outcome,
+            "error": self.error,
+            "can_cancel": self.phase in {Phase.RUNNING, Phase.CONFIRM}
+            and not self.cancel_requested
+            and not (self.answer_future is not None and self.answer_future.done()),
+        }
+
+    def answer(self, yes: bool, who: str) -> None:  # noqa: FBT001 - the answer is the point
+        """The operator's answer to the pending question."""
+        future = self.answer_future
+        if self.phase is not Phase.CONFIRM or future is None or future.done():
+            raise CommandRejectedError("no question is waiting for an answer")
+        _LOGGER.info(
+            "web: %s %s the writes of the %s calibration of %s",
+            who,
+            "confirmed" if yes else "declined",
+            self.procedure.id,
+            self.device,
+        )
+        self.phase = Phase.WRITING if yes else Phase.RUNNING
+        future.set_result(yes)
+
+    def cancel(self, who: str) -> None:
+        """Stop before anything is written; refused once the writes have begun."""
+        answered = self.answer_future is not None and self.answer_future.done()
+        if self.phase not in {Phase.RUNNING, Phase.CONFIRM} or answered or self.cancel_requested:
+            raise CommandRejectedError(
+                f"the calibration is {self.phase.value}: it can no longer be cancelled"
+            )
+        _LOGGER.info(
+            "web: %s cancelled the %s calibration of %s", who, self.procedure.id, self.device
+        )
+        self.cancel_requested = True
+        if self.phase is Phase.CONFIRM and self.answer_future is not None:
+            self.phase = Phase.RUNNING
+            self.answer_future.set_result(False)  # a "no": the flow ends declined
+        else:
+            self.stop_at_next_step = True  # reading: the flow stops at its next step
+
+    async def execute(self, writer: SafeWriter) -> None:
+        """Run the flow to its end and keep how it ended."""
+        try:
+            outcome = await self.procedure.run(writer, WebOperator(self), self.inputs)
+        except CalibrationInterruptedError as exc:
+            self.phase, self.error = Phase.FAILED, str(exc)
+            _LOGGER.exception("web: %s calibration of %s stopped", self.procedure.id, self.device)
+        except GatewayError as exc:
+            self.phase = Phase.CANCELLED if self.cancel_requested else Phase.REFUSED
+            self.error = str(exc)
+            _LOGGER.warning("web: %s calibration of %s: %s", self.procedure.id, self.device, exc)
+        else:
+            self.outcome = outcome.as_dict()
+            self.phase = Phase.CANCELLED if self.cancel_requested else Phase.DONE
+            _LOGGER.info(
+                "web: %s calibration of %s by %s: %s, %d write(s): %s",
+                self.procedure.id,
+                self.device,
+                self.who,
+                outcome.status.value,
+                len(outcome.writes),
+                "; ".join(str(w) for w in outcome.writes) or "nothing written",
+            )
+        finally:
+            self.question = None
+
+
+class Calibrations:
+    """The runs of this gateway: one at a time per device, the last few kept."""
+
+    def __init__(self, writers: Mapping[str, SafeWriter]) -> None:
+        """Calibrate through ``writers`` (device name -> its write path)."""
+        self.writers = writers
+        self.runs: dict[str, CalibrationRun] = {}
+        self._ids = itertools.count(1)
+
+    def start(self, device: str, procedure_id: str, inputs: object, who: str) -> CalibrationRun:
+        """Start a run in a task of its own; refused if the device is busy with one."""
+        if not isinstance(inputs, dict):
+            raise CommandRejectedError("inputs must be a JSON object")
+        writer = self.writers.get(device)
+        if writer is None:
+            raise CommandRejectedError(f"no device {device!r}")
+        procedure = BY_ID.get(procedure_id)
+        if procedure is None or not procedure.applies_to(writer.link.profile):
+            raise CommandRejectedError(f"{device} has no calibration {procedure_id!r}")
+        busy = [
+            r
+            for r in self.runs.values()
+            if r.device == device and r.phase in {Phase.RUNNING, Phase.CONFIRM, Phase.WRITING}
+        ]
+        if busy:
+            raise CommandRejectedError(f"{device} is being calibrated by {busy[0].who}")
+        run = CalibrationRun(
+            id=f"c{next(self._ids)}",
+            device=device,
+            procedure=procedure,
+            who=who,
+            inputs=dict(inputs),
+        )
+        _LOGGER.info(
+            "web: %s started the %s calibration of %s with %s", who, procedure.id, device, inputs
+        )
+        run.task = asyncio.create_task(run.execute(writer), name=f"web.calibrate[{device}]")
+        self.runs[run.id] = run
+        self._forget_old()
+        return run
+
+    def _forget_old(self) -> None:
+        finished = [
+            r.id
+            for r in self.runs.values()
+            if r.phase not in {Phase.RUNNING, Phase.CONFIRM, Phase.WRITING}
+        ]
+        for run_id in finished[: max(0, len(finished) - KEEP_RUNS)]:
+            del self.runs[run_id]
+
+    async def close(self) -> None:
+        """Stop the runs still waiting (as declined); let writes in flight finish."""
+        for run in self.runs.values():
+            if run.phase in {Phase.RUNNING, Phase.CONFIRM}:
+                run.cancel("shutdown")
+        tasks = [r.task for r in self.runs.values() if r.task is not None and not r.task.done()]
+        if tasks:
+            await asyncio.wait(tasks, timeout=10.0)

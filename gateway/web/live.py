@@ -1,0 +1,195 @@
+"""What the page shows, as JSON, read from the state without I/O.
+
+The lines and devices with their live values, one device's register map, the bus health
+figures.
+"""
+
+from __future__ import annotations
+
+import time
+from datetime import UTC, datetime
+from typing import TYPE_CHECKING, Final
+
+from gateway.line.samples import Quality, json_value
+from gateway.profiles.model import PollGroup
+from gateway.publish.prometheus.health import ERROR_KINDS
+from gateway.wire.codec import BitfieldValue
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from gateway.line.health import DeviceHealth
+    from gateway.line.port import LineStats
+    from gateway.line.samples import Sample
+    from gateway.profiles import Profile
+    from gateway.publish.state import DeviceInfo, GatewayState
+
+# The groups of the live table: what is measured and what the sensor says of itself.
+LIVE_GROUPS: Final = frozenset({PollGroup.PROCESS.value, PollGroup.STATUS.value})
+
+
+def _iso(moment: datetime | None) -> str | None:
+    return moment.astimezone(UTC).isoformat(timespec="seconds") if moment else None
+
+
+def sample_view(sample: Sample, *, stale: bool, now: float) -> dict[str, object]:
+    """One value as the page shows it: text, unit, quality, fault, age."""
+    value = sample.value
+    if sample.quality is Quality.GOOD:
+        text = str(json_value(value) if not isinstance(value, BitfieldValue) else value)
+        if isinstance(value, float):
+            text = f"{value:.6g}"
+        elif value is None:
+            text = "-"  # a point that holds nothing (a stamp never set)
+    else:
+        text = sample.fault or sample.quality.value
+    view: dict[str, object] = {
+        "point": sample.point,
+        "text": text,
+        "unit": sample.unit or "",
+        "quality": "stale" if stale and sample.quality is Quality.GOOD else sample.quality.value,
+        "fault": sample.fault,
+        "age_s": round(max(0.0, now - sample.monotonic), 1),
+        "time": _iso(sample.time),
+    }
+    if isinstance(value, BitfieldValue):
+        view["bits"] = [{"name": name, "set": state} for name, state in value.flags]
+    return view
+
+
+def _errors(stats: LineStats | None, address: int | None = None) -> dict[str, int]:
+    counts = dict.fromkeys(ERROR_KINDS, 0)
+    if stats is None:
+        return counts
+    for (device, kind), count in list(stats.errors.items()):
+        if address is None or device == address:
+            counts[str(kind)] = counts.get(str(kind), 0) + count
+    return counts
+
+
+def _newest_good(state: GatewayState) -> dict[tuple[str, str], Sample]:
+    """Each device's newest good sample: its last good response (one pass over them all)."""
+    newest: dict[tuple[str, str], Sample] = {}
+    for (bus, device, _), sample in list(state.last_good.items()):
+        held = newest.get((bus, device))
+        if held is None or sample.monotonic > held.monotonic:
+            newest[bus, device] = sample
+    return newest
+
+
+def _device_view(
+    info: DeviceInfo,
+    state: GatewayState,
+    health: DeviceHealth | None,
+    last_good: Sample | None,
+    now: float,
+) -> dict[str, object]:
+    samples = state.device_samples(info.bus, info.name)
+    values = [
+        sample_view(s, stale=state.is_stale(s, now), now=now)
+        for s in samples.values()
+        if s.group in LIVE_GROUPS
+    ]
+    stats = state.lines.get(info.bus)
+    return {
+        "bus": info.bus,
+        "name": info.name,
+        "profile": info.profile,
+        "address": info.address,
+        "online": info.online,
+        "reason": info.reason,
+        "values": values,
+        "last_good": _iso(last_good.time) if last_good else None,
+        "last_good_age_s": round(now - last_good.monotonic, 1) if last_good else None,
+        "errors": _errors(stats, info.address),
+        "requests": stats.requests[info.address] if stats else 0,
+        "retries": stats.retries[info.address] if stats else 0,
+        "lag_s": round(health.lag_s, 3) if health else None,
+        "missed_deadlines": health.missed_deadlines if health else 0,
+        "failures_in_a_row": health.failures_in_a_row if health else 0,
+    }
+
+
+def _line_view(name: str, stats: LineStats, paused: str | None, now: float) -> dict[str, object]:
+    requests = sum(stats.requests.values())
+    latency = sum(stats.latency_sum_s.values())
+    responses = sum(stats.responses.values())
+    return {
+        "name": name,
+        "port_open": stats.port_open,
+        "port_failures": stats.port_failures,
+        "requests": requests,
+        "responses": responses,
+        "retries": sum(stats.retries.values()),
+        "errors": _errors(stats),
+        "utilisation": round(stats.utilisation(now), 4),
+        "mean_latency_ms": round(1000 * latency / responses, 1) if responses else None,
+        "paused": paused,
+    }
+
+
+def overview(state: GatewayState, paused: Mapping[str, str] | None = None) -> dict[str, object]:
+    """Every line and device, with the live values: what ``/api/state`` and the events send.
+
+    ``paused`` names the lines whose polling is stopped now, and why (a scan).
+    """
+    now = time.monotonic()
+    paused = paused or {}
+    health = {(h.bus, h.device): h for h in state.health()}
+    lines = [_line_view(name, stats, paused.get(name), now) for name, stats in state.lines.items()]
+    newest = _newest_good(state)
+    devices = [
+        _device_view(info, state, health.get(key), newest.get(key), now)
+        for key, info in list(state.devices.items())
+    ]
+    return {
+        "time": _iso(datetime.now(tz=UTC)),
+        "uptime_s": round(now - state.started, 1),
+        "mqtt": {
+            "enabled": state.mqtt.enabled,
+            "connected": state.mqtt.connected,
+            "queue_depth": state.mqtt.queue_depth,
+        },
+        "lines": lines,
+        "devices": devices,
+    }
+
+
+def register_map(
+    info: DeviceInfo, profile: Profile, state: GatewayState, *, writable_by_page: bool
+) -> dict[str, object]:
+    """One device: identity and every point of its register map with its latest value."""
+    now = time.monotonic()
+    samples = state.device_samples(info.bus, info.name)
+    points = []
+    identity = {}
+    for point in profile.points:
+        sample = samples.get(point.name)
+        view = sample_view(sample, stale=state.is_stale(sample, now), now=now) if sample else None
+        if point.group is PollGroup.IDENTITY and view is not None:
+            identity[point.name] = view["text"]
+        points.append(
+            {
+                "name": point.name,
+                "address": f"0x{point.address:04X}",
+                "type": point.dtype.value,
+                "count": point.count,
+                "access": point.access.value,
+                "unit": point.unit or (view["unit"] if view else "") or "",
+                "storage": point.storage.value if point.storage else "",
+                "group": point.group.value,
+                "description": point.description,
+                "writable": point.writable and not point.view and writable_by_page,
+                "value": view,
+            }
+        )
+    return {
+        "bus": info.bus,
+        "name": info.name,
+        "profile": info.profile,
+        "address": info.address,
+        "online": info.online,
+        "reason": info.reason,
+        "identity": identity,
+        "points": points,
+    }

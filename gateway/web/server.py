@@ -1,0 +1,485 @@
+"""The page's HTTP server: aiohttp in the gateway's own event loop, one named task.
+
+Routes (JSON unless said; ``R`` read: loopback or a session; ``W`` write: a session and
+its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser sends one)::
+
+    GET  /                                  the page (static: index.html, app.js, style.css)
+    GET  /api/session                       who is signed in, the CSRF token, what is allowed
+    POST /api/login  {name, password}       a session (cookie), or 403
+    POST /api/logout
+    GET  /api/state                      R  lines and devices with live values, bus health
+    GET  /api/events                     R  the same, as server-sent events, every second
+    GET  /api/devices/{device}           R  identity, register map, procedures
+    POST /api/devices/{device}/points/{point}  W  {value}: a write through SafeWriter
+    POST /api/devices/{device}/read      W  every point read now (queued ahead of polls)
+    POST /api/calibrations               W  {device, procedure, inputs}: a guided run
+    GET  /api/calibrations/{id}          R  its steps, question, outcome
+    POST /api/calibrations/{id}/answer   W  {confirm: bool}
+    POST /api/calibrations/{id}/cancel   W
+    POST /api/lines/{bus}/scan           W  a scan of the line, its polling paused
+    GET  /api/lines/{bus}/scan           R  the scan's progress and report
+
+Every write and calibration is logged with who did it (the name given at sign-in) and from
+where.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from importlib import resources
+from typing import TYPE_CHECKING, Final
+from urllib.parse import urlsplit
+
+from aiohttp import web
+
+from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
+from gateway.line.samples import json_value
+from gateway.web.auth import CSRF_HEADER, SESSION_COOKIE, Session, Sessions, is_loopback
+from gateway.web.calibration import Calibrations, procedures_for
+from gateway.web.live import overview, register_map, sample_view
+
+if TYPE_CHECKING:
+    from collections.abc import Awaitable, Callable, Mapping
+
+    from gateway.config import WebConfig
+    from gateway.control.writes import SafeWriter
+    from gateway.publish.state import GatewayState
+    from gateway.web.scan import LineScans
+
+    Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+_LOGGER = logging.getLogger(__name__)
+
+EVENT_INTERVAL_S: Final = 1.0
+SHUTDOWN_S: Final = 3.0
+STATIC_FILES: Final = {
+    "index.html": "text/html",
+    "app.js": "text/javascript",
+    "style.css": "text/css",
+    "favicon.svg": "image/svg+xml",
+}
+_SESSION: Final = web.RequestKey("session", Session)  # the session a write guard let through
+_SECURITY_HEADERS: Final = {
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "same-origin",
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; "
+    "style-src 'self'; script-src 'self'; connect-src 'self'; frame-ancestors 'none'",
+    "Cache-Control": "no-store",
+}
+
+
+def _static(name: str) -> bytes:
+    return resources.files("gateway.web").joinpath("static", name).read_bytes()
+
+
+def _error(status: int, message: str) -> web.Response:
+    return web.json_response({"error": message}, status=status)
+
+
+class WebServer:
+    """The page, served from the gateway's loop while :meth:`run` runs."""
+
+    def __init__(
+        self,
+        config: WebConfig,
+        state: GatewayState,
+        writers: Mapping[str, SafeWriter],
+        *,
+        scans: LineScans | None = None,
+        sessions: Sessions | None = None,
+        event_interval_s: float = EVENT_INTERVAL_S,
+    ) -> None:
+        """Serve ``state``; writes and calibrations through ``writers`` (by device name)."""
+        self.config = config
+        self.state = state
+        self.writers = writers
+        self.scans = scans
+        self.sessions = sessions or Sessions.from_config(config)
+        self.calibrations = Calibrations(writers)
+        self.event_interval_s = event_interval_s
+        self.port: int | None = None  # the port bound, once started
+        self._closing = asyncio.Event()
+        self._latest: tuple[float, str] = (0.0, "")
+        self._runner: web.AppRunner | None = None
+
+    # --- running ----------------------------------------------------------------------
+
+    def app(self) -> web.Application:
+        """The aiohttp application with every route."""
+        app = web.Application(middlewares=[self._headers])
+        get, post = web.get, web.post
+        app.add_routes(
+            [
+                get("/", self._index),
+                get("/static/{name}", self._asset),
+                get("/api/session", self._session_info),
+                post("/api/login", self._login),
+                post("/api/logout", self._logout),
+                get("/api/state", self._reader(self._state)),
+                get("/api/events", self._reader(self._events)),
+                get("/api/devices/{device}", self._reader(self._device)),
+                post("/api/devices/{device}/points/{point}", self._writer(self._write)),
+                post("/api/devices/{device}/read", self._writer(self._read_all)),
+                post("/api/calibrations", self._writer(self._start_calibration)),
+                get("/api/calibrations/{id}", self._reader(self._calibration)),
+                post("/api/calibrations/{id}/answer", self._writer(self._answer)),
+                post("/api/calibrations/{id}/cancel", self._writer(self._cancel)),
+                post("/api/lines/{bus}/scan", self._writer(self._start_scan)),
+                get("/api/lines/{bus}/scan", self._reader(self._scan)),
+            ]
+        )
+        return app
+
+    async def start(self) -> None:
+        """Listen on the configured host and port."""
+        self._runner = web.AppRunner(
+            self.app(), access_log=None, shutdown_timeout=SHUTDOWN_S, handle_signals=False
+        )
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.config.host, self.config.port)
+        try:
+            await site.start()
+        except OSError as exc:
+            await self._runner.cleanup()
+            self._runner = None
+            where = f"{self.config.host}:{self.config.port}"
+            raise ConfigError(f"web: cannot listen on {where}: {exc}", key="web.port") from exc
+        bound = self._runner.addresses
+        self.port = int(bound[0][1]) if bound else self.config.port
+        if not self.sessions.enabled:
+            _LOGGER.warning(
+                "web: no password (GATEWAY_WEB__PASSWORD): the page is read-only, from "
+                "this machine only"
+            )
+        _LOGGER.info("web: the page is at %s", self.url)
+
+    @property
+    def url(self) -> str:
+        """Where a browser on this machine finds the page."""
+        host = self.config.host
+        if host in {"0.0.0.0", "::"}:  # noqa: S104 - naming it, not binding it
+            host = "127.0.0.1"
+        host = f"[{host}]" if ":" in host else host
+        return f"http://{host}:{self.port or self.config.port}/"
+
+    async def stop(self) -> None:
+        """Close the event streams, let waiting calibrations decline, stop listening."""
+        self._closing.set()
+        await self.calibrations.close()
+        if self.scans is not None:
+            await self.scans.close()
+        if self._runner is not None:
+            await self._runner.cleanup()
+            self._runner = None
+
+    async def run(self, stop: asyncio.Event | None = None) -> None:
+        """Serve (starting if need be) until cancelled or ``stop`` is set, then stop."""
+        if self._runner is None:
+            await self.start()
+        try:
+            await (stop or asyncio.Event()).wait()
+        finally:
+            await self.stop()
+
+    # --- guards -----------------------------------------------------------------------
+
+    @web.middleware
+    async def _headers(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        response = await handler(request)
+        if not response.prepared:
+            for name, value in _SECURITY_HEADERS.items():
+                response.headers.setdefault(name, value)
+        return response
+
+    def _session(self, request: web.Request, *, touch: bool = False) -> Session | None:
+        return self.sessions.find(request.cookies.get(SESSION_COOKIE), touch=touch)
+
+    def _reader(self, handler: Handler) -> Handler:
+        """Open from this machine; from elsewhere only with a session."""
+
+        async def guarded(request: web.Request) -> web.StreamResponse:
+            if not is_loopback(request.remote) and self._session(request) is None:
+                return _error(401, "sign in to read from another machine")
+            return await handler(request)
+
+        return guarded
+
+    def _writer(self, handler: Handler) -> Handler:
+        """A session, its CSRF token, and a same-origin request."""
+
+        async def guarded(request: web.Request) -> web.StreamResponse:
+            session = self._session(request, touch=True)
+            if session is None:
+                _LOGGER.warning(
+                    "web: %s %s refused from %s: no session",
+                    request.method,
+                    request.path,
+                    request.remote,
+                )
+                return _error(401, "sign in first: writes and calibrations need a session")
+            if not self._same_origin(request) or not session.csrf_ok(
+                request.headers.get(CSRF_HEADER)
+            ):
+                _LOGGER.warning(
+                    "web: %s %s by %s refused from %s: bad CSRF token or origin",
+                    request.method,
+                    request.path,
+                    session.who,
+                    request.remote,
+                )
+                return _error(403, "bad or missing CSRF token")
+            request[_SESSION] = session
+            return await handler(request)
+
+        return guarded
+
+    @staticmethod
+    def _same_origin(request: web.Request) -> bool:
+        origin = request.headers.get("Origin")
+        if origin is None or origin == "null":
+            return origin is None
+        return urlsplit(origin).netloc == request.host
+
+    @staticmethod
+    def _who(request: web.Request) -> str:
+        session = request[_SESSION]
+        return f"{session.who}@{request.remote}"
+
+    @staticmethod
+    async def _body(request: web.Request) -> dict[str, object]:
+        try:
+            body = await request.json()
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise CommandRejectedError(f"the request is not JSON: {exc}") from None
+        if not isinstance(body, dict):
+            raise CommandRejectedError("the request must be a JSON object")
+        return body
+
+    # --- the page ---------------------------------------------------------------------
+
+    async def _index(self, _request: web.Request) -> web.StreamResponse:
+        return web.Response(body=_static("index.html"), content_type="text/html", charset="utf-8")
+
+    async def _asset(self, request: web.Request) -> web.StreamResponse:
+        name = request.match_info["name"]
+        kind = STATIC_FILES.get(name)
+        if kind is None:
+            raise web.HTTPNotFound
+        return web.Response(body=_static(name), content_type=kind)
+
+    async def _session_info(self, request: web.Request) -> web.StreamResponse:
+        session = self._session(request)
+        return web.json_response(
+            {
+                "signed_in": session is not None,
+                "who": session.who if session else None,
+                "csrf": session.csrf if session else None,
+                "can_sign_in": self.sessions.enabled,
+                "can_read": session is not None or is_loopback(request.remote),
+                "session_minutes": self.config.session_minutes,
+            }
+        )
+
+    async def _login(self, request: web.Request) -> web.StreamResponse:
+        if not self._same_origin(request):
+            return _error(403, "sign in from the gateway's own page")
+        try:
+            body = await self._body(request)
+        except CommandRejectedError as exc:
+            return _error(400, str(exc))
+        session = self.sessions.sign_in(
+            str(body.get("name") or ""), str(body.get("password") or ""), str(request.remote)
+        )
+        if session is None:
+            await asyncio.sleep(0.5)  # a guess costs time
+            return _error(403, "wrong password" if self.sessions.enabled else "no password set")
+        response = web.json_response({"who": session.who, "csrf": session.csrf})
+        response.set_cookie(
+            SESSION_COOKIE,
+            session.token,
+            httponly=True,
+            samesite="Strict",
+            path="/",
+            max_age=int(self.sessions.lifetime_s),
+        )
+        return response
+
+    async def _logout(self, request: web.Request) -> web.StreamResponse:
+        self.sessions.sign_out(request.cookies.get(SESSION_COOKIE))
+        response = web.json_response({"signed_in": False})
+        response.del_cookie(SESSION_COOKIE, path="/")
+        return response
+
+    # --- reading ----------------------------------------------------------------------
+
+    def _overview(self) -> str:
+        """The overview as JSON, made at most once per half interval for every reader."""
+        now = time.monotonic()
+        made, text = self._latest
+        if now - made >= self.event_interval_s / 2 or not text:
+            paused = self.scans.paused() if self.scans is not None else {}
+            text = json.dumps(overview(self.state, paused), separators=(",", ":"))
+            self._latest = (now, text)
+        return text
+
+    async def _state(self, _request: web.Request) -> web.StreamResponse:
+        return web.Response(text=self._overview(), content_type="application/json")
+
+    async def _events(self, request: web.Request) -> web.StreamResponse:
+        response = web.StreamResponse(
+            headers={
+                "Content-Type": "text/event-stream",
+                "Cache-Control": "no-cache",
+                "X-Accel-Buffering": "no",
+            }
+        )
+        await response.prepare(request)
+        local = is_loopback(request.remote)
+        with contextlib.suppress(ConnectionError):
+            while not self._closing.is_set():
+                if not local and self._session(request) is None:
+                    break  # the session ended: reading from elsewhere needs a new one
+                await response.write(f"event: state\ndata: {self._overview()}\n\n".encode())
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(self.event_interval_s):
+                        await self._closing.wait()
+        return response
+
+    async def _device(self, request: web.Request) -> web.StreamResponse:
+        name = request.match_info["device"]
+        info = next((i for i in self.state.devices.values() if i.name == name), None)
+        writer = self.writers.get(name)
+        if info is None or writer is None:
+            return _error(404, f"no device {name!r}")
+        profile = writer.link.profile
+        data = register_map(info, profile, self.state, writable_by_page=self.sessions.enabled)
+        data["procedures"] = [p.as_dict() for p in procedures_for(profile)]
+        return web.json_response(data)
+
+    async def _read_all(self, request: web.Request) -> web.StreamResponse:
+        """Every point of the device read now, for the register map; nothing is published.
+
+        A session is asked for: a read of a whole map takes the line for a while.
+        """
+        device = request.match_info["device"]
+        writer = self.writers.get(device)
+        if writer is None:
+            return _error(404, f"no device {device!r}")
+        points = [point for point in writer.link.profile.points if not point.view]
+        _LOGGER.info("web: %s reads every point of %s", self._who(request), device)
+        try:
+            samples = await writer.link.worker.read_points(device, points)
+        except GatewayError as exc:
+            return _error(502, str(exc))
+        now = time.monotonic()
+        return web.json_response(
+            {"values": [sample_view(s, stale=False, now=now) for s in samples]}
+        )
+
+    # --- writing ----------------------------------------------------------------------
+
+    async def _write(self, request: web.Request) -> web.StreamResponse:
+        device = request.match_info["device"]
+        writer = self.writers.get(device)
+        if writer is None:
+            return _error(404, f"no device {device!r}")
+        who = self._who(request)
+        try:
+            body = await self._body(request)
+            value = body.get("value")
+            if isinstance(value, str) and value.lstrip().startswith("{"):
+                value = json.loads(value)
+            point = writer.point(request.match_info["point"])
+            _LOGGER.info("web: %s writes %s/%s = %r", who, device, point.name, value)
+            outcome = await writer.set(point, value)
+        except (CommandRejectedError, ConfigError, ProfileError, ValueError) as exc:
+            _LOGGER.warning("web: write by %s to %s refused: %s", who, device, exc)
+            self.state.count_write(device, "web", "rejected")
+            return _error(400, str(exc))
+        except GatewayError as exc:
+            _LOGGER.warning("web: write by %s to %s failed: %s", who, device, exc)
+            self.state.count_write(device, "web", "failed")
+            return _error(502, str(exc))
+        self.state.count_write(device, "web", "ok")
+        _LOGGER.info(
+            "web: %s wrote %s/%s: %s, the device holds %r",
+            who,
+            device,
+            outcome.point,
+            "written" if outcome.written else "unchanged",
+            outcome.value,
+        )
+        return web.json_response(
+            {
+                "device": device,
+                "point": outcome.point,
+                "written": outcome.written,
+                "value": json_value(outcome.value),  # type: ignore[arg-type]
+                "registers": list(outcome.registers),
+                "flash": outcome.flash,
+                "note": outcome.note,
+            }
+        )
+
+    async def _start_calibration(self, request: web.Request) -> web.StreamResponse:
+        try:
+            body = await self._body(request)
+            inputs = body.get("inputs") or {}
+            run = self.calibrations.start(
+                str(body.get("device")), str(body.get("procedure")), inputs, self._who(request)
+            )
+        except CommandRejectedError as exc:
+            return _error(400, str(exc))
+        return web.json_response(run.as_dict(), status=201)
+
+    async def _calibration(self, request: web.Request) -> web.StreamResponse:
+        run = self.calibrations.runs.get(request.match_info["id"])
+        if run is None:
+            return _error(404, "no such calibration")
+        return web.json_response(run.as_dict())
+
+    async def _answer(self, request: web.Request) -> web.StreamResponse:
+        run = self.calibrations.runs.get(request.match_info["id"])
+        if run is None:
+            return _error(404, "no such calibration")
+        try:
+            body = await self._body(request)
+            run.answer(body.get("confirm") is True, self._who(request))
+        except CommandRejectedError as exc:
+            return _error(409, str(exc))
+        await asyncio.sleep(0)  # let the flow take the answer before the page asks again
+        return web.json_response(run.as_dict())
+
+    async def _cancel(self, request: web.Request) -> web.StreamResponse:
+        run = self.calibrations.runs.get(request.match_info["id"])
+        if run is None:
+            return _error(404, "no such calibration")
+        try:
+            run.cancel(self._who(request))
+        except CommandRejectedError as exc:
+            return _error(409, str(exc))
+        return web.json_response(run.as_dict())
+
+    # --- scanning ---------------------------------------------------------------------
+
+    async def _start_scan(self, request: web.Request) -> web.StreamResponse:
+        if self.scans is None:
+            return _error(404, "scans are not available")
+        try:
+            body = await self._body(request)
+            addresses = str(body.get("addresses") or "1-247")
+            job = self.scans.start(request.match_info["bus"], self._who(request), addresses)
+        except CommandRejectedError as exc:
+            return _error(409, str(exc))
+        return web.json_response(job.as_dict(), status=201)
+
+    async def _scan(self, request: web.Request) -> web.StreamResponse:
+        job = self.scans.latest(request.match_info["bus"]) if self.scans is not None else None
+        if job is None:
+            return _error(404, "no scan of this line yet")
+        return web.json_response(job.as_dict())

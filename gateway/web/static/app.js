@@ -1,0 +1,672 @@
+// The gateway's page: live values, a device's register map, bus health, guided calibration
+// and a scan of an idle line. Hand-written, no build step; data is always put in the page
+// as text (textContent), never as HTML.
+"use strict";
+
+const view = document.getElementById("view");
+const connection = document.getElementById("connection");
+let session = { signed_in: false, csrf: null, who: null, can_sign_in: false, can_read: true };
+let latest = null; // the last overview from the event stream
+let onState = null; // the current page's listener of new overviews
+let timer = null; // the current page's polling timer
+const history = new Map(); // "device/point" -> recent numbers, to see a reading settle
+
+// --- little helpers ---------------------------------------------------------------------
+
+function el(tag, attrs = {}, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs)) {
+    if (value === null || value === undefined || value === false) continue;
+    if (key === "class") node.className = value;
+    else if (key === "text") node.textContent = value;
+    else if (key.startsWith("on")) node.addEventListener(key.slice(2), value);
+    else node.setAttribute(key, value === true ? "" : String(value));
+  }
+  for (const child of children.flat()) {
+    if (child === null || child === undefined) continue;
+    node.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+  return node;
+}
+
+async function api(method, path, body) {
+  const headers = { Accept: "application/json" };
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  if (method !== "GET" && session.csrf) headers["X-CSRF-Token"] = session.csrf;
+  const response = await fetch(path, {
+    method,
+    headers,
+    body: body === undefined ? undefined : JSON.stringify(body),
+    credentials: "same-origin",
+  });
+  let data = null;
+  try { data = await response.json(); } catch { data = null; }
+  if (!response.ok) {
+    const error = new Error((data && data.error) || `${response.status} ${response.statusText}`);
+    error.status = response.status;
+    throw error;
+  }
+  return data;
+}
+
+function show(...nodes) {
+  view.replaceChildren(...nodes.filter((node) => node !== null && node !== undefined && node !== ""));
+}
+
+function numeric(text) {
+  return text !== "" && !Number.isNaN(Number(text));
+}
+
+function quality(value) {
+  return value ? value.quality : "none";
+}
+
+function onlineBadge(online) {
+  if (online === true) return el("span", { class: "badge online", text: "online" });
+  if (online === false) return el("span", { class: "badge offline", text: "offline" });
+  return el("span", { class: "badge unknown", text: "not heard yet" });
+}
+
+function ago(seconds) {
+  if (seconds === null || seconds === undefined) return "never";
+  if (seconds < 60) return `${seconds.toFixed(0)} s ago`;
+  if (seconds < 3600) return `${(seconds / 60).toFixed(0)} min ago`;
+  return `${(seconds / 3600).toFixed(1)} h ago`;
+}
+
+function errorText(errors) {
+  const parts = Object.entries(errors || {}).filter(([, n]) => n > 0).map(([k, n]) => `${k} ${n}`);
+  return parts.length ? parts.join(", ") : "none";
+}
+
+function remember(device, values) {
+  for (const v of values) {
+    const number = Number(v.text);
+    if (v.quality !== "good" || Number.isNaN(number)) continue;
+    const key = `${device}/${v.point}`;
+    const list = history.get(key) || [];
+    if (list.length === 0 || list[list.length - 1].time !== v.time) list.push({ time: v.time, value: number });
+    while (list.length > 10) list.shift();
+    history.set(key, list);
+  }
+}
+
+// --- session ------------------------------------------------------------------------------
+
+async function loadSession() {
+  session = await api("GET", "/api/session");
+  document.getElementById("who-name").textContent = session.signed_in ? `Signed in: ${session.who}` : "";
+  document.getElementById("sign-out").hidden = !session.signed_in;
+  document.getElementById("sign-in-link").hidden = session.signed_in || !session.can_sign_in;
+}
+
+document.getElementById("sign-out").addEventListener("click", async () => {
+  await api("POST", "/api/logout");
+  await loadSession();
+  route();
+});
+
+function loginPage() {
+  const status = el("p", { role: "status", "aria-live": "polite" });
+  const form = el(
+    "form",
+    { id: "login-form" },
+    el("label", {}, "Your name (kept with every write)", el("input", { name: "name", id: "login-name", autocomplete: "username", required: true })),
+    el("label", {}, "Password", el("input", { name: "password", id: "login-password", type: "password", autocomplete: "current-password", required: true })),
+    el("div", { class: "actions" }, el("button", { class: "primary", type: "submit", id: "login-submit", text: "Sign in" })),
+    status,
+  );
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const data = new FormData(form);
+    try {
+      await api("POST", "/api/login", { name: data.get("name"), password: data.get("password") });
+      await loadSession();
+      if (!events) connect();
+      const next = sessionStorage.getItem("after-login") || "#/";
+      if (location.hash === next) route(); else location.hash = next;
+    } catch (error) {
+      status.className = "error";
+      status.textContent = error.message;
+    }
+  });
+  const intro = session.can_sign_in
+    ? "Writes and calibrations need you to sign in."
+    : "No password is configured (GATEWAY_WEB__PASSWORD): this page is read-only.";
+  show(el("h1", { text: "Sign in" }), el("p", { text: intro }), session.can_sign_in ? form : "");
+  const first = document.getElementById("login-name");
+  if (first) first.focus();
+}
+
+function needSession(what) {
+  if (session.signed_in) return null;
+  sessionStorage.setItem("after-login", location.hash);
+  return el("p", { class: "warning" }, `${what} needs you to `, el("a", { href: "#/login", text: "sign in" }), ".");
+}
+
+// --- the event stream ----------------------------------------------------------------------
+
+let events = null;
+function connect() {
+  if (events) events.close();
+  events = new EventSource("/api/events");
+  events.addEventListener("state", (event) => {
+    latest = JSON.parse(event.data);
+    connection.textContent = `Live · ${new Date(latest.time).toLocaleTimeString()}`;
+    for (const device of latest.devices) remember(device.name, device.values);
+    if (onState) onState(latest);
+  });
+  events.addEventListener("error", () => {
+    connection.textContent = "Connection lost: retrying…";
+  });
+}
+
+// --- the live page ------------------------------------------------------------------------
+
+// A name with a chance to wrap after each underscore (measurement_status on a phone).
+function breakable(text) {
+  const parts = String(text).split("_");
+  return parts.flatMap((part, i) => (i < parts.length - 1 ? [`${part}_`, el("wbr")] : [part]));
+}
+
+function valuesTable(device, values) {
+  const rows = values.map((v) => {
+    const bits = (v.bits || []).filter((b) => b.set).map((b) => b.name);
+    const text = v.bits ? (bits.length ? bits.join(", ") : "no bit set") : v.text;
+    const isNumber = !v.bits && numeric(text);
+    return el(
+      "tr",
+      { "data-point": v.point, class: `q-${v.quality}` },
+      el("th", { scope: "row" }, breakable(v.point)),
+      el("td", { class: isNumber ? "num" : "bits", "data-value": v.point }, breakable(text)),
+      el("td", { class: "unit", text: v.unit }),
+      el("td", { class: `q-${v.quality}`, text: v.quality === "fault" ? "fault" : v.quality.replace("_", " ") }),
+    );
+  });
+  return el(
+    "table",
+    { class: "values", "aria-label": `Values of ${device}` },
+    el("thead", {}, el("tr", {}, el("th", { text: "Point" }), el("th", { text: "Value" }), el("th", { text: "Unit" }), el("th", { text: "Quality" }))),
+    el("tbody", {}, rows),
+  );
+}
+
+function deviceCard(device) {
+  return el(
+    "section",
+    { class: "card device", "data-device": device.name, "aria-label": device.name },
+    el(
+      "header",
+      {},
+      el("h2", {}, el("a", { href: `#/device/${encodeURIComponent(device.name)}`, text: device.name })),
+      onlineBadge(device.online),
+    ),
+    el("p", { class: "meta" }, `${device.profile} · ${device.bus} · address ${device.address}`),
+    device.online === false && device.reason ? el("p", { class: "error", text: device.reason }) : null,
+    valuesTable(device.name, device.values),
+    el(
+      "p",
+      { class: "meta" },
+      `Last good response: ${ago(device.last_good_age_s)} · errors: ${errorText(device.errors)}`,
+    ),
+  );
+}
+
+function livePage() {
+  const body = el("div", { id: "live" });
+  const render = (state) => {
+    const paused = state.lines.filter((l) => l.paused);
+    body.replaceChildren(
+      ...paused.map((l) => el("p", { class: "warning", role: "alert" }, `Line ${l.name}: polling is paused (${l.paused}); its values are not being read.`)),
+      el("div", { class: "grid" }, state.devices.map(deviceCard)),
+    );
+  };
+  show(el("h1", { text: "Live values" }), body);
+  onState = render;
+  if (latest) render(latest);
+}
+
+// --- bus health ------------------------------------------------------------------------------
+
+function healthPage() {
+  const body = el("div", { id: "health" });
+  const render = (state) => {
+    const lines = state.lines.map((line) =>
+      el(
+        "section",
+        { class: "card", "data-line": line.name },
+        el("h2", { text: `Line ${line.name}` }),
+        line.paused ? el("p", { class: "warning", text: `Polling paused: ${line.paused}` }) : null,
+        el(
+          "table",
+          {},
+          el("tbody", {}, [
+            ["Port", line.port_open ? "open" : "closed"],
+            ["Port failures", line.port_failures],
+            ["Requests", line.requests],
+            ["Responses", line.responses],
+            ["Retries", line.retries],
+            ["Errors", errorText(line.errors)],
+            ["Bus utilisation", `${(100 * line.utilisation).toFixed(1)} %`],
+            ["Mean latency", line.mean_latency_ms === null ? "-" : `${line.mean_latency_ms} ms`],
+          ].map(([k, v]) => el("tr", {}, el("th", { scope: "row", text: k }), el("td", { class: "num", text: v })))),
+        ),
+      ),
+    );
+    const rows = state.devices.map((d) =>
+      el(
+        "tr",
+        { "data-device": d.name },
+        el("th", { scope: "row" }, el("a", { href: `#/device/${encodeURIComponent(d.name)}`, text: d.name })),
+        el("td", {}, onlineBadge(d.online)),
+        el("td", { class: "num", text: d.requests }),
+        el("td", { class: "num", text: d.retries }),
+        el("td", { text: errorText(d.errors) }),
+        el("td", { class: "num wide-only", text: d.lag_s === null ? "-" : `${d.lag_s} s` }),
+        el("td", { class: "num wide-only", text: d.missed_deadlines }),
+      ),
+    );
+    body.replaceChildren(
+      el("div", { class: "grid" }, lines),
+      el("h2", { text: "Devices" }),
+      el(
+        "div",
+        { class: "scroll" },
+        el(
+          "table",
+          {},
+          el("thead", {}, el("tr", {}, ["Device", "State", "Requests", "Retries", "Errors by kind"].map((t) => el("th", { text: t })), el("th", { class: "wide-only", text: "Lag" }), el("th", { class: "wide-only", text: "Missed" }))),
+          el("tbody", {}, rows),
+        ),
+      ),
+      el("p", { class: "meta", text: `MQTT: ${state.mqtt.enabled ? (state.mqtt.connected ? "connected" : "not connected") : "off"} · queue ${state.mqtt.queue_depth}` }),
+    );
+  };
+  show(el("h1", { text: "Bus health" }), body);
+  onState = render;
+  if (latest) render(latest);
+}
+
+// --- one device -------------------------------------------------------------------------------
+
+function writeForm(device, point) {
+  const input = el("input", { name: "value", "aria-label": `New value of ${point.name}`, required: true });
+  const status = el("span", { role: "status", "aria-live": "polite" });
+  const form = el(
+    "form",
+    { class: "write-form", "data-write": point.name },
+    input,
+    el("button", { type: "submit", text: "Write" }),
+    status,
+  );
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    status.className = "";
+    status.textContent = "writing…";
+    try {
+      const result = await api("POST", `/api/devices/${encodeURIComponent(device)}/points/${encodeURIComponent(point.name)}`, { value: input.value });
+      status.className = "ok";
+      status.textContent = `${result.written ? "written" : "unchanged"}; holds ${JSON.stringify(result.value)}`;
+    } catch (error) {
+      status.className = "error";
+      status.textContent = error.message;
+    }
+  });
+  return form;
+}
+
+function readAllButton(device) {
+  const status = el("span", { role: "status", "aria-live": "polite" });
+  const button = el("button", { type: "button", id: "read-all", text: "Read every register now" });
+  button.addEventListener("click", async () => {
+    button.disabled = true;
+    status.className = "";
+    status.textContent = "reading…";
+    try {
+      const result = await api("POST", `/api/devices/${encodeURIComponent(device)}/read`);
+      for (const v of result.values) {
+        const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(v.point)}"]`);
+        if (cell) cell.replaceChildren(...breakable(v.text));
+      }
+      status.className = "ok";
+      status.textContent = `${result.values.length} values read`;
+    } catch (error) {
+      status.className = "error";
+      status.textContent = error.message;
+    } finally {
+      button.disabled = false;
+    }
+  });
+  return el("div", { class: "actions" }, button, status);
+}
+
+async function devicePage(name) {
+  let data;
+  try {
+    data = await api("GET", `/api/devices/${encodeURIComponent(name)}`);
+  } catch (error) {
+    show(el("h1", { text: name }), el("p", { class: "error", text: error.message }));
+    return;
+  }
+  const identity = el(
+    "table",
+    { id: "identity" },
+    el("tbody", {}, Object.entries(data.identity).map(([k, v]) => el("tr", {}, el("th", { scope: "row", text: k }), el("td", { text: v })))),
+  );
+  const procedures = data.procedures.length
+    ? el("ul", { id: "procedures" }, data.procedures.map((p) => el("li", {}, el("a", { href: `#/calibrate/${encodeURIComponent(name)}/${p.id}`, text: p.title }))))
+    : el("p", { class: "meta", text: "No guided calibration for this family." });
+  const rows = data.points.map((p) =>
+    el(
+      "tr",
+      { "data-point": p.name },
+      el("td", { class: "num", text: p.address }),
+      el("th", { scope: "row", title: p.description, text: p.name }),
+      el("td", { class: "map-value", "data-value": p.name }, p.value ? breakable(p.value.text) : ""),
+      el("td", { text: p.unit }),
+      el("td", { class: "wide-only", text: `${p.type} ${p.access}${p.storage ? " " + p.storage : ""}` }),
+      el("td", {}, p.writable && session.signed_in ? writeForm(name, p) : ""),
+    ),
+  );
+  show(
+    el("p", {}, el("a", { href: "#/", text: "← Live values" })),
+    el("h1", {}, `${data.name} `, onlineBadge(data.online)),
+    el("p", { class: "meta" }, `${data.profile} · line ${data.bus} · address ${data.address}`),
+    el("h2", { text: "Identity" }),
+    identity,
+    el("h2", { text: "Calibration" }),
+    needSession("Calibrating"),
+    procedures,
+    el("h2", { text: "Register map" }),
+    session.signed_in ? readAllButton(name) : null,
+    el(
+      "div",
+      { class: "scroll" },
+      el(
+        "table",
+        { id: "register-map" },
+        el("thead", {}, el("tr", {}, el("th", { text: "Addr" }), el("th", { text: "Point" }), el("th", { text: "Value" }), el("th", { text: "Unit" }), el("th", { class: "wide-only", text: "Type" }), el("th", { text: "" }))),
+        el("tbody", {}, rows),
+      ),
+    ),
+  );
+  timer = setInterval(async () => {
+    try {
+      const fresh = await api("GET", `/api/devices/${encodeURIComponent(name)}`);
+      for (const p of fresh.points) {
+        const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(p.name)}"]`);
+        if (cell && p.value && cell.textContent !== p.value.text) cell.replaceChildren(...breakable(p.value.text));
+      }
+    } catch { /* the next one */ }
+  }, 3000);
+}
+
+// --- guided calibration ----------------------------------------------------------------------
+
+function field(f) {
+  if (f.kind === "choice") {
+    return el(
+      "label",
+      {},
+      f.label,
+      el("select", { name: f.name, id: `f-${f.name}` }, f.choices.map((c) => el("option", { value: c, selected: c === f.default, text: c || "(as the sensor holds it)" }))),
+    );
+  }
+  return el(
+    "label",
+    {},
+    f.label,
+    el("input", {
+      name: f.name,
+      id: `f-${f.name}`,
+      type: "number",
+      step: f.kind === "integer" ? "1" : "any",
+      inputmode: "decimal",
+      value: f.default === null ? "" : f.default,
+      required: f.required,
+    }),
+  );
+}
+
+function watchPanel(device, points) {
+  const panel = el("section", { class: "card", id: "settle", "aria-label": "Live reading" });
+  const render = (state) => {
+    const found = state.devices.find((d) => d.name === device);
+    const items = points.map((point) => {
+      const v = found && found.values.find((x) => x.point === point);
+      const recent = (history.get(`${device}/${point}`) || []).map((h) => h.value);
+      const spread = recent.length > 1 ? Math.max(...recent) - Math.min(...recent) : null;
+      return el(
+        "div",
+        { "data-watch": point },
+        el("div", { class: "meta", text: point }),
+        el("div", { class: `big q-${quality(v)}`, text: v ? `${v.text} ${v.unit}` : "–" }),
+        el("div", { class: "meta", text: spread === null ? "waiting for readings…" : `last ${recent.length} readings within ${spread.toPrecision(3)}` }),
+      );
+    });
+    panel.replaceChildren(el("h2", { text: "Live reading: wait for it to settle" }), el("div", { class: "grid" }, items));
+  };
+  return { panel, render };
+}
+
+function outcomeView(run) {
+  const o = run.outcome;
+  if (!o) return el("p", { class: "error", id: "result", role: "alert", text: `${run.phase}: ${run.error}` });
+  const good = o.ok;
+  return el(
+    "section",
+    { id: "result", role: "alert" },
+    el("h2", { class: good ? "ok" : "error", text: run.phase === "cancelled" ? "cancelled: nothing was written" : o.status.replace("_", " ") }),
+    el("table", {}, el("tbody", {}, o.checks.map((c) => el("tr", {}, el("th", { scope: "row", text: c.name }), el("td", { class: c.ok ? "ok" : "error", text: c.ok ? "ok" : "MISMATCH" }))))),
+    o.warnings.length ? el("ul", {}, o.warnings.map((w) => el("li", { class: "error", text: w }))) : null,
+    el("pre", { text: JSON.stringify(o.values, null, 1) }),
+  );
+}
+
+async function calibratePage(device, procedureId) {
+  let data;
+  try {
+    data = await api("GET", `/api/devices/${encodeURIComponent(device)}`);
+  } catch (error) {
+    show(el("p", { class: "error", text: error.message }));
+    return;
+  }
+  const procedure = data.procedures.find((p) => p.id === procedureId);
+  if (!procedure) {
+    show(el("p", { class: "error", text: `${device} has no calibration ${procedureId}` }));
+    return;
+  }
+  const watch = watchPanel(device, procedure.watch);
+  const status = el("div", { id: "run", "aria-live": "polite" });
+  const form = el(
+    "form",
+    { id: "calibration-form" },
+    procedure.fields.map(field),
+    el("div", { class: "actions" }, el("button", { class: "primary", type: "submit", id: "start", text: "Start" })),
+  );
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const inputs = {};
+    for (const [k, v] of new FormData(form).entries()) inputs[k] = v;
+    try {
+      const run = await api("POST", "/api/calibrations", { device, procedure: procedureId, inputs });
+      form.querySelector("button").disabled = true;
+      follow(run.id, status, form);
+    } catch (error) {
+      status.replaceChildren(el("p", { class: "error", role: "alert", text: error.message }));
+    }
+  });
+  show(
+    el("p", {}, el("a", { href: `#/device/${encodeURIComponent(device)}`, text: `← ${device}` })),
+    el("h1", { text: `${procedure.title}: ${device}` }),
+    el("p", { text: procedure.hint }),
+    needSession("Calibrating"),
+    watch.panel,
+    el("h2", { text: "Calibration" }),
+    form,
+    status,
+  );
+  onState = watch.render;
+  if (latest) watch.render(latest);
+}
+
+// The run as it goes: steps are appended, and the controls are rebuilt only when the phase
+// or what may be done changes, so the keyboard focus stays where the operator left it.
+function follow(id, status, form) {
+  const phase = el("p", { id: "phase" });
+  const steps = el("ol", { class: "steps", id: "steps" });
+  const controls = el("div");
+  const errors = el("div", { "aria-live": "assertive" });
+  status.replaceChildren(phase, steps, controls, errors);
+  let shownControls = null;
+  const tick = async () => {
+    let run;
+    try {
+      run = await api("GET", `/api/calibrations/${id}`);
+    } catch (error) {
+      errors.replaceChildren(el("p", { class: "error", text: error.message }));
+      return;
+    }
+    phase.dataset.phase = run.phase;
+    phase.textContent = `Phase: ${run.phase}`;
+    for (const step of run.steps.slice(steps.children.length)) {
+      steps.append(el("li", { class: `s-${step.kind}` }, `${step.kind}: ${step.text}`));
+    }
+    const state = `${run.phase}/${run.can_cancel}`;
+    if (state === shownControls) return;
+    shownControls = state;
+    const parts = [];
+    let focus = null;
+    if (run.phase === "confirm") {
+      const yes = el("button", { class: "primary", type: "button", id: "confirm-write", text: "Write to the sensor" });
+      const no = el("button", { type: "button", id: "decline", text: "Do not write" });
+      yes.addEventListener("click", () => answer(id, true, errors));
+      no.addEventListener("click", () => answer(id, false, errors));
+      parts.push(el("section", { class: "warning", id: "question", role: "alertdialog", "aria-label": "Confirm the writes" }, el("p", { text: run.question }), el("div", { class: "actions" }, yes, no)));
+      focus = yes;
+    }
+    if (run.can_cancel) {
+      const cancel = el("button", { class: "danger", type: "button", id: "cancel", text: "Cancel (nothing is written)" });
+      cancel.addEventListener("click", async () => {
+        try {
+          await api("POST", `/api/calibrations/${id}/cancel`);
+        } catch (error) {
+          errors.replaceChildren(el("p", { class: "error", text: error.message }));
+        }
+      });
+      parts.push(el("div", { class: "actions" }, cancel));
+      if (!focus && controls.contains(document.activeElement)) focus = cancel;
+    }
+    if (run.phase === "writing") parts.push(el("p", { class: "warning", text: "Writing: this cannot be cancelled now." }));
+    const finished = !["running", "confirm", "writing"].includes(run.phase);
+    if (finished) {
+      parts.push(outcomeView(run));
+      form.querySelector("button").disabled = false;
+      clearInterval(timer);
+      timer = null;
+    }
+    controls.replaceChildren(...parts);
+    if (focus) focus.focus();
+  };
+  clearInterval(timer);
+  timer = setInterval(tick, 400);
+  tick();
+}
+
+async function answer(id, confirm, errors) {
+  try {
+    await api("POST", `/api/calibrations/${id}/answer`, { confirm });
+  } catch (error) {
+    errors.replaceChildren(el("p", { class: "error", text: error.message }));
+  }
+}
+
+// --- scanning a line ------------------------------------------------------------------------
+
+function scanPage() {
+  const lines = latest ? latest.lines.map((l) => l.name) : [];
+  const status = el("div", { id: "scan-status", "aria-live": "polite" });
+  const form = el(
+    "form",
+    { id: "scan-form" },
+    el("label", {}, "Line", el("select", { name: "bus", id: "scan-bus" }, lines.map((n) => el("option", { value: n, text: n })))),
+    el("label", {}, "Addresses", el("input", { name: "addresses", id: "scan-addresses", value: "1-247" })),
+    el("div", { class: "actions" }, el("button", { class: "danger", type: "submit", id: "scan-start", text: "Stop polling and scan" })),
+  );
+  const poll = (bus) => {
+    clearInterval(timer);
+    timer = setInterval(async () => {
+      try {
+        const job = await api("GET", `/api/lines/${encodeURIComponent(bus)}/scan`);
+        const found = job.report ? job.report.devices : [];
+        status.replaceChildren(
+          el("p", { id: "scan-progress" }, `${job.running ? "Scanning" : "Done"}: ${job.probed}/${job.total} addresses, ${job.found} found, ${job.elapsed_s} s`),
+          job.error ? el("p", { class: "error", text: job.error }) : null,
+          job.running ? el("p", { class: "warning", role: "alert", id: "scan-paused", text: `Polling of line ${bus} is paused while it is scanned.` }) : null,
+          found.length ? el("table", { id: "scan-found" }, el("tbody", {}, found.map((d) => el("tr", { "data-address": d.address }, el("td", { class: "num", text: d.address }), el("td", { text: d.profile || d.family || "?" }), el("td", { class: "bits", text: Object.entries(d.details || {}).filter(([, v]) => v !== null).map(([k, v]) => `${k}=${v}`).join(", ") }))))) : null,
+          job.report ? el("pre", { text: job.report.config }) : null,
+        );
+        if (!job.running) clearInterval(timer);
+      } catch (error) {
+        status.replaceChildren(el("p", { class: "error", text: error.message }));
+      }
+    }, 700);
+  };
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const data = new FormData(form);
+    try {
+      await api("POST", `/api/lines/${encodeURIComponent(data.get("bus"))}/scan`, { addresses: data.get("addresses") });
+      poll(data.get("bus"));
+    } catch (error) {
+      status.replaceChildren(el("p", { class: "error", role: "alert", text: error.message }));
+    }
+  });
+  show(
+    el("h1", { text: "Scan a line" }),
+    el("p", { class: "warning", role: "note" }, "While a line is scanned its polling stops: no values of its sensors are read, published or alarmed until the scan ends. Scan only a line that is idle or being commissioned."),
+    needSession("Scanning"),
+    form,
+    status,
+  );
+  onState = (state) => {
+    const select = document.getElementById("scan-bus");
+    if (select && select.options.length === 0) {
+      select.replaceChildren(...state.lines.map((l) => el("option", { value: l.name, text: l.name })));
+    }
+  };
+}
+
+// --- routing ---------------------------------------------------------------------------------
+
+function route() {
+  clearInterval(timer);
+  timer = null;
+  onState = null;
+  const parts = location.hash.replace(/^#\/?/, "").split("/").map(decodeURIComponent);
+  for (const link of document.querySelectorAll("nav a")) {
+    link.toggleAttribute("aria-current", link.getAttribute("href") === `#/${parts[0] || ""}`);
+    if (link.hasAttribute("aria-current")) link.setAttribute("aria-current", "page");
+  }
+  if (!session.can_read && parts[0] !== "login") {
+    sessionStorage.setItem("after-login", location.hash);
+    loginPage();
+    return;
+  }
+  switch (parts[0]) {
+    case "login": loginPage(); break;
+    case "health": healthPage(); break;
+    case "device": devicePage(parts[1]); break;
+    case "calibrate": calibratePage(parts[1], parts[2]); break;
+    case "scan": scanPage(); break;
+    default: livePage();
+  }
+  view.focus({ preventScroll: true });
+}
+
+window.addEventListener("hashchange", route);
+(async () => {
+  await loadSession();
+  if (session.can_read) connect();
+  route();
+})();

@@ -1,0 +1,155 @@
+"""Who may do what on the page: the password, sessions that expire, CSRF, loopback reads."""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import pytest
+from aiohttp import web
+from aiohttp.test_utils import make_mocked_request
+
+from gateway.config import ConfigProblems, WebConfig, parse_config
+from gateway.errors import ConfigError
+from gateway.publish.state import GatewayState
+from gateway.web import Sessions, WebServer
+from gateway.web.auth import is_loopback
+from tests.mqtt_broker import free_port
+
+CONFIG = "buses: [{name: basin, port: /dev/null}]\n"
+PASSWORD = "s3cret"  # noqa: S105 - the tests' own
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def sessions(clock: Clock, password: str | None = PASSWORD) -> Sessions:
+    config = WebConfig.model_validate(
+        {"enabled": True, "password": password, "session_minutes": 10}
+    )
+    built = Sessions.from_config(config)
+    return Sessions(password_digest=built._digest, lifetime_s=built.lifetime_s, clock=clock)
+
+
+def test_the_right_password_opens_a_session_that_expires_unless_it_writes() -> None:
+    clock = Clock()
+    keeper = sessions(clock)
+    session = keeper.sign_in("  Ana   Lopes ", "s3cret", "127.0.0.1")
+    assert session is not None
+    assert session.who == "Ana Lopes"
+    clock.now += 9 * 60
+    assert keeper.find(session.token) is session  # read: no longer
+    assert keeper.find(session.token, touch=True) is session  # a write: ten more minutes
+    clock.now += 9 * 60
+    assert keeper.find(session.token) is session
+    clock.now += 1 * 60 + 1
+    assert keeper.find(session.token) is None
+    assert keeper.sign_in("ana", "s3cret", "127.0.0.1") is not None
+
+
+def test_a_wrong_password_or_none_configured_opens_nothing() -> None:
+    clock = Clock()
+    assert sessions(clock).sign_in("eve", "s3cret ", "10.0.0.9") is None
+    assert sessions(clock).sign_in("eve", "", "10.0.0.9") is None
+    unset = sessions(clock, password=None)
+    assert not unset.enabled
+    assert unset.sign_in("eve", "", "10.0.0.9") is None
+
+
+def test_the_password_may_be_given_as_its_sha256() -> None:
+    digest = hashlib.sha256(b"s3cret").hexdigest().upper()
+    config = parse_config(
+        CONFIG + f"web: {{enabled: true, password_sha256: {digest}}}\n", environ={}
+    )
+    assert config.web.password_sha256 == digest.lower()
+    assert Sessions.from_config(config.web).sign_in("ana", "s3cret", "::1") is not None
+    with pytest.raises(ConfigProblems, match=r"web\.password_sha256"):
+        parse_config(CONFIG + "web: {password_sha256: abc}\n", environ={})
+
+
+def test_the_web_section_is_off_on_loopback_by_default_and_the_password_comes_from_the_environment() -> (
+    None
+):
+    config = parse_config(CONFIG, environ={"GATEWAY_WEB__PASSWORD": "from-env"})
+    assert (config.web.enabled, config.web.host, config.web.port) == (False, "127.0.0.1", 8080)
+    assert config.web.password is not None
+    assert config.web.password.get_secret_value() == "from-env"
+    with pytest.raises(ConfigProblems, match=r"web\.colour"):
+        parse_config(CONFIG + "web: {colour: blue}\n", environ={})
+
+
+def test_the_csrf_token_is_the_sessions_own() -> None:
+    session = sessions(Clock()).sign_in("ana", "s3cret", "127.0.0.1")
+    assert session is not None
+    assert session.csrf_ok(session.csrf)
+    assert not session.csrf_ok(session.csrf[:-1])
+    assert not session.csrf_ok(None)
+    assert not session.csrf_ok("")
+
+
+@pytest.mark.parametrize(
+    ("remote", "local"),
+    [
+        ("127.0.0.1", True),
+        ("127.8.9.1", True),
+        ("::1", True),
+        ("10.0.0.5", False),
+        ("192.0.2.7", False),
+        ("fe80::1%eth0", False),
+        ("nonsense", False),
+        (None, True),
+    ],
+)
+def test_loopback_is_this_machine(remote: str | None, *, local: bool) -> None:
+    assert is_loopback(remote) is local
+
+
+class Peer:
+    """The transport of a request from ``host``."""
+
+    def __init__(self, host: str) -> None:
+        self.host = host
+
+    def get_extra_info(self, name: str, default: Any = None) -> Any:
+        return (self.host, 40000) if name == "peername" else default
+
+
+async def _state(_request: web.Request) -> web.StreamResponse:
+    return web.json_response({})
+
+
+async def test_reading_from_another_machine_needs_a_session() -> None:
+    config = WebConfig.model_validate({"enabled": True, "password": PASSWORD})
+    server = WebServer(config, GatewayState(), {})
+    guarded = server._reader(_state)
+    local = make_mocked_request("GET", "/api/state", transport=Peer("127.0.0.1"))
+    assert (await guarded(local)).status == 200
+    remote = make_mocked_request("GET", "/api/state", transport=Peer("192.0.2.7"))
+    assert (await guarded(remote)).status == 401
+    session = server.sessions.sign_in("ana", "s3cret", "192.0.2.7")
+    assert session is not None
+    signed = make_mocked_request(
+        "GET",
+        "/api/state",
+        headers={"Cookie": f"gateway_session={session.token}"},
+        transport=Peer("192.0.2.7"),
+    )
+    assert (await guarded(signed)).status == 200
+
+
+async def test_a_port_that_is_taken_is_a_config_error_naming_web_port() -> None:
+    first = WebServer(WebConfig.model_validate({"port": free_port()}), GatewayState(), {})
+    await first.start()
+    try:
+        assert first.port
+        taken = WebServer(WebConfig.model_validate({"port": first.port}), GatewayState(), {})
+        with pytest.raises(ConfigError, match=r"web: cannot listen on 127\.0\.0\.1:") as info:
+            await taken.start()
+        assert info.value.key == "web.port"
+    finally:
+        await first.stop()
