@@ -9,6 +9,7 @@ import json
 import re
 import signal
 import socket
+import subprocess
 import sys
 import urllib.error
 import urllib.request
@@ -40,6 +41,7 @@ async def demo(
     mqtt_port: int,
     metrics_port: int,
     web_port: int | None = None,
+    modbus_port: int | None = None,
     without_amqtt: bool = False,
 ) -> AsyncIterator[tuple[str, asyncio.StreamReader]]:
     """Run ``gateway demo --no-live ARGS``; yield its banner and the rest of its output;
@@ -59,6 +61,8 @@ async def demo(
         str(metrics_port),
         "--web-port",
         str(web_port or free_port()),
+        "--modbus-port",
+        str(modbus_port or free_port()),
         *args,
         "--no-live",
         stdout=asyncio.subprocess.PIPE,
@@ -176,6 +180,25 @@ async def test_demo_publishes_to_mqtt_and_metrics_then_stops_on_ctrl_c() -> None
         assert listening_addresses(mqtt_port) == {"127.0.0.1"}
         assert refused(OTHER_ADDRESS, metrics_port)
         assert refused(OTHER_ADDRESS, mqtt_port)
+
+
+async def test_other_masters_read_the_demo_sensors_through_the_gateway() -> None:
+    modbus_port = free_port()
+    async with demo(mqtt_port=free_port(), metrics_port=free_port(), modbus_port=modbus_port) as (
+        banner,
+        _,
+    ):
+        command = f"mbpoll -m tcp -p {modbus_port} -a 20 -r 1 -c 6 -t 4:hex -1 127.0.0.1"
+        assert command in banner
+        result = await asyncio.to_thread(
+            subprocess.run, command.split(), capture_output=True, text=True, timeout=20
+        )
+        assert listening_addresses(modbus_port) == {"127.0.0.1"}
+    assert result.returncode == 0, result.stderr
+    # The tecLine's six measuring registers, as the simulated sensor answered them.
+    shown = [line.split(":")[1].strip() for line in result.stdout.splitlines() if line[:1] == "["]
+    assert len(shown) == 6
+    assert all(value.startswith("0x") for value in shown)
 
 
 async def test_the_demo_serves_its_web_page_on_loopback_and_prints_its_url() -> None:

@@ -216,6 +216,13 @@ def _config(
     )
 
 
+def _shared_bus(port: int, listen: Listen) -> str:
+    """The ``shared_bus:`` section: Modbus TCP for other masters, read only (0: off)."""
+    if not port:
+        return ""
+    return f"shared_bus: {{listen: [{{host: {json.dumps(listen.host)}, port: {port}}}]}}\n"
+
+
 def _table(state: GatewayState) -> Group:
     snapshot = state.snapshot()
     values = Table(title="Values", expand=True)
@@ -274,6 +281,7 @@ def _banner(
     broker_port: int | None,
     metrics_port: int,
     page: WebPage | None = None,
+    modbus_port: int = 0,
 ) -> None:
     """What runs where, and the commands to try it, ready to copy."""
     local = listen.client_host
@@ -287,6 +295,12 @@ def _banner(
             console,
             f"write:       mosquitto_pub -h {local} -p {broker_port} "
             f"-t {BASE_TOPIC}/digester_oxygen/compensation_pressure/set -m 1003.5",
+        )
+    if modbus_port:
+        _say(
+            console,
+            f"Modbus TCP:  mbpoll -m tcp -p {modbus_port} -a 20 -r 1 -c 6 -t 4:hex -1 {local}"
+            "  (other masters through the gateway: point the vendor's software here)",
         )
     url = f"http://{Listen.in_url(local)}:{metrics_port}"
     _say(console, f"metrics:     curl {url}/metrics")
@@ -310,6 +324,7 @@ async def run_demo(
     mqtt_port: int = 1883,
     metrics_port: int = 9108,
     web_port: int = 8080,
+    modbus_port: int = 1502,
     bind: str = LOCAL_BIND,
     live: bool = True,
 ) -> None:
@@ -345,7 +360,8 @@ async def run_demo(
                 page = WebPage.make(web_port)
                 config = parse_config(
                     _config(pty, broker_port, metrics_port, listen, directory / "state")
-                    + page.config(listen),
+                    + page.config(listen)
+                    + _shared_bus(modbus_port, listen),
                     environ={},
                 )
                 _banner(
@@ -355,6 +371,7 @@ async def run_demo(
                     broker_port=broker_port,
                     metrics_port=metrics_port,
                     page=page,
+                    modbus_port=modbus_port,
                 )
                 state = GatewayState()
                 table = live and console.is_terminal

@@ -405,6 +405,10 @@ def demo(
     ] = 1883,
     metrics_port: Annotated[int, typer.Option(help="Port of /metrics and /healthz.")] = 9108,
     web_port: Annotated[int, typer.Option(help="Port of the web page.")] = 8080,
+    modbus_port: Annotated[
+        int,
+        typer.Option(help="Modbus TCP port for other masters (the shared bus); 0: off."),
+    ] = 1502,
     bind: Annotated[
         str,
         typer.Option(
@@ -428,6 +432,7 @@ def demo(
                 mqtt_port=mqtt_port,
                 metrics_port=metrics_port,
                 web_port=web_port,
+                modbus_port=modbus_port,
                 bind=bind,
                 live=live,
             )

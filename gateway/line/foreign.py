@@ -4,9 +4,9 @@ An RS485 line has one master. Another master (a SCADA, the vendor's service soft
 reaches the sensors through the gateway instead (``shared_bus:``): its requests wait here
 and are sent by the bus task like the gateway's own, under the same rules (inter-frame
 gap, the device's minimum response time, post-write waits, the late-answer window, an
-offline device's backoff). They come after due values, so polling keeps its deadlines,
-and before diagnostics; and only while their share of bus time is not spent (a token
-bucket of bus seconds). A request that waits too long, or finds the queue full, is
+offline device's backoff). They take turns with due values (one after each device's
+poll) and go before diagnostics, and only while their share of bus time is not spent (a
+token bucket of bus seconds): the share keeps polling on its deadlines. A request that waits too long, or finds the queue full, is
 refused with :class:`BusBusyError` (Modbus exception 06 to the client); nothing collides.
 """
 

@@ -296,21 +296,28 @@ class BusWorker:
     async def _poll_forever(self) -> None:
         """Writes, due values (earliest deadline first), other masters, then diagnostics.
 
-        Other masters' requests are served within their share of bus time.
+        Other masters' requests take turns with due values, one after each device's poll,
+        within their share of bus time: so a burst of due values (a start, a reconnection)
+        does not keep them waiting past their clients' timeouts, and their share, not
+        their number, bounds what they take from polling.
 
         Diagnostics and configuration only fill the time values leave free, one read at a
-        time, so a long logbook read never delays a measured value; nor does another
-        master's request, which waits for a moment no value is due.
+        time, so a long logbook read never delays a measured value.
         """
+        foreign_turn = False
         while not self._stopping and self._resume is None:
             now = time.monotonic()
             if await self.jobs.run_next(now):
+                continue
+            if foreign_turn and await self.foreign.run_next(now):
+                foreign_turn = False
                 continue
             if (state := self.schedule.pick(now, slow=False)) is not None:
                 if state.online is False:
                     await self.transactions.probe(state, now)
                 else:
                     await self._poll(state, now, slow=False)
+                foreign_turn = True
                 continue
             if await self.foreign.run_next(now):
                 continue
