@@ -6,8 +6,9 @@ and are sent by the bus task like the gateway's own, under the same rules (inter
 gap, the device's minimum response time, post-write waits, the late-answer window, an
 offline device's backoff). They take turns with due values (one after each device's
 poll) and go before diagnostics, and only while their share of bus time is not spent (a
-token bucket of bus seconds): the share keeps polling on its deadlines. A request that waits too long, or finds the queue full, is
-refused with :class:`BusBusyError` (Modbus exception 06 to the client); nothing collides.
+token bucket of bus seconds): the share keeps polling on its deadlines. A request that
+waits too long, or finds the queue full, is refused with :class:`BusBusyError` (Modbus
+exception 06 to the client); nothing collides.
 """
 
 from __future__ import annotations
