@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import aiomqtt
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator
+    from collections.abc import AsyncIterator, Callable
     from pathlib import Path
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
@@ -193,10 +193,16 @@ class Recorder:
 
 
 @contextlib.asynccontextmanager
-async def recording(
-    port: int, topic_filter: str, tls: TlsFiles | None = None, *, name: str = "test-recorder"
-) -> AsyncIterator[Recorder]:
-    recorder = Recorder()
+async def subscribed(
+    port: int,
+    topic_filter: str,
+    on_message: Callable[[aiomqtt.Message], None],
+    *,
+    name: str,
+    tls: TlsFiles | None = None,
+) -> AsyncIterator[None]:
+    """A persistent subscriber (QoS 1) handing every message to ``on_message``, reconnecting
+    after a broker restart; subscribed when the block starts."""
     ready = asyncio.Event()
 
     async def listen() -> None:
@@ -219,17 +225,31 @@ async def recording(
                     await client.subscribe(topic_filter, qos=1)
                     ready.set()
                     async for message in client.messages:
-                        payload = message.payload
-                        text = payload.decode() if isinstance(payload, bytes) else str(payload)
-                        recorder.messages.append(Received(str(message.topic), text, message.retain))
+                        on_message(message)
             except aiomqtt.MqttError:
                 await asyncio.sleep(0.2)
 
     task = asyncio.create_task(listen())
     await asyncio.wait_for(ready.wait(), timeout=10)
     try:
-        yield recorder
+        yield
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+@contextlib.asynccontextmanager
+async def recording(
+    port: int, topic_filter: str, tls: TlsFiles | None = None, *, name: str = "test-recorder"
+) -> AsyncIterator[Recorder]:
+    """Every message on ``topic_filter`` as text, kept in a :class:`Recorder`."""
+    recorder = Recorder()
+
+    def keep(message: aiomqtt.Message) -> None:
+        payload = message.payload
+        text = payload.decode() if isinstance(payload, bytes) else str(payload)
+        recorder.messages.append(Received(str(message.topic), text, message.retain))
+
+    async with subscribed(port, topic_filter, keep, name=name, tls=tls):
+        yield recorder

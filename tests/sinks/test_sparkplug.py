@@ -20,7 +20,7 @@ import pytest
 
 from gateway.profiles import get_profile
 from gateway.publish.prometheus import GatewayCollector, health_report
-from tests.mqtt_broker import Broker
+from tests.mqtt_broker import Broker, subscribed
 from tests.sinks.test_mqtt import gateway, simulated
 from tests.sparkplug_decoder import DecodedPayload, command, decode
 
@@ -98,31 +98,14 @@ class SpRecorder:
 @contextlib.asynccontextmanager
 async def sp_recording(port: int) -> AsyncIterator[SpRecorder]:
     recorder = SpRecorder()
-    ready = asyncio.Event()
 
-    async def listen() -> None:
-        while True:
-            try:
-                async with aiomqtt.Client(
-                    "127.0.0.1", port, identifier="sp-host", clean_session=False
-                ) as client:
-                    await client.subscribe("spBv1.0/#", qos=1)
-                    ready.set()
-                    async for message in client.messages:
-                        payload = message.payload
-                        assert isinstance(payload, bytes)
-                        recorder.messages.append(Seen(str(message.topic), payload))
-            except aiomqtt.MqttError:
-                await asyncio.sleep(0.2)
+    def keep(message: aiomqtt.Message) -> None:
+        payload = message.payload
+        assert isinstance(payload, bytes)
+        recorder.messages.append(Seen(str(message.topic), payload))
 
-    task = asyncio.create_task(listen())
-    await asyncio.wait_for(ready.wait(), timeout=10)
-    try:
+    async with subscribed(port, "spBv1.0/#", keep, name="sp-host"):
         yield recorder
-    finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
 
 
 @pytest.fixture
