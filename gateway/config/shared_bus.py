@@ -37,6 +37,8 @@ ListenPort = Annotated[int, Field(ge=0, le=65535)]  # 0: any free port (logged, 
 
 
 class _Model(BaseModel):
+    # The same as config.model's (which imports this module): declared here, on BaseModel,
+    # so ruff still sees pydantic models, whose list defaults are copied per instance.
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 

@@ -58,7 +58,6 @@ class ForeignStats:
     """What other masters did on one line (read by the metrics)."""
 
     busy_s: float = 0.0  # line time their transactions took (part of the line's busy time)
-    sent: int = 0
     refused: Counter[str] = field(default_factory=Counter)  # by reason: queue_full, no_share
 
 
@@ -247,7 +246,6 @@ class ForeignQueue:
             busy = line.stats.busy_s - busy_before
             self._bucket.spend(busy + self.transactions.gap_s(state), now)
             self.stats.busy_s += busy
-            self.stats.sent += 1
 
 
 def _settle(job: ForeignJob, outcome: frames.Response | Exception) -> None:

@@ -111,7 +111,7 @@ class Schedule:
         """
         last = address + count - 1
         profile = state.profile
-        depended_on = {p.unit_from for p in profile.points if p.unit_from is not None}
+        depended_on = set(state.target.unit_tables)  # the unit registers, by name
         if profile.float_order_register is not None:
             depended_on.add(profile.float_order_register.point)
         for point in profile.points:

@@ -77,6 +77,18 @@ def _newest_good(state: GatewayState) -> dict[tuple[str, str], Sample]:
     return newest
 
 
+def _device_heading(info: DeviceInfo) -> dict[str, object]:
+    """What both views of a device start with: where it is, what it is, whether it answers."""
+    return {
+        "bus": info.bus,
+        "name": info.name,
+        "profile": info.profile,
+        "address": info.address,
+        "online": info.online,
+        "reason": info.reason,
+    }
+
+
 def _device_view(
     info: DeviceInfo,
     state: GatewayState,
@@ -92,12 +104,7 @@ def _device_view(
     ]
     stats = state.lines.get(info.bus)
     return {
-        "bus": info.bus,
-        "name": info.name,
-        "profile": info.profile,
-        "address": info.address,
-        "online": info.online,
-        "reason": info.reason,
+        **_device_heading(info),
         "values": values,
         "last_good": _iso(last_good.time) if last_good else None,
         "last_good_age_s": round(now - last_good.monotonic, 1) if last_good else None,
@@ -184,12 +191,7 @@ def register_map(
             }
         )
     return {
-        "bus": info.bus,
-        "name": info.name,
-        "profile": info.profile,
-        "address": info.address,
-        "online": info.online,
-        "reason": info.reason,
+        **_device_heading(info),
         "identity": identity,
         "points": points,
     }

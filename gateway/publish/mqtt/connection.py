@@ -78,27 +78,11 @@ class Connection:
 
     def _client_for(self) -> aiomqtt.Client:
         settings = self.settings
-        tls = None
-        if settings.tls is not None:
-            tls = aiomqtt.TLSParameters(
-                ca_certs=str(settings.tls.ca) if settings.tls.ca else None,
-                certfile=str(settings.tls.cert) if settings.tls.cert else None,
-                keyfile=str(settings.tls.key) if settings.tls.key else None,
-            )
-        client = aiomqtt.Client(
-            settings.host,
-            settings.port,
-            username=settings.username,
-            password=settings.password.get_secret_value() if settings.password else None,
-            identifier=self.client_id,
+        client = broker_client(
+            settings,
+            client_id=self.client_id,
             will=aiomqtt.Will(f"{self.base}/status", "offline", qos=1, retain=True),
             clean_session=settings.clean_session,
-            keepalive=settings.keepalive,
-            tls_params=tls,
-            timeout=CLIENT_TIMEOUT_S,
-            # Small packets at once: without it Nagle's algorithm and delayed ACKs hold
-            # publishes back by tens of milliseconds.
-            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
         )
         client.pending_calls_threshold = PENDING_CALLS_WARNING
         return client
@@ -216,3 +200,35 @@ class Connection:
             return
         if replies:
             self.outbox.enqueue(replies)
+
+
+def broker_client(
+    settings: MqttConfig, *, client_id: str, will: aiomqtt.Will, clean_session: bool
+) -> aiomqtt.Client:
+    """A client of the configured broker (address, credentials, TLS, keepalive).
+
+    The plain topics' connection and the Sparkplug session each have one, with a will and
+    a session kind of their own.
+    """
+    tls = None
+    if settings.tls is not None:
+        tls = aiomqtt.TLSParameters(
+            ca_certs=str(settings.tls.ca) if settings.tls.ca else None,
+            certfile=str(settings.tls.cert) if settings.tls.cert else None,
+            keyfile=str(settings.tls.key) if settings.tls.key else None,
+        )
+    return aiomqtt.Client(
+        settings.host,
+        settings.port,
+        username=settings.username,
+        password=settings.password.get_secret_value() if settings.password else None,
+        identifier=client_id,
+        will=will,
+        clean_session=clean_session,
+        keepalive=settings.keepalive,
+        tls_params=tls,
+        timeout=CLIENT_TIMEOUT_S,
+        # Small packets at once: without it Nagle's algorithm and delayed ACKs hold
+        # publishes back by tens of milliseconds.
+        socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
+    )

@@ -23,7 +23,7 @@ from gateway.line.port import LATENCY_BUCKETS_S, ErrorKind
 from gateway.publish.prometheus.naming import DEVICE_LABELS, VALUE_LABELS
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Iterator, Mapping
+    from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 
     from gateway.line.health import DeviceHealth
     from gateway.line.port import LineStats
@@ -267,15 +267,22 @@ class _LineFamilies:
 
 
 def _buckets(counts: Mapping[tuple[int, float], int], address: int) -> list[tuple[str, float]]:
-    """Cumulative buckets, made non-decreasing.
+    """The latency histogram of one device's requests."""
+    return cumulative_buckets(LATENCY_BUCKETS_S, lambda bound: counts.get((address, bound), 0))
 
-    The bus task adds one observation bucket by bucket; a copy taken in between can hold
+
+def cumulative_buckets(
+    bounds: Sequence[float], count_at: Callable[[float], int]
+) -> list[tuple[str, float]]:
+    """A histogram's buckets (``+Inf`` added) from counts taken on another thread.
+
+    The event loop adds one observation bucket by bucket; a copy taken in between can hold
     a lower bucket already counted and a higher one not yet: the running maximum keeps
     the histogram valid (the observation then shows fully at the next scrape).
     """
     buckets = []
     running = 0
-    for bound in (*LATENCY_BUCKETS_S, math.inf):
-        running = max(running, counts.get((address, bound), 0))
+    for bound in (*bounds, math.inf):
+        running = max(running, count_at(bound))
         buckets.append(("+Inf" if math.isinf(bound) else repr(bound), float(running)))
     return buckets

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import TYPE_CHECKING
 
 from prometheus_client.metrics_core import (
@@ -11,6 +12,7 @@ from prometheus_client.metrics_core import (
     Metric,
 )
 
+from gateway.publish.prometheus.health import cumulative_buckets
 from gateway.publish.state import WAIT_BUCKETS_S
 
 if TYPE_CHECKING:
@@ -74,10 +76,9 @@ def shared_bus_families(snapshot: GatewayState) -> Iterator[Metric]:
         sent.add_metric([name], client.sent_bytes)
         cached.add_metric([name], client.cache_answers)
         connections.add_metric([name], len(dict(client.peers)))
-        buckets = dict(client.wait_buckets)
         wait.add_metric(
             [name],
-            [(_bound(b), buckets.get(b, 0)) for b in (*WAIT_BUCKETS_S, float("inf"))],
+            cumulative_buckets(WAIT_BUCKETS_S, Counter(client.wait_buckets).__getitem__),
             sum_value=client.wait_sum_s,
         )
     yield from (requests, exceptions, refused, received, sent, cached, connections, wait)
@@ -105,7 +106,3 @@ def _bus_families(snapshot: GatewayState) -> Iterator[Metric]:
         for reason, count in sorted(dict(stats.refused).items()):
             refused.add_metric([bus, reason], count)
     yield from (busy, share, refused)
-
-
-def _bound(seconds: float) -> str:
-    return "+Inf" if seconds == float("inf") else repr(seconds)

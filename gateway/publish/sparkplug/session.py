@@ -21,7 +21,6 @@ import contextlib
 import json
 import logging
 import random
-import socket
 from collections import deque
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final, Protocol
@@ -29,6 +28,7 @@ from typing import TYPE_CHECKING, Final, Protocol
 import aiomqtt
 
 from gateway.errors import CommandRejectedError
+from gateway.publish.mqtt.connection import broker_client
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import REBIRTH, REBIRTH_ALIAS
 from gateway.publish.sparkplug.reports import ndeath_payload
@@ -44,7 +44,6 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-CLIENT_TIMEOUT_S: Final = 4.0
 BACKOFF_FIRST_S: Final = 0.5
 BATCH: Final = 100  # stored messages read at a time while they drain
 BD_SEQ_MODULUS: Final = 256  # bdSeq runs 0..255 (Sparkplug 3.0, 6.4.3)
@@ -161,26 +160,11 @@ class SparkplugSession:
         return self.bd_seq
 
     def _client(self, bd_seq: int) -> aiomqtt.Client:
-        broker = self.broker
-        tls = None
-        if broker.tls is not None:
-            tls = aiomqtt.TLSParameters(
-                ca_certs=str(broker.tls.ca) if broker.tls.ca else None,
-                certfile=str(broker.tls.cert) if broker.tls.cert else None,
-                keyfile=str(broker.tls.key) if broker.tls.key else None,
-            )
-        return aiomqtt.Client(
-            broker.host,
-            broker.port,
-            username=broker.username,
-            password=broker.password.get_secret_value() if broker.password else None,
-            identifier=self.client_id,
+        return broker_client(
+            self.broker,
+            client_id=self.client_id,
             will=aiomqtt.Will(self.topics.ndeath, ndeath_payload(bd_seq, _now_ms()), qos=1),
             clean_session=True,  # Sparkplug 3.0, 7.1: a clean session at every connect
-            keepalive=broker.keepalive,
-            tls_params=tls,
-            timeout=CLIENT_TIMEOUT_S,
-            socket_options=[(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)],
         )
 
     async def run(self) -> None:
