@@ -175,6 +175,10 @@ class BusConfig(_Model):
     timeout: ResponseTimeout | None = None
     retries: Retries = 2  # retries of a failed request
     reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0  # cap of the backoff
+    # Whether the adapter hears its own transmission (no automatic direction control):
+    # "on" reads every request back before its answer, "off" expects none, "auto" decides
+    # from the first reads and logs the setting that fits (gateway.line.echo).
+    echo: Literal["off", "on", "auto"] = "auto"
 
     @property
     def line(self) -> LineFormat:

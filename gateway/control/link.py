@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 from gateway.control.commands import require_writable, validate_write
 from gateway.errors import BusError
+from gateway.line.echo import EchoMode
 from gateway.line.port import Line
 from gateway.line.samples import Quality
 from gateway.line.worker import BusWorker
@@ -127,10 +128,14 @@ class DeviceLink:
 
 @contextlib.asynccontextmanager
 async def open_link(
-    port: str, line_format: LineFormat, target: DeviceTarget
+    port: str, line_format: LineFormat, target: DeviceTarget, *, echo: str = "auto"
 ) -> AsyncIterator[DeviceLink]:
-    """Open the port for one device (the command line: no polling) and close it after."""
-    line = Line(port=port, line=line_format)
+    """Open the port for one device (the command line: no polling) and close it after.
+
+    ``echo`` is the bus's setting (``off``, ``on``, ``auto``), from the config if the
+    device came from one.
+    """
+    line = Line(port=port, line=line_format, echo=EchoMode(echo))
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)
