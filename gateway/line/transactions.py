@@ -262,7 +262,14 @@ class Transactions:
     def plan_points(self, state: DeviceState, points: Sequence[Point]) -> tuple[ReadBlock, ...]:
         """The reads of points of the device's profile."""
         planner = self._planners[state.target.name]
-        return planner.plan(points, split_before=frozenset(state.split_before))
+        blocks = planner.plan(points, split_before=frozenset(state.split_before))
+        learn = state.profile.timing.min_response_time_point
+        if learn is not None and learn not in state.values and len(blocks) > 1:
+            # The block with the device's minimum response time first: the reads after
+            # it in the same turn then wait as long as the device takes (``_learning``).
+            first = [b for b in blocks if any(p.name == learn for p in b.points)]
+            blocks = (*first, *(b for b in blocks if b not in first))
+        return blocks
 
     def plan_slow(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
         """The reads of due diagnostics: the blocks of their whole interval classes.
@@ -380,9 +387,9 @@ class Transactions:
         todo = list(points)
         learn = state.profile.timing.min_response_time_point
         if learn is not None and learn not in state.values and learn not in state.unreadable:
-            # The device's own minimum response time first (once), so the reads that
-            # follow wait as long as it takes to answer (see ``_learning``).
-            todo.insert(0, state.profile.point(learn))
+            # The device's own minimum response time first (once, see ``plan_points``),
+            # so the reads that follow wait as long as it takes to answer.
+            todo.append(state.profile.point(learn))
         while todo:
             blocks = self.plan_points(state, todo)
             todo = []
