@@ -59,6 +59,7 @@ LATENCY_BUCKETS_S: Final = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
 # noise (no termination or biasing, a bad earth, another master), not an answer.
 QUIET_WAIT_MIN_S: Final = 0.5
 QUIET_WAIT_FRAMES: Final = 2 * 256
+QUIET_WAIT_GAPS: Final = 5  # and never fewer than five of the gaps it waits for
 
 
 class ErrorKind:
@@ -303,12 +304,13 @@ class Line:
         """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``).
 
         Returns when the gap was due, for the lateness of the request that follows. A line
-        that does not fall silent within a bound (``_quiet_max_s`` after the request could
+        that does not fall silent within a bound (``_quiet_max_s`` or five gaps after it could
         go) raises :class:`LineNoiseError`: a request sent into noise is lost anyway, and
         waiting without end held up every other device (a request went out 2.6 s late).
         """
         receiver = self._live_receiver()
-        give_up = max(time.monotonic(), not_before) + self._quiet_max_s
+        bound_s = max(self._quiet_max_s, QUIET_WAIT_GAPS * gap_s)
+        give_up = max(time.monotonic(), not_before) + bound_s
         while True:
             quiet_since = max(self.last_frame_end, receiver.last_byte_at)
             ready = max(quiet_since + gap_s, not_before)
@@ -327,18 +329,18 @@ class Line:
             # milliseconds), which made every gap up to 1 ms long. The timer fires within
             # tens of microseconds and costs no CPU while it waits (see line/timer).
             if now >= give_up:
-                self._no_silence(device, gap_s)
+                self._no_silence(device, gap_s, bound_s)
             await self._timer.sleep_until(min(ready, give_up))
             self._live_receiver()
 
-    def _no_silence(self, device: int, gap_s: float) -> None:
+    def _no_silence(self, device: int, gap_s: float, bound_s: float) -> None:
         receiver = self._live_receiver()
         noise = len(receiver.buffer)
         receiver.buffer.clear()
         self.stats.errors[device, ErrorKind.NO_SILENCE] += 1
         message = (
             f"{self.port}: the line never fell silent for the {gap_s * 1000:.1f} ms gap in "
-            f"{self._quiet_max_s:.1f} s ({noise} bytes of noise); the request to device "
+            f"{bound_s:.1f} s ({noise} bytes of noise); the request to device "
             f"{device} was not sent. Check the termination (120 ohm at both ends only), "
             "the bias resistors, the earth (GND) wire, and that no other master drives "
             "the line"

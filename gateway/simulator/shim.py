@@ -237,14 +237,14 @@ try:  # a noisy line does not pause when the machine is busy; root may say so
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
 except (OSError, AttributeError):
     pass
-first = True
+written = 0
 while True:
     try:
         os.write(fd, bytes([{NOISE_BYTE}]))
     except OSError:
         pass
-    if first:
+    written += 1
+    if written == 100:  # steady by now: say so
         print("noisy", flush=True)
-        first = False
     time.sleep(interval)
 """
