@@ -7,17 +7,24 @@ never succeeds on its own echo, and each mistake in the setting is named with it
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from typing import TYPE_CHECKING
 
 import pytest
+from pymodbus.client import AsyncModbusTcpClient
 
+from gateway.app import run
+from gateway.config import parse_config
 from gateway.errors import BusTimeoutError, EchoMismatchError
 from gateway.line.echo import AUTO_DECISION_READS, EchoMode
 from gateway.line.port import ErrorKind
+from gateway.publish.state import GatewayState
+from gateway.simulator import SimulatorServer, build_bus, parse_settings
+from gateway.simulator.shim import LineShim
 from gateway.wire import frames
 from tests.rigs import link_target
-from tests.shimmed import shimmed
+from tests.shimmed import LINE, shimmed
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -120,3 +127,59 @@ async def test_an_answer_sooner_than_the_wire_allows_is_never_taken(tmp_path: Pa
         with pytest.raises(BusTimeoutError):
             await rig.write("absent", "compensation_control", [1])
         assert rig.line.stats.responses[7] == 0
+
+
+async def test_the_shared_bus_never_hands_an_echo_to_another_master(tmp_path: Path) -> None:
+    """Another master on the shared bus, an echoing adapter the config says nothing of.
+
+    Its read gets the sensor's registers, not the echo's bytes; its function-06 write to a
+    sensor that does not answer gets exception 0B, not the echo of its own request.
+    """
+    server = SimulatorServer(
+        build_bus(parse_settings({"devices": [S10_VALUES], "line": LINE, "pace": True}))
+    )
+    server.open_pty(tmp_path / "ttySIM")
+    shim = LineShim(upstream=tmp_path / "ttySIM", path=tmp_path / "ttyUSB0", echo=True)
+    shim.open()
+    config = parse_config(
+        f"buses:\n  - {{name: basin, port: {tmp_path / 'ttyUSB0'}, baudrate: 9600, parity: E,"
+        " echo: 'off'}\n"
+        "devices:\n"
+        "  - {name: s10, bus: basin, address: 1, profile: jumo-digiline-odo-s10}\n"
+        "  - {name: ghost, bus: basin, address: 7, profile: jumo-digiline-odo-s10,"
+        " offline_after: 1000}\n"
+        "mqtt: {enabled: false}\nprometheus: {enabled: false}\n"
+        f"state_dir: {tmp_path / 'state'}\n"
+        "shared_bus:\n"
+        "  listen: [{host: 127.0.0.1, port: 0, framing: tcp}]\n"
+        "  clients:\n"
+        "    - {name: scada, networks: [127.0.0.1], writes: [{device: ghost, registers: ['0x25AF']}]}\n",
+        environ={},
+    )
+    state = GatewayState()
+    stop = asyncio.Event()
+    task = asyncio.create_task(run(config, stop=stop, state=state))
+    try:
+        for _ in range(200):
+            if state.shared_bus.listening:
+                break
+            await asyncio.sleep(0.05)
+        port = int(state.shared_bus.listening[0].rsplit(":", 1)[1])
+        client = AsyncModbusTcpClient("127.0.0.1", port=port, timeout=5, retries=0)
+        await client.connect()
+        try:
+            read = await client.read_holding_registers(0x2620, count=2, device_id=1)
+            assert not read.isError(), read
+            assert read.registers == [0x0000, 0x41AC]  # 21.5, CDAB: the sensor's registers
+            write = await client.write_register(CONTROL, 1, device_id=7)
+            assert write.isError()
+            assert write.exception_code == 0x0B  # gateway target device failed to respond
+        finally:
+            client.close()
+        assert shim.counters.echoed > 0
+        assert server.bus.violations == []
+    finally:
+        stop.set()
+        await task
+        shim.close()
+        await server.close()

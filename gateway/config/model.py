@@ -157,6 +157,15 @@ Retries = Annotated[int, Field(ge=0, le=10)]
 TcpPort = Annotated[int, Field(ge=1, le=65535)]
 
 
+def _on_off(value: object) -> object:
+    """YAML 1.1 reads a bare ``off``/``on`` as false/true: take them as the words meant."""
+    if value is True:
+        return "on"
+    if value is False:
+        return "off"
+    return value
+
+
 class BusConfig(_Model):
     """One RS485 line, owned by one task.
 
@@ -178,7 +187,7 @@ class BusConfig(_Model):
     # Whether the adapter hears its own transmission (no automatic direction control):
     # "on" reads every request back before its answer, "off" expects none, "auto" decides
     # from the first reads and logs the setting that fits (gateway.line.echo).
-    echo: Literal["off", "on", "auto"] = "auto"
+    echo: Annotated[Literal["off", "on", "auto"], BeforeValidator(_on_off)] = "auto"
 
     @property
     def line(self) -> LineFormat:
