@@ -31,7 +31,14 @@ if TYPE_CHECKING:
 
 SENSORS: list[dict[str, Any]] = [
     {"profile": "jumo-digiline-odo-s10", "address": 1, "animate": False},
-    {"profile": "jumo-digiline-odo-h10", "address": 2, "animate": False},
+    # Single measurements only (interval 0, H10 manual 0x201B): a measurement of its own
+    # cycle would count beside the one a command triggers.
+    {
+        "profile": "jumo-digiline-odo-h10",
+        "address": 2,
+        "animate": False,
+        "values": {"measurement_interval": 0},
+    },
     {"profile": "reiss-m0c", "address": 10, "animate": False, "values": {"temperature": 17.5}},
 ]
 

@@ -42,6 +42,8 @@ class DeviceTarget:
     # register's name as points give it in ``unit_from``; resolved once here, not looked up
     # for every sample decoded.
     unit_tables: Mapping[str, Mapping[int, str]] = field(init=False, repr=False, compare=False)
+    # The register with the device's minimum response time (digiLine 0x0305), resolved once.
+    min_response_point: Point | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         """Resolve the slow points and the unit registers from the profile."""
@@ -51,6 +53,10 @@ class DeviceTarget:
         selectors = {p.unit_from for p in profile.points if p.unit_from is not None}
         tables = {name: profile.point(name).enum_units for name in selectors}
         object.__setattr__(self, "unit_tables", tables)
+        learn = profile.timing.min_response_time_point
+        object.__setattr__(
+            self, "min_response_point", profile.point(learn) if learn is not None else None
+        )
 
     @property
     def poll_interval_s(self) -> float:

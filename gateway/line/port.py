@@ -177,6 +177,10 @@ class Line:
         self._timed_out: dict[int, tuple[float, float]] = {}
         self.late_answer: LateAnswer | None = None
         self._last_sent = b""
+        # On a network link (``socket://``) the bus's format describes the converter's
+        # serial side, which the gateway cannot see: an answer's arrival says nothing of
+        # that line's speed, so no answer is judged too early by it.
+        self._judge_by_wire = "://" not in port
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
         self._transport: asyncio.Transport | None = None
         self._receiver: _Receiver | None = None
@@ -499,8 +503,10 @@ class Line:
                 answer_bytes=0,
                 character_s=self._character_s,
                 turnaround_s=turnaround_s,
-            ),
-            character_s=self._character_s,
+            )
+            if self._judge_by_wire
+            else -math.inf,
+            character_s=self._character_s if self._judge_by_wire else 0.0,
         )
         try:
             return await self._scan_until_answer(receiver, scan, request, deadline)

@@ -385,11 +385,16 @@ class Transactions:
         """Read points (resolved where their names came in), waiting and retrying inline."""
         samples: dict[str, Sample] = {}
         todo = list(points)
-        learn = state.profile.timing.min_response_time_point
-        if learn is not None and learn not in state.values and learn not in state.unreadable:
+        learn = state.target.min_response_point
+        if (
+            learn is not None
+            and learn.name not in state.values
+            and learn.name not in state.unreadable
+            and learn not in todo
+        ):
             # The device's own minimum response time first (once, see ``plan_points``),
             # so the reads that follow wait as long as it takes to answer.
-            todo.append(state.profile.point(learn))
+            todo.append(learn)
         while todo:
             blocks = self.plan_points(state, todo)
             todo = []
