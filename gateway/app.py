@@ -23,6 +23,7 @@ from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
 from gateway.line.foreign import SharePolicy
 from gateway.line.port import Line
+from gateway.line.port_access import SystemRoots, port_name_advice, port_options
 from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
@@ -77,10 +78,12 @@ def build_workers(
     """One worker per configured bus, with its devices; registered in ``state`` if given."""
     workers = []
     for bus in config.buses:
+        if (advice := port_name_advice(bus.port, SystemRoots())) is not None:
+            _LOGGER.warning("%s: %s", bus.name, advice)  # as check-config warns
         targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
         worker = BusWorker(
             name=bus.name,
-            line=Line(port=bus.port, line=bus.line),
+            line=Line(port=bus.port, line=bus.line, options=port_options(bus, config.shared_bus)),
             devices=targets,
             sinks=[StateSink(state), *sinks] if state is not None else sinks,
             reconnect_max_s=bus.reconnect_max_s,

@@ -45,6 +45,7 @@ from pydantic_settings import (
 )
 
 from gateway.config.flash_policy import FlashPolicy
+from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
 from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
@@ -175,6 +176,7 @@ class BusConfig(_Model):
     timeout: ResponseTimeout | None = None
     retries: Retries = 2  # retries of a failed request
     reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0  # cap of the backoff
+    rs485: Rs485Config | None = None  # the kernel's RS485 mode (a UART or HAT switched by RTS)
 
     @property
     def line(self) -> LineFormat:

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
     from gateway.line.devices import DeviceTarget
+    from gateway.line.port_access import PortOptions
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
     from gateway.wire import codec
@@ -127,10 +128,18 @@ class DeviceLink:
 
 @contextlib.asynccontextmanager
 async def open_link(
-    port: str, line_format: LineFormat, target: DeviceTarget
+    port: str,
+    line_format: LineFormat,
+    target: DeviceTarget,
+    *,
+    options: PortOptions | None = None,
 ) -> AsyncIterator[DeviceLink]:
-    """Open the port for one device (the command line: no polling) and close it after."""
-    line = Line(port=port, line=line_format)
+    """Open the port for one device (the command line: no polling) and close it after.
+
+    The port is opened exclusively: with the gateway polling it, this fails at once with
+    a :class:`~gateway.errors.PortUnavailableError` that says what to stop.
+    """
+    line = Line(port=port, line=line_format, options=options)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import asyncio
 import bisect
+import contextlib
+import functools
 import logging
 import math
 import os
@@ -36,8 +38,10 @@ from gateway.errors import (
     DeviceExceptionError,
     FrameError,
     MalformedFrameError,
+    PortUnavailableError,
     UnexpectedDeviceError,
 )
+from gateway.line import port_access
 from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
 
@@ -50,6 +54,7 @@ _LOGGER = logging.getLogger(__name__)
 
 SILENCE_CHARACTERS: Final = 3.5  # a frame ends after 3.5 silent characters (all manuals)
 MIN_SILENCE_S: Final = 0.003  # event-loop and USB-adapter latency make shorter waits unreliable
+CLOSE_WAIT_S: Final = 1.0  # bound on waiting for the device's close in its thread
 LATENCY_BUCKETS_S: Final = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
 
 
@@ -81,6 +86,9 @@ class LineStats:
     started: float = field(default_factory=time.monotonic)
     port_open: bool = False
     port_failures: int = 0
+    port_problem: str | None = None  # why the port is not open (port_access.PortReason)
+    port_error: str = ""  # the message that says so, with its remedy
+    latency_timer_s: float | None = None  # an FTDI adapter's latency timer, when read
 
     def observe_latency(self, device: int, seconds: float) -> None:
         """Add one request-to-response time to the histogram."""
@@ -136,9 +144,18 @@ class Exchange:
 class Line:
     """One serial port (or ``socket://`` URL) and the transactions on it."""
 
-    def __init__(self, *, port: str, line: LineFormat, stats: LineStats | None = None) -> None:
-        """Describe the line; :meth:`open` opens it."""
+    def __init__(
+        self,
+        *,
+        port: str,
+        line: LineFormat,
+        stats: LineStats | None = None,
+        options: port_access.PortOptions | None = None,
+    ) -> None:
+        """Describe the line; :meth:`open` opens it (``options``: RS485 mode, hints, roots)."""
         self.port = port
+        self.options = options or port_access.PortOptions()
+        self._latency_warned = False
         self.format = line
         self.stats = stats or LineStats()
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
@@ -157,7 +174,12 @@ class Line:
         return self._receiver is not None and not self._receiver.lost.is_set()
 
     async def open(self) -> None:
-        """Open the port; a missing or busy port raises :class:`BusClosedError`."""
+        """Open the port exclusively; one that cannot be opened raises :class:`BusClosedError`.
+
+        A serial device that is missing, not permitted, in use or without the configured
+        RS485 mode raises :class:`PortUnavailableError` with its ``reason``
+        (:mod:`gateway.line.port_access`); its message names the remedy.
+        """
         loop = asyncio.get_running_loop()
         receiver = _Receiver()
         # A pseudo-terminal has no physical line: some kernels refuse a parity setting on
@@ -165,42 +187,94 @@ class Line:
         # format, which is what the simulator on the other end referees.
         parity = "N" if _is_pseudo_terminal(self.port) else self.format.parity
         try:
-            transport, _ = await serial_asyncio_fast.create_serial_connection(
-                loop,
-                lambda: receiver,
-                self.port,
-                baudrate=self.format.baudrate,
-                parity=parity,
-                stopbits=self.format.stopbits,
-                bytesize=8,
-            )
+            if "://" in self.port:
+                transport, _ = await serial_asyncio_fast.create_serial_connection(
+                    loop,
+                    lambda: receiver,
+                    self.port,
+                    baudrate=self.format.baudrate,
+                    parity=parity,
+                    stopbits=self.format.stopbits,
+                    bytesize=8,
+                )
+            else:
+                device = await loop.run_in_executor(
+                    None,
+                    functools.partial(
+                        port_access.open_serial,
+                        self.port,
+                        baudrate=self.format.baudrate,
+                        parity=parity,
+                        stopbits=self.format.stopbits,
+                        options=self.options,
+                    ),
+                )
+                self._tune(device)
+                transport, _ = await serial_asyncio_fast.connection_for_serial(
+                    loop, lambda: receiver, device
+                )
+        except PortUnavailableError as exc:
+            self._closed_because(exc.reason, str(exc))
+            raise
         except (OSError, serial.SerialException, ValueError, termios.error) as exc:
             # termios.error is no OSError: a line setting the port refuses (tcsetattr)
             # would otherwise end the gateway instead of this bus's retry with backoff.
-            self.stats.port_open = False
+            self._closed_because(port_access.PortReason.DRIVER, f"cannot open {self.port}: {exc}")
             raise BusClosedError(f"cannot open {self.port}: {exc}") from exc
         self._transport, self._receiver = transport, receiver
         self.stats.port_open = True
+        self.stats.port_problem = None
+        self.stats.port_error = ""
         self.last_frame_end = time.monotonic()
 
+    def _closed_because(self, reason: str, message: str) -> None:
+        self.stats.port_open = False
+        self.stats.port_problem = reason
+        self.stats.port_error = message
+
+    def _tune(self, device: serial.Serial) -> None:
+        """An FTDI adapter: low-latency mode asked for, its latency timer read and judged."""
+        roots = self.options.roots
+        usb = port_access.usb_serial_of(self.port, roots)
+        if usb is None or not usb.ftdi:
+            return
+        port_access.ask_low_latency(device)
+        latency_s = port_access.read_latency_timer(usb, roots)
+        self.stats.latency_timer_s = latency_s
+        advice = (
+            None
+            if latency_s is None
+            else port_access.latency_advice(self.port, usb, latency_s, roots)
+        )
+        if advice is not None and not self._latency_warned:
+            self._latency_warned = True
+            _LOGGER.warning("%s", advice)
+
     async def close(self) -> None:
-        """Close the port (idempotent)."""
-        transport, self._transport, self._receiver = self._transport, None, None
+        """Close the port (idempotent); back once the device is closed (its lock released)."""
+        transport, receiver = self._transport, self._receiver
+        self._transport = self._receiver = None
         self.stats.port_open = False
         self._timer.close()
         if transport is None:
             return
-        if transport.is_closing():
-            # The port went away and the transport is closing itself (a read error makes
-            # pyserial-asyncio-fast 0.16 close it). Aborting again starts its closing task
-            # a second time, which then calls connection_lost on the protocol the first
-            # one cleared: an AttributeError in a task nobody awaits, at every unplug.
-            return
-        # abort(), not close(): close() drains the output first (tcdrain in a thread),
-        # which can wait for ever on a line nobody reads, and a thread stuck there
-        # keeps the process from exiting. Nothing still queued matters after a stop.
-        transport.abort()
+        if not transport.is_closing():
+            # abort(), not close(): close() drains the output first (tcdrain in a thread),
+            # which can wait for ever on a line nobody reads, and a thread stuck there
+            # keeps the process from exiting. Nothing still queued matters after a stop.
+            # A transport that is closing already (a read error makes
+            # pyserial-asyncio-fast 0.16 close it when the port goes away) is not aborted
+            # again: its closing task would run twice and the second would call
+            # connection_lost on the protocol the first one cleared.
+            transport.abort()
         await asyncio.sleep(0)
+        if receiver is not None:
+            # The device is closed in an executor thread, and connection_lost follows.
+            # Until then the port's exclusive lock is held: a reopen at once (the next
+            # line format of a scan, the worker after a pause) would find it in use.
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(CLOSE_WAIT_S):
+                    await receiver.lost.wait()
 
     def _unread_input(self) -> bool:
         """Whether bytes have arrived that the receiver has not seen (one ioctl, no read).

@@ -83,11 +83,17 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         )
         buses[bus] = {
             "port_open": stats.port_open,
+            # Why not (line/port_access.PortReason: missing, permission_denied, in_use,
+            # no_rs485_mode, driver_error) and the message with the remedy; null while open.
+            "port_problem": None if stats.port_open else stats.port_problem,
+            "port_error": None if stats.port_open else (stats.port_error or None),
+            "latency_timer_s": stats.latency_timer_s,
             "devices_online": online,
             "devices": len(devices),
         }
         if not stats.port_open:
-            reasons.append(f"bus {bus}: port not open ({stats.port_failures} failures)")
+            why = f": {stats.port_problem}: {stats.port_error}" if stats.port_problem else ""
+            reasons.append(f"bus {bus}: port not open ({stats.port_failures} failures){why}")
     mqtt = snapshot.mqtt
     if not mqtt.healthy:
         why = f": {mqtt.last_error}" if mqtt.last_error else ""
