@@ -320,6 +320,10 @@ async def run(
             stack.callback(metrics.stop)
         for worker in workers:
             stack.push_async_callback(worker.line.close)
+        # The ports first: a port another master holds stops the start here, with the
+        # remedy, before the shared bus's listeners or the sinks are up.
+        for worker in workers:
+            await worker.claim_port()
         await stack.enter_async_context(shared or contextlib.nullcontext())
         bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
         sink_tasks = await _start_sinks(mqtt, sparkplug, feeds, page)

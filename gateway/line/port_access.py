@@ -109,7 +109,9 @@ def port_options(bus: BusConfig, shared: SharedBusConfig) -> PortOptions:
     hints = []
     for listen in shared.listen:
         host = "127.0.0.1" if listen.host in {"0.0.0.0", "::"} else listen.host  # noqa: S104
-        if listen.framing == "rtu":
+        if listen.port == 0:  # any free port: the running gateway says which
+            hints.append(f"{host}, the port its /healthz shows under shared_bus.listening")
+        elif listen.framing == "rtu":
             hints.append(
                 f"RTU over TCP at {host}:{listen.port} "
                 f"(`gateway read --port socket://{host}:{listen.port} ...`)"
@@ -420,11 +422,17 @@ class UsbSerial:
 
 
 def usb_serial_of(port: str, roots: SystemRoots) -> UsbSerial | None:
-    """The ``ttyUSBn`` node a port is (through a by-id link too), and its driver from sysfs."""
-    try:
-        node = roots.node(port).resolve(strict=True).name
-    except OSError:
-        return None
+    """The ``ttyUSBn`` node a port is (through a by-id link too), and its driver from sysfs.
+
+    A port named ``ttyUSBn`` is that node even where its path is a bind mount or a link
+    elsewhere (a container's ``--device``); any other name is followed to its node.
+    """
+    node = Path(port).name
+    if not re.fullmatch(r"ttyUSB[0-9]+", node):
+        try:
+            node = roots.node(port).resolve(strict=True).name
+        except OSError:
+            return None
     if not re.fullmatch(r"ttyUSB[0-9]+", node):
         return None
     driver = roots.sys / "bus/usb-serial/devices" / node / "driver"

@@ -160,6 +160,21 @@ class BusWorker:
         await self.line.open()
         self._ever_opened = True
 
+    async def claim_port(self) -> None:
+        """Open the port before :meth:`run`, so that another master on it stops a start.
+
+        Raises :class:`PortUnavailableError` if the port is in use; any other failure is
+        left to :meth:`run`, which reports it and retries on its backoff.
+        """
+        try:
+            await self._open()
+        except BusClosedError as exc:
+            await self.line.close()
+            if self._fatal(exc):
+                raise
+            return
+        self.schedule.restart(time.monotonic())  # as run() does after it opens the port
+
     def _fatal(self, exc: BusClosedError) -> bool:
         """Whether a port failure ends the run: another master holds the port at start.
 
