@@ -178,12 +178,12 @@ async def test_a_pty_refuses_the_rs485_mode_as_documented(tmp_path: Path) -> Non
         assert caught.value.reason == PortReason.NO_RS485
         assert str(caught.value) == (
             f"cannot open {port} in the kernel's RS485 mode: its driver has none "
-            "(TIOCSRS485: Inappropriate ioctl for device). A USB adapter switches direction "
-            "by itself or not at all: use one with automatic direction control and remove "
-            "`rs485:` from the bus. An RS485 HAT on a UART gets the mode from its device "
-            "tree overlay (e.g. `dtoverlay=sc16is752-spi1,...` with "
-            "`linux,rs485-enabled-at-boot-time` in /boot/firmware/config.txt); then remove "
-            "`rs485:` too"
+            "(TIOCSRS485: Inappropriate ioctl for device). For a USB adapter: use one with "
+            "automatic direction control and remove `rs485:` from the bus. For an RS485 HAT: "
+            "load the driver its maker names in /boot/firmware/config.txt (e.g. "
+            "`dtoverlay=sc16is752-spi1`: the sc16is7xx driver has the mode, and "
+            "`linux,rs485-enabled-at-boot-time` in the overlay turns it on at boot), or use "
+            "a HAT with automatic direction control and remove `rs485:`"
         )
         assert not line.is_open
         assert line.stats.port_problem == "no_rs485_mode"

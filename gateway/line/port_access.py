@@ -243,11 +243,12 @@ def _rs485_mode(device: serial.Serial, port: str, config: Rs485Config) -> None:
         cause = exc.__context__ if isinstance(exc.__context__, OSError) else exc
         raise PortUnavailableError(
             f"cannot open {port} in the kernel's RS485 mode: its driver has none (TIOCSRS485: "
-            f"{_strerror(cause)}). A USB adapter switches direction by itself or not at "
-            "all: use one with automatic direction control and remove `rs485:` from the "
-            "bus. An RS485 HAT on a UART gets the mode from its device tree overlay "
-            "(e.g. `dtoverlay=sc16is752-spi1,...` with `linux,rs485-enabled-at-boot-time`"
-            " in /boot/firmware/config.txt); then remove `rs485:` too",
+            f"{_strerror(cause)}). For a USB adapter: use one with automatic direction "
+            "control and remove `rs485:` from the bus. For an RS485 HAT: load the driver "
+            "its maker names in /boot/firmware/config.txt (e.g. `dtoverlay=sc16is752-spi1`: "
+            "the sc16is7xx driver has the mode, and `linux,rs485-enabled-at-boot-time` in "
+            "the overlay turns it on at boot), or use a HAT with automatic direction "
+            "control and remove `rs485:`",
             port=port,
             reason=PortReason.NO_RS485,
         ) from exc
