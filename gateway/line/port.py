@@ -16,7 +16,6 @@ from __future__ import annotations
 import asyncio
 import bisect
 import contextlib
-import functools
 import logging
 import math
 import os
@@ -89,6 +88,12 @@ class LineStats:
     port_problem: str | None = None  # why the port is not open (port_access.PortReason)
     port_error: str = ""  # the message that says so, with its remedy
     latency_timer_s: float | None = None  # an FTDI adapter's latency timer, when read
+
+    def closed_because(self, reason: str | None, message: str) -> None:
+        """The port is not open, for this reason (``None``: no problem, it is opening)."""
+        self.port_open = False
+        self.port_problem = reason
+        self.port_error = message
 
     def observe_latency(self, device: int, seconds: float) -> None:
         """Add one request-to-response time to the histogram."""
@@ -198,57 +203,27 @@ class Line:
                     bytesize=8,
                 )
             else:
-                device = await loop.run_in_executor(
-                    None,
-                    functools.partial(
-                        port_access.open_serial,
-                        self.port,
-                        baudrate=self.format.baudrate,
-                        parity=parity,
-                        stopbits=self.format.stopbits,
-                        options=self.options,
-                    ),
+                opened = await port_access.open_device(
+                    self.port, self.format, parity=parity, options=self.options, protocol=receiver
                 )
-                self._tune(device)
-                transport, _ = await serial_asyncio_fast.connection_for_serial(
-                    loop, lambda: receiver, device
-                )
+                transport = opened.transport
+                self.stats.latency_timer_s = opened.latency_timer_s
+                if opened.latency_advice is not None and not self._latency_warned:
+                    self._latency_warned = True  # once per line, not at every reconnection
+                    _LOGGER.warning("%s", opened.latency_advice)
         except PortUnavailableError as exc:
-            self._closed_because(exc.reason, str(exc))
+            self.stats.closed_because(exc.reason, str(exc))
             raise
         except (OSError, serial.SerialException, ValueError, termios.error) as exc:
             # termios.error is no OSError: a line setting the port refuses (tcsetattr)
             # would otherwise end the gateway instead of this bus's retry with backoff.
-            self._closed_because(port_access.PortReason.DRIVER, f"cannot open {self.port}: {exc}")
-            raise BusClosedError(f"cannot open {self.port}: {exc}") from exc
+            message = f"cannot open {self.port}: {exc}"
+            self.stats.closed_because(port_access.PortReason.DRIVER, message)
+            raise BusClosedError(message) from exc
         self._transport, self._receiver = transport, receiver
+        self.stats.closed_because(None, "")
         self.stats.port_open = True
-        self.stats.port_problem = None
-        self.stats.port_error = ""
         self.last_frame_end = time.monotonic()
-
-    def _closed_because(self, reason: str, message: str) -> None:
-        self.stats.port_open = False
-        self.stats.port_problem = reason
-        self.stats.port_error = message
-
-    def _tune(self, device: serial.Serial) -> None:
-        """An FTDI adapter: low-latency mode asked for, its latency timer read and judged."""
-        roots = self.options.roots
-        usb = port_access.usb_serial_of(self.port, roots)
-        if usb is None or not usb.ftdi:
-            return
-        port_access.ask_low_latency(device)
-        latency_s = port_access.read_latency_timer(usb, roots)
-        self.stats.latency_timer_s = latency_s
-        advice = (
-            None
-            if latency_s is None
-            else port_access.latency_advice(self.port, usb, latency_s, roots)
-        )
-        if advice is not None and not self._latency_warned:
-            self._latency_warned = True
-            _LOGGER.warning("%s", advice)
 
     async def close(self) -> None:
         """Close the port (idempotent); back once the device is closed (its lock released)."""

@@ -20,8 +20,10 @@ low-latency mode and its latency timer in sysfs, and the kernel's RS485 mode
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import fcntl
+import functools
 import grp
 import logging
 import os
@@ -35,6 +37,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 import serial
+import serial_asyncio_fast
 from serial.rs485 import RS485Settings
 
 from gateway.errors import PortUnavailableError
@@ -46,6 +49,7 @@ if TYPE_CHECKING:
     from gateway.config.problems import KeyPath
     from gateway.config.rs485 import Rs485Config
     from gateway.config.shared_bus import SharedBusConfig
+    from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -226,6 +230,45 @@ def open_serial(
         device.close()
         raise
     return device
+
+
+@dataclass(frozen=True, slots=True)
+class OpenedDevice:
+    """A serial device opened for a line: its transport, and its adapter's latency timer."""
+
+    transport: serial_asyncio_fast.SerialTransport
+    latency_timer_s: float | None  # an FTDI adapter's, else None
+    latency_advice: str | None  # the warning for a timer above 2 ms, else None
+
+
+async def open_device(
+    port: str,
+    line: LineFormat,
+    *,
+    parity: str,
+    options: PortOptions,
+    protocol: asyncio.Protocol,
+) -> OpenedDevice:
+    """Open a serial device exclusively (in an executor), tune it, and wrap it for asyncio.
+
+    ``parity`` may differ from the line's (a pseudo-terminal takes none). Raises
+    :class:`PortUnavailableError` when it cannot be opened.
+    """
+    loop = asyncio.get_running_loop()
+    device = await loop.run_in_executor(
+        None,
+        functools.partial(
+            open_serial,
+            port,
+            baudrate=line.baudrate,
+            parity=parity,
+            stopbits=line.stopbits,
+            options=options,
+        ),
+    )
+    latency_s, advice = tune_usb(device, options.roots)
+    transport, _ = await serial_asyncio_fast.connection_for_serial(loop, lambda: protocol, device)
+    return OpenedDevice(transport=transport, latency_timer_s=latency_s, latency_advice=advice)
 
 
 def _exclusive_open(device: serial.Serial) -> None:
@@ -469,12 +512,26 @@ def ask_low_latency(device: serial.Serial) -> None:
         _LOGGER.debug("%s: low-latency mode refused: %s", device.port, exc)
 
 
-def latency_advice(port: str, usb: UsbSerial, latency_s: float, roots: SystemRoots) -> str | None:
+def tune_usb(device: serial.Serial, roots: SystemRoots) -> tuple[float | None, str | None]:
+    """An FTDI port: low latency asked for; its latency timer (s) and the warning, if any.
+
+    ``(None, None)`` for any other port. ``device.port`` is the configured path.
+    """
+    port = str(device.port)
+    usb = usb_serial_of(port, roots)
+    if usb is None or not usb.ftdi:
+        return None, None
+    ask_low_latency(device)
+    latency_s = read_latency_timer(usb, roots)
+    advice = None if latency_s is None else latency_advice(port, usb, latency_s)
+    return latency_s, advice
+
+
+def latency_advice(port: str, usb: UsbSerial, latency_s: float) -> str | None:
     """The warning for a latency timer above 2 ms, with the fix; ``None`` at 2 ms or less."""
     if latency_s <= LATENCY_WARN_S:
         return None
     where = f"/sys/bus/usb-serial/devices/{usb.node}/latency_timer"
-    del roots  # the message names the real path, whatever tree was read
     return (
         f"{port} ({usb.node}, {usb.driver}) holds received bytes up to "
         f"{latency_s * 1000:g} ms (its USB latency timer): answers arrive late and the "
