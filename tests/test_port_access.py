@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
 import json
 import logging
 import os
@@ -34,8 +35,10 @@ from gateway.line.port_access import (
     SystemRoots,
     by_id_names_of,
     lock_holders,
+    open_serial,
     port_name_advice,
     read_latency_timer,
+    release,
     rs485_settings,
     usb_serial_of,
 )
@@ -247,23 +250,65 @@ asyncio.run(main())
 """
 
 
-async def test_tiocexcl_keeps_an_unprivileged_program_out(tmp_path: Path) -> None:
-    # Root passes TIOCEXCL (the lock stops it, above); anyone else gets EBUSY from open().
+RAW_OPEN_SCRIPT = """
+import errno, os, sys
+try:
+    os.close(os.open(sys.argv[1], os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK))
+    print("opened")
+except OSError as exc:
+    print(errno.errorcode[exc.errno])
+"""
+
+
+async def test_an_unprivileged_gateway_is_kept_out_by_the_lock(tmp_path: Path) -> None:
+    # On a pseudo-terminal the lock alone guards the port (TIOCEXCL would outlive a killed
+    # gateway there: the simulator keeps the slave open); it names the holder.
     async with simulated_port(tmp_path) as port:
         node = port.resolve()
-        node.chmod(0o666)  # so that only TIOCEXCL, not the mode, can refuse the open
+        node.chmod(0o666)  # so that only the lock, not the mode, can refuse the open
         line = Line(port=str(port), line=FORMAT)
         await line.open()
         try:
+            raw = await asyncio.to_thread(
+                _run_as_nobody, RAW_OPEN_SCRIPT.replace("sys.argv[1]", repr(str(node)))
+            )
             out = await asyncio.to_thread(_run_as_nobody, OPEN_SCRIPT % str(node))
         finally:
             await line.close()
+    assert raw.strip() == "opened"  # no TIOCEXCL on a pseudo-terminal
     refusal = json.loads(out)
     assert refusal["reason"] == "in_use"
     assert refusal["holder"] == os.getpid()  # found in /proc/locks
     assert refusal["message"].startswith(
         f"cannot open {node}: it is in use by process {os.getpid()} ("
     )
+
+
+async def test_tiocexcl_refuses_other_opens_until_released(tmp_path: Path) -> None:
+    async with simulated_port(tmp_path) as port:
+        node = port.resolve()
+        node.chmod(0o666)
+        raw_open = RAW_OPEN_SCRIPT.replace("sys.argv[1]", repr(str(node)))
+        device = open_serial(
+            str(node), baudrate=9600, parity="N", stopbits=1, options=PortOptions(), tiocexcl=True
+        )
+        try:
+            assert (await asyncio.to_thread(_run_as_nobody, raw_open)).strip() == "EBUSY"
+            # Without the lock (a program that sets TIOCEXCL alone): the refusal says so.
+            fcntl.flock(device.fileno(), fcntl.LOCK_UN)
+            refusal = json.loads(await asyncio.to_thread(_run_as_nobody, OPEN_SCRIPT % str(node)))
+            assert refusal["reason"] == "in_use"
+            assert refusal["holder"] is None
+            assert refusal["message"] == (
+                f"cannot open {node}: the kernel refuses a second open (TIOCEXCL) and no "
+                f"process holds its lock: another program has it open (`fuser -v {node}` "
+                "names it), or one that had it ended while another still has it open. "
+                "Close that program; two masters on one line corrupt each other's frames"
+            )
+            release(device)  # what Line.close() does first
+            assert (await asyncio.to_thread(_run_as_nobody, raw_open)).strip() == "opened"
+        finally:
+            device.close()
 
 
 async def test_permission_denied_names_the_group_to_join(tmp_path: Path) -> None:
@@ -320,7 +365,7 @@ async def test_a_missing_port_lists_the_by_id_names_that_exist(tmp_path: Path) -
         await Line(port="/dev/ttyUSB7", line=FORMAT, options=PortOptions(roots=empty)).open()
     assert str(caught.value) == (
         "cannot open /dev/ttyUSB7: it does not exist; no serial adapter is connected "
-        "(/dev/serial/by-id is empty): check the cable and the adapter, and `dmesg` for "
+        "(nothing in /dev/serial/by-id): check the cable and the adapter, and `dmesg` for "
         "USB errors"
     )
 

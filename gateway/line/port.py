@@ -190,7 +190,8 @@ class Line:
         # A pseudo-terminal has no physical line: some kernels refuse a parity setting on
         # it (EINVAL), so parity is left off there. Timing still follows the configured
         # format, which is what the simulator on the other end referees.
-        parity = "N" if _is_pseudo_terminal(self.port) else self.format.parity
+        pty = _is_pseudo_terminal(self.port)
+        parity = "N" if pty else self.format.parity
         try:
             if "://" in self.port:
                 transport, _ = await serial_asyncio_fast.create_serial_connection(
@@ -204,7 +205,12 @@ class Line:
                 )
             else:
                 opened = await port_access.open_device(
-                    self.port, self.format, parity=parity, options=self.options, protocol=receiver
+                    self.port,
+                    self.format,
+                    parity=parity,
+                    tiocexcl=not pty,
+                    options=self.options,
+                    protocol=receiver,
                 )
                 transport = opened.transport
                 self.stats.latency_timer_s = opened.latency_timer_s
@@ -233,6 +239,7 @@ class Line:
         self._timer.close()
         if transport is None:
             return
+        port_access.release(transport.get_extra_info("serial"))  # TIOCEXCL, for a clean stop
         if not transport.is_closing():
             # abort(), not close(): close() drains the output first (tcdrain in a thread),
             # which can wait for ever on a line nobody reads, and a thread stuck there

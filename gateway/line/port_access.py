@@ -2,9 +2,17 @@
 
 One master per line: two masters on one RS485 line corrupt each other's frames, so the port
 is opened exclusively, twice over. An advisory lock (``flock``, as pyserial's
-``exclusive=True``) stops every cooperating program, root included; ``TIOCEXCL``
-(tty_ioctl(4)) makes the kernel refuse any further ``open()`` with ``EBUSY``, but root
-(``CAP_SYS_ADMIN``) passes it, so the lock is what stops a second gateway run as root.
+``exclusive=True``) stops every program that asks for one, root included, and goes with the
+process; ``TIOCEXCL`` (tty_ioctl(4)) makes the kernel refuse any further ``open()`` with
+``EBUSY``, but root (``CAP_SYS_ADMIN``) passes it, so the lock is what stops a second
+gateway run as root.
+
+``TIOCEXCL`` is a flag of the tty, not of the process: it stays until the tty's last close.
+A pseudo-terminal's slave is usually held open by the program on its master side (the
+simulator, a relay), so a gateway killed with SIGKILL left it set, and the service
+restarted as its unprivileged user found its own port busy for good (the systemd test's
+restart after SIGKILL). So a pseudo-terminal gets the lock only; a real serial device,
+whose tty ends with its last opener, gets both, and a clean close clears the flag.
 
 A port that cannot be opened raises :class:`~gateway.errors.PortUnavailableError` with a
 :class:`PortReason` and a message that names the remedy: the ``/dev/serial/by-id`` names
@@ -21,6 +29,7 @@ low-latency mode and its latency timer in sysfs, and the kernel's RS485 mode
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import fcntl
 import functools
@@ -177,7 +186,7 @@ def _available_names(roots: SystemRoots) -> str:
     links = by_id_links(roots)
     if not links:
         return (
-            "no serial adapter is connected (/dev/serial/by-id is empty): check the cable "
+            "no serial adapter is connected (nothing in /dev/serial/by-id): check the cable "
             "and the adapter, and `dmesg` for USB errors"
         )
     listed = ", ".join(f"/dev/{BY_ID}/{name} (-> {target.name})" for name, target in links.items())
@@ -205,6 +214,7 @@ def open_serial(
     parity: str,
     stopbits: int,
     options: PortOptions,
+    tiocexcl: bool = True,
 ) -> serial.Serial:
     """Open a serial device exclusively and set it up, or raise :class:`PortUnavailableError`.
 
@@ -223,7 +233,8 @@ def open_serial(
         # termios.error is no OSError: a setting the port refuses (tcsetattr).
         raise _unavailable(port, exc, options) from exc
     try:
-        _exclusive_open(device)
+        if tiocexcl:
+            _exclusive_open(device)
         if options.rs485 is not None:
             _rs485_mode(device, port, options.rs485)
     except BaseException:
@@ -246,13 +257,15 @@ async def open_device(
     line: LineFormat,
     *,
     parity: str,
+    tiocexcl: bool,
     options: PortOptions,
     protocol: asyncio.Protocol,
 ) -> OpenedDevice:
     """Open a serial device exclusively (in an executor), tune it, and wrap it for asyncio.
 
-    ``parity`` may differ from the line's (a pseudo-terminal takes none). Raises
-    :class:`PortUnavailableError` when it cannot be opened.
+    ``parity`` may differ from the line's (a pseudo-terminal takes none); ``tiocexcl``:
+    whether the kernel's exclusive mode is set too (not on a pseudo-terminal, see above).
+    Raises :class:`PortUnavailableError` when it cannot be opened.
     """
     loop = asyncio.get_running_loop()
     device = await loop.run_in_executor(
@@ -263,6 +276,7 @@ async def open_device(
             baudrate=line.baudrate,
             parity=parity,
             stopbits=line.stopbits,
+            tiocexcl=tiocexcl,
             options=options,
         ),
     )
@@ -277,6 +291,15 @@ def _exclusive_open(device: serial.Serial) -> None:
         fcntl.ioctl(device.fileno(), termios.TIOCEXCL)
     except OSError as exc:  # not a tty at all: the lock alone guards it
         _LOGGER.debug("%s: TIOCEXCL refused: %s", device.port, exc)
+
+
+def release(device: object) -> None:
+    """Clear ``TIOCEXCL`` before a close: the flag would outlive this process's descriptor."""
+    fileno = getattr(device, "fileno", None)
+    if not getattr(device, "is_open", False) or fileno is None:
+        return
+    with contextlib.suppress(OSError, ValueError, serial.SerialException):
+        fcntl.ioctl(fileno(), termios.TIOCNXCL)
 
 
 def _rs485_mode(device: serial.Serial, port: str, config: Rs485Config) -> None:
@@ -327,7 +350,7 @@ def _unavailable(port: str, exc: BaseException, options: PortOptions) -> PortUna
     if code in {errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK}:
         holders = lock_holders(port, roots)
         return PortUnavailableError(
-            _in_use_text(port, holders, options),
+            _in_use_text(port, holders, options, busy=code == errno.EBUSY),
             port=port,
             reason=PortReason.IN_USE,
             holder=holders[0] if holders else None,
@@ -368,8 +391,19 @@ def _group_name(gid: int) -> str:
         return str(gid)
 
 
-def _in_use_text(port: str, holders: Sequence[int], options: PortOptions) -> str:
+def _in_use_text(
+    port: str, holders: Sequence[int], options: PortOptions, *, busy: bool = False
+) -> str:
     roots = options.roots
+    if busy and not holders:
+        # EBUSY from open(): TIOCEXCL, set by a program that holds no lock on it, or left
+        # by a process that died while another one still has the port open.
+        return (
+            f"cannot open {port}: the kernel refuses a second open (TIOCEXCL) and no "
+            "process holds its lock: another program has it open (`fuser -v "
+            f"{port}` names it), or one that had it ended while another still has it "
+            "open. Close that program; two masters on one line corrupt each other's frames"
+        )
     if holders:
         pid = holders[0]
         who = f"process {pid} ({describe_process(pid, roots)})"
