@@ -480,9 +480,10 @@ def test_healthz_ok(server: MetricsServer) -> None:
     body = reply.json()
     assert body["status"] == "ok"
     assert body["reasons"] == []
+    open_port = {"port_open": True, "port_problem": None, "port_error": None}
     assert body["buses"] == {
-        "line1": {"port_open": True, "devices_online": 1, "devices": 2},
-        "line2": {"port_open": True, "devices_online": 0, "devices": 1},
+        "line1": {**open_port, "latency_timer_s": None, "devices_online": 1, "devices": 2},
+        "line2": {**open_port, "latency_timer_s": None, "devices_online": 0, "devices": 1},
     }
     assert body["mqtt"]["connected"] is True
 
