@@ -21,6 +21,7 @@ from gateway.control.shared_bus import SharedBusServer, units
 from gateway.control.sparkplug_commands import SparkplugCommands
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
+from gateway.line.echo import EchoMode
 from gateway.line.foreign import SharePolicy
 from gateway.line.port import Line
 from gateway.line.port_access import SystemRoots, port_name_advice, port_options
@@ -83,7 +84,13 @@ def build_workers(
         targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
         worker = BusWorker(
             name=bus.name,
-            line=Line(port=bus.port, line=bus.line, options=port_options(bus, config.shared_bus)),
+            line=Line(
+                port=bus.port,
+                line=bus.line,
+                bus=bus.name,
+                echo=EchoMode(bus.echo),
+                options=port_options(bus, config.shared_bus),
+            ),
             devices=targets,
             sinks=[StateSink(state), *sinks] if state is not None else sinks,
             reconnect_max_s=bus.reconnect_max_s,

@@ -11,10 +11,12 @@
     ├── FrameError                  bytes on the wire that are not the expected answer
     │   ├── CrcError                checksum mismatch
     │   ├── UnexpectedDeviceError   an answer from another device address
-    │   └── MalformedFrameError     wrong function code, byte count or length
+    │   ├── MalformedFrameError     wrong function code, byte count or length
+    │   └── EchoMismatchError       the adapter's echo of a request differs from what was sent
     ├── DeviceExceptionError        the device answered with a Modbus exception code
     ├── BusError                    the line itself
     │   ├── BusTimeoutError         no (complete) answer in time
+    │   │   └── LineNoiseError      the line never fell silent: the request was not sent
     │   ├── BusClosedError          the port is closed or went away
     │   │   └── PortUnavailableError    the port cannot be opened: ``.reason`` says why
     │   └── BusBusyError            no bus time for another master's request now
@@ -90,6 +92,13 @@ class MalformedFrameError(FrameError):
     """Wrong function code, byte count or length for the request in flight."""
 
 
+class EchoMismatchError(FrameError):
+    """The bytes read back after sending were not the request (``echo: on``).
+
+    Another master or a collision changed them on the line, or the adapter does not echo.
+    """
+
+
 class DeviceExceptionError(GatewayError):
     """The device answered with a Modbus exception response."""
 
@@ -111,6 +120,14 @@ class BusError(GatewayError):
 
 class BusTimeoutError(BusError):
     """No complete answer arrived within the response timeout."""
+
+
+class LineNoiseError(BusTimeoutError):
+    """The line never fell silent for the inter-frame gap: the request was not sent.
+
+    A timeout as far as the device is concerned (no answer could come), and an error kind
+    of its own on the line: termination, biasing, earthing or another master.
+    """
 
 
 class BusClosedError(BusError):

@@ -544,3 +544,27 @@ def test_defaults_of_a_minimal_config() -> None:
 )
 def test_ports_that_pyserial_opens(port: str) -> None:
     assert BusConfig(name="line1", port=port).port == port
+
+
+def test_an_unknown_echo_setting_names_the_key_line_and_choices() -> None:
+    (problem,) = problems_of(
+        "buses:\n"
+        "  - name: line1\n"
+        "    port: /dev/ttyUSB0\n"
+        "    echo: sometimes\n"
+        "devices:\n"
+        "  - {name: tank, bus: line1, address: 1, profile: jumo-digiline-odo-s10}\n"
+    )
+    assert (problem.key, problem.line) == ("buses[0].echo", 4)
+    assert "'off', 'on' or 'auto'" in problem.message, problem.message
+
+
+@pytest.mark.parametrize(("written", "meant"), [("off", "off"), ("on", "on"), ("'off'", "off")])
+def test_echo_off_and_on_unquoted_mean_the_words(written: str, meant: str) -> None:
+    # YAML 1.1 reads a bare off/on as false/true.
+    config = parse_config(
+        f"buses:\n  - {{name: line1, port: /dev/ttyUSB0, echo: {written}}}\n"
+        "devices:\n  - {name: tank, bus: line1, address: 1, profile: jumo-digiline-odo-s10}\n",
+        environ=NO_ENV,
+    )
+    assert config.buses[0].echo == meant

@@ -244,6 +244,10 @@ async def run_script(line: Line, device: DeviceEnd, script: Script) -> Exchange 
         line.transact(request, timeout_s=TIMEOUT_S, gap_s=GAP_S, byte_count_16bit=script.quirk)
     )
     assert await device.request(len(request.frame)) == request.frame
+    # A pty carries bytes at once; a line does not. Nothing the device sends can be in
+    # before the request and the reply have taken their time on the wire (the gateway
+    # refuses such an answer as an echo of its own request).
+    await asyncio.sleep(FORMAT.wire_s(len(request.frame) + len(script.sent)))
     for chunk in script.chunks:
         await asyncio.sleep(chunk.pause_s)
         device.send(chunk.data)

@@ -88,6 +88,7 @@ class DeviceSpec:
     policy: FlashPolicy  # the configured allow-list, or none without --config
     options: PortOptions = field(default_factory=PortOptions)  # the configured bus's
     state_dir: Path  # where the flash-write ledger is kept
+    echo: str = "auto"  # the bus's echo setting (off, on, auto)
 
     def ledger(self) -> FlashLedger:
         """The persistent flash-write ledger, shared with the running gateway."""
@@ -199,6 +200,7 @@ def device_spec(options: DeviceOptions) -> DeviceSpec:
             target=target,
             policy=chosen.flash_policy(),
             state_dir=state_directory(settings),
+            echo=bus.echo,
         )
     if options.port is None or options.address is None or options.profile is None:
         raise ConfigError("give --port, --address and --profile (or --config with --device)")
@@ -237,5 +239,7 @@ def _word_order(text: str | None) -> codec.WordOrder | None:
 @contextlib.asynccontextmanager
 async def device_link(spec: DeviceSpec) -> AsyncIterator[DeviceLink]:
     """Open the device's port and yield a link to it; the port is closed afterwards."""
-    async with open_link(spec.port, spec.line, spec.target, options=spec.options) as link:
+    async with open_link(
+        spec.port, spec.line, spec.target, echo=spec.echo, options=spec.options
+    ) as link:
         yield link

@@ -158,6 +158,15 @@ Retries = Annotated[int, Field(ge=0, le=10)]
 TcpPort = Annotated[int, Field(ge=1, le=65535)]
 
 
+def _on_off(value: object) -> object:
+    """YAML 1.1 reads a bare ``off``/``on`` as false/true: take them as the words meant."""
+    if value is True:
+        return "on"
+    if value is False:
+        return "off"
+    return value
+
+
 class BusConfig(_Model):
     """One RS485 line, owned by one task.
 
@@ -176,6 +185,10 @@ class BusConfig(_Model):
     timeout: ResponseTimeout | None = None
     retries: Retries = 2  # retries of a failed request
     reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0  # cap of the backoff
+    # Whether the adapter hears its own transmission (no automatic direction control):
+    # "on" reads every request back before its answer, "off" expects none, "auto" decides
+    # from the first reads and logs the setting that fits (gateway.line.echo).
+    echo: Annotated[Literal["off", "on", "auto"], BeforeValidator(_on_off)] = "auto"
     rs485: Rs485Config | None = None  # the kernel's RS485 mode (a UART or HAT switched by RTS)
 
     @property

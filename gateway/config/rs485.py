@@ -34,7 +34,7 @@ class Rs485Config(BaseModel):
     for the usual transceiver whose DE pin is active high), ``rts_level_for_rx`` the level
     after sending, while receiving (``SER_RS485_RTS_AFTER_SEND``). ``rx_during_tx`` keeps
     the receiver on while sending (``SER_RS485_RX_DURING_TX``, pyserial's ``loopback``):
-    the gateway then hears its own request as an echo.
+    the gateway then hears its own request as an echo (the bus's ``echo: on``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 from gateway.control.commands import require_writable, validate_write
 from gateway.errors import BusError
+from gateway.line.echo import EchoMode
 from gateway.line.port import Line
 from gateway.line.samples import Quality
 from gateway.line.worker import BusWorker
@@ -132,14 +133,17 @@ async def open_link(
     line_format: LineFormat,
     target: DeviceTarget,
     *,
+    echo: str = "auto",
     options: PortOptions | None = None,
 ) -> AsyncIterator[DeviceLink]:
     """Open the port for one device (the command line: no polling) and close it after.
 
-    The port is opened exclusively: with the gateway polling it, this fails at once with
-    a :class:`~gateway.errors.PortUnavailableError` that says what to stop.
+    ``echo`` is the bus's setting (``off``, ``on``, ``auto``), from the config if the
+    device came from one. The port is opened exclusively: with the gateway polling it,
+    this fails at once with a :class:`~gateway.errors.PortUnavailableError` that says
+    what to stop.
     """
-    line = Line(port=port, line=line_format, options=options)
+    line = Line(port=port, line=line_format, echo=EchoMode(echo), options=options)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)

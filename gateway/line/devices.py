@@ -87,6 +87,7 @@ class DeviceState:
     fresh: set[str] = field(default_factory=set)  # not polled since (re)start: no lag yet
     lag_s: float = 0.0
     lag_reported: bool = False
+    late_hint_given: bool = False  # an answer after its timeout was explained in the log
 
     @property
     def profile(self) -> Profile:

@@ -35,12 +35,15 @@ from gateway.errors import (
     BusTimeoutError,
     CrcError,
     DeviceExceptionError,
+    EchoMismatchError,
     FrameError,
+    LineNoiseError,
     MalformedFrameError,
     PortUnavailableError,
     UnexpectedDeviceError,
 )
 from gateway.line import port_access
+from gateway.line.echo import ECHO_MARGIN_S, EchoMode, EchoPolicy, earliest_answer
 from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
 
@@ -55,6 +58,12 @@ SILENCE_CHARACTERS: Final = 3.5  # a frame ends after 3.5 silent characters (all
 MIN_SILENCE_S: Final = 0.003  # event-loop and USB-adapter latency make shorter waits unreliable
 CLOSE_WAIT_S: Final = 1.0  # bound on waiting for the device's close in its thread
 LATENCY_BUCKETS_S: Final = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
+# The longest the line may stay busy before a request: a late answer of the longest frame
+# (256 bytes) twice over, and never less than half a second. A line busy for longer is
+# noise (no termination or biasing, a bad earth, another master), not an answer.
+QUIET_WAIT_MIN_S: Final = 0.5
+QUIET_WAIT_FRAMES: Final = 2 * 256
+QUIET_WAIT_GAPS: Final = 5  # and never fewer than five of the gaps it waits for
 
 
 class ErrorKind:
@@ -67,6 +76,9 @@ class ErrorKind:
     STALE: Final = "stale_frame"
     NOISE: Final = "noise"
     MALFORMED: Final = "malformed"
+    ECHO: Final = "echo"  # an echo of the request although the bus is set to ``echo: off``
+    ECHO_MISMATCH: Final = "echo_mismatch"  # ``echo: on`` and what came back was not the request
+    NO_SILENCE: Final = "no_silence"  # the line never fell silent: the request was not sent
 
 
 @dataclass(slots=True)
@@ -85,6 +97,7 @@ class LineStats:
     started: float = field(default_factory=time.monotonic)
     port_open: bool = False
     port_failures: int = 0
+    noisy: str | None = None  # why the last request could not go out, while the line is noisy
     port_problem: str | None = None  # why the port is not open (port_access.PortReason)
     port_error: str = ""  # the message that says so, with its remedy
     latency_timer_s: float | None = None  # an FTDI adapter's latency timer, when read
@@ -138,6 +151,15 @@ class _Receiver(asyncio.Protocol):
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class LateAnswer:
+    """A device's own answer that came after its request had timed out."""
+
+    device: int
+    after_s: float  # from sending the request to the answer's last byte
+    timeout_s: float  # what the request waited
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Exchange:
     """A completed transaction: the response and when it happened on the wire."""
 
@@ -155,19 +177,31 @@ class Line:
         port: str,
         line: LineFormat,
         stats: LineStats | None = None,
+        bus: str = "",
+        echo: EchoMode = EchoMode.AUTO,
         options: port_access.PortOptions | None = None,
     ) -> None:
-        """Describe the line; :meth:`open` opens it (``options``: RS485 mode, hints, roots)."""
+        """Describe the line; :meth:`open` opens it. ``bus`` names it in log lines.
+
+        ``options``: how the port is opened (RS485 mode, shared-bus hints, system roots).
+        """
         self.port = port
         self.options = options or port_access.PortOptions()
         self._latency_warned = False
         self.format = line
         self.stats = stats or LineStats()
+        self.echo = EchoPolicy(bus=bus or port, port=port, mode=echo)
+        # The last request that timed out per device (when sent, how long it waited), so
+        # that its answer coming later tells how late; the worker asks for it.
+        self._timed_out: dict[int, tuple[float, float]] = {}
+        self.late_answer: LateAnswer | None = None
+        self._last_sent = b""
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
         self._transport: asyncio.Transport | None = None
         self._receiver: _Receiver | None = None
         self._character_s = line.character_s
         self._silence_s = max(SILENCE_CHARACTERS * self._character_s, MIN_SILENCE_S)
+        self._quiet_max_s = max(QUIET_WAIT_MIN_S, QUIET_WAIT_FRAMES * self._character_s)
         self._timer = DeadlineTimer()
         # How late each request started after its gap was due (seconds), kept only when
         # a benchmark sets a list here; nothing in the gateway reads it.
@@ -288,22 +322,53 @@ class Line:
         if receiver.buffer:
             stale = bytes(receiver.buffer)
             receiver.buffer.clear()
+            if stale == self._last_sent:
+                # The adapter's echo of a request that waited for no answer (a broadcast),
+                # or of a read whose answer never came: the adapter's doing, not the line's.
+                # (A unicast write's late answer is a copy of it too: not remembered.)
+                self._echo_seen(device)
+                return
             kind = ErrorKind.STALE if frames.crc_ok(stale) else ErrorKind.NOISE
+            if kind == ErrorKind.STALE:
+                self._note_late(stale[0], receiver.last_byte_at)
             self.stats.errors[device, kind] += 1
             _LOGGER.debug(
                 "%s: discarded %d %s bytes: %s", self.port, len(stale), kind, stale.hex(" ")
             )
 
-    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0) -> float:
+    def _echo_seen(self, device: int) -> None:
+        """An echo where none was expected: counted once the bus has settled on no echo."""
+        if self.echo.echoes is False:
+            self.stats.errors[device, ErrorKind.ECHO] += 1
+            self.echo.unexpected()
+        else:
+            self.echo.seen = True
+
+    def _note_late(self, device: int, arrived_at: float) -> None:
+        """A stale frame of a device that timed out last: how late its answer came."""
+        timed_out = self._timed_out.pop(device, None)
+        if timed_out is not None:
+            sent_at, timeout_s = timed_out
+            self.late_answer = LateAnswer(
+                device=device, after_s=arrived_at - sent_at, timeout_s=timeout_s
+            )
+
+    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0, device: int = 0) -> float:
         """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``).
 
-        Returns when the gap was due, for the lateness of the request that follows.
+        Returns when the gap was due, for the lateness of the request that follows. A line
+        that does not fall silent within a bound (``_quiet_max_s`` or five gaps after it could
+        go) raises :class:`LineNoiseError`: a request sent into noise is lost anyway, and
+        waiting without end held up every other device (a request went out 2.6 s late).
         """
         receiver = self._live_receiver()
+        bound_s = max(self._quiet_max_s, QUIET_WAIT_GAPS * gap_s)
+        give_up = max(time.monotonic(), not_before) + bound_s
         while True:
             quiet_since = max(self.last_frame_end, receiver.last_byte_at)
             ready = max(quiet_since + gap_s, not_before)
-            if ready <= time.monotonic():
+            now = time.monotonic()
+            if ready <= now:
                 if self._unread_input():
                     # Bytes wait in the port's buffer that the event loop has not handed
                     # over yet (a late answer or noise while this process was busy
@@ -311,12 +376,32 @@ class Line:
                     # the gap starts again.
                     receiver.last_byte_at = time.monotonic()
                     continue
+                self.stats.noisy = None
                 return ready
             # Not asyncio.sleep: its timers end up to 1 ms late (epoll counts whole
             # milliseconds), which made every gap up to 1 ms long. The timer fires within
             # tens of microseconds and costs no CPU while it waits (see line/timer).
-            await self._timer.sleep_until(ready)
+            if now >= give_up:
+                self._no_silence(device, gap_s, bound_s)
+            await self._timer.sleep_until(min(ready, give_up))
             self._live_receiver()
+
+    def _no_silence(self, device: int, gap_s: float, bound_s: float) -> None:
+        receiver = self._live_receiver()
+        noise = len(receiver.buffer)
+        receiver.buffer.clear()
+        self.stats.errors[device, ErrorKind.NO_SILENCE] += 1
+        message = (
+            f"{self.port}: the line never fell silent for the {gap_s * 1000:.1f} ms gap in "
+            f"{bound_s:.1f} s ({noise} bytes of noise); the request to device "
+            f"{device} was not sent. Check the termination (120 ohm at both ends only), "
+            "the bias resistors, the earth (GND) wire, and that no other master drives "
+            "the line"
+        )
+        if self.stats.noisy is None:
+            _LOGGER.warning("%s", message)
+        self.stats.noisy = message
+        raise LineNoiseError(message)
 
     async def transact(
         self,
@@ -327,14 +412,21 @@ class Line:
         not_before: float = 0.0,
         exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
         byte_count_16bit: bool = False,
+        turnaround_s: float = 0.0,
     ) -> Exchange | None:
         """Send ``request`` after the gap and return its answer (``None`` for broadcasts).
 
-        Raises :class:`BusTimeoutError`, :class:`CrcError`, :class:`UnexpectedDeviceError`,
-        :class:`MalformedFrameError`, :class:`DeviceExceptionError` or
-        :class:`BusClosedError`; every failure is counted by kind for the device.
+        ``turnaround_s`` is the least time the device takes before it answers (a digiLine's
+        minimum response time); an answer complete sooner than the request's and its own
+        wire time plus that is not the device's (:func:`~gateway.line.echo.earliest_answer`).
+
+        Raises :class:`BusTimeoutError` (:class:`LineNoiseError` when the line never fell
+        silent), :class:`CrcError`, :class:`UnexpectedDeviceError`,
+        :class:`MalformedFrameError`, :class:`EchoMismatchError`,
+        :class:`DeviceExceptionError` or :class:`BusClosedError`; every failure is counted
+        by kind for the device.
         """
-        due = await self.wait_gap(gap_s, not_before=not_before)
+        due = await self.wait_gap(gap_s, not_before=not_before, device=request.device)
         self.flush_input(request.device)
         assert self._transport is not None  # noqa: S101 - _live_receiver checked it
         sent_at = time.monotonic()
@@ -344,18 +436,22 @@ class Line:
             self._transport.write(request.frame)
         except (OSError, serial.SerialException) as exc:
             raise BusClosedError(f"{self.port}: write failed: {exc}") from exc
+        self._last_sent = b"" if request.is_write and not request.is_broadcast else request.frame
         self.stats.requests[request.device] += 1
         request_end = sent_at + len(request.frame) * self._character_s
         if request.is_broadcast:
-            self.last_frame_end = request_end
-            self.stats.busy_s += request_end - sent_at
+            await self._broadcast_sent(request, sent_at, request_end)
             return None
         try:
+            if self.echo.expected:
+                await self._read_echo(request, request_end)
             response, received_at = await self._receive(
                 request,
+                sent_at=sent_at,
                 deadline=request_end + timeout_s,
                 exceptions=exceptions,
                 byte_count_16bit=byte_count_16bit,
+                turnaround_s=turnaround_s,
             )
         except DeviceExceptionError as exc:
             self.stats.exception_codes[request.device, exc.code] += 1
@@ -365,7 +461,10 @@ class Line:
         except (BusTimeoutError, FrameError) as exc:
             self.stats.errors[request.device, _kind(exc)] += 1
             self._finish(sent_at)
+            if isinstance(exc, BusTimeoutError):
+                self._timed_out[request.device] = (sent_at, timeout_s)
             raise
+        self._timed_out.pop(request.device, None)
         self._finish(sent_at, line_quiet_at=received_at)
         self.stats.responses[request.device] += 1
         self.stats.observe_latency(request.device, received_at - sent_at)
@@ -373,26 +472,103 @@ class Line:
             self.stats.tolerated[request.device, response.tolerated] += 1
         return Exchange(response=response, sent_at=sent_at, received_at=received_at)
 
+    async def _broadcast_sent(
+        self, request: frames.Request, sent_at: float, request_end: float
+    ) -> None:
+        """No answer comes to a broadcast; its echo, where the adapter makes one, does."""
+        self.last_frame_end = request_end
+        self.stats.busy_s += request_end - sent_at
+        if self.echo.expected:
+            try:
+                await self._read_echo(request, request_end)
+            except EchoMismatchError:
+                self.stats.errors[request.device, ErrorKind.ECHO_MISMATCH] += 1
+                raise
+
     def _finish(self, sent_at: float, *, line_quiet_at: float | None = None) -> None:
         """The line is silent from the answer's last byte (or now, after a failure)."""
         end = line_quiet_at if line_quiet_at is not None else time.monotonic()
         self.last_frame_end = end
         self.stats.busy_s += end - sent_at
 
+    async def _read_echo(self, request: frames.Request, request_end: float) -> None:
+        """``echo: on``: read the request back, byte for byte, before its answer.
+
+        The echo is complete once the request is on the wire; the adapter may hand it over
+        later (USB latency), so the wait has a margin. Anything else is a mismatch: the
+        bytes are dropped and the transaction fails, since an answer read after a garbled
+        echo cannot be trusted to be in step.
+        """
+        receiver = self._live_receiver()
+        frame = request.frame
+        deadline = request_end + ECHO_MARGIN_S + SILENCE_CHARACTERS * self._character_s
+        while len(receiver.buffer) < len(frame):
+            now = time.monotonic()
+            if now >= deadline or not frame.startswith(bytes(receiver.buffer)):
+                break
+            await _bytes_or_timeout(receiver, deadline - now)
+            self._live_receiver()
+        echoed = bytes(receiver.buffer[: len(frame)])
+        if echoed == frame:
+            del receiver.buffer[: len(frame)]
+            return
+        answered = _holds_answer(request, bytes(receiver.buffer))
+        receiver.buffer.clear()
+        if not echoed or answered:
+            came = "the device's answer came instead" if answered else "nothing came"
+            raise EchoMismatchError(
+                f"{self.port}: bus {self.echo.bus} is set to `echo: on` but the request to "
+                f"device {request.device} did not come back ({came}): this adapter does "
+                "not echo what it sends; set `echo: off` (or `auto`) for the bus"
+            )
+        raise EchoMismatchError(
+            f"{self.port}: the echo of the request to device {request.device} differs from "
+            f"what was sent (sent {frame.hex(' ')}, read back {echoed.hex(' ')}): a "
+            "collision with another master or noise on the line"
+        )
+
     async def _receive(
         self,
         request: frames.Request,
         *,
+        sent_at: float,
         deadline: float,
         exceptions: Mapping[int, str],
         byte_count_16bit: bool,
+        turnaround_s: float,
     ) -> tuple[frames.Response, float]:
-        """Read until a frame answers ``request``; skip garbage and frames of others."""
+        """Read until a frame answers ``request``; skip garbage, echoes and frames of others."""
         receiver = self._live_receiver()
-        scan = _Scan(request, exceptions=exceptions, byte_count_16bit=byte_count_16bit)
+        policy = self.echo
+        scan = _Scan(
+            request,
+            exceptions=exceptions,
+            byte_count_16bit=byte_count_16bit,
+            echo=None if policy.expected else request.frame,
+            echo_known=policy.seen,
+            answer_floor=earliest_answer(
+                sent_at,
+                request_bytes=len(request.frame),
+                answer_bytes=0,
+                character_s=self._character_s,
+                turnaround_s=turnaround_s,
+            ),
+            character_s=self._character_s,
+        )
+        try:
+            return await self._scan_until_answer(receiver, scan, request, deadline)
+        finally:
+            if scan.echo_skipped:
+                self._echo_seen(request.device)
+            if not policy.expected and not request.is_write:
+                policy.observed_read(echoed=scan.echo_skipped)
+
+    async def _scan_until_answer(
+        self, receiver: _Receiver, scan: _Scan, request: frames.Request, deadline: float
+    ) -> tuple[frames.Response, float]:
         while True:
             try:
-                result = scan.feed(receiver.buffer)
+                result = scan.feed(receiver.buffer, receiver.last_byte_at)
             except DeviceExceptionError:
                 # An exception answer is an answer too: consumed here, or the next
                 # transaction would flush it and count it a second time, as a stale frame.
@@ -423,8 +599,18 @@ class Line:
         del receiver.buffer[: scan.consumed]
         if scan.other_device is not None:
             self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
+            self._note_late(scan.other_device, receiver.last_byte_at)
         if scan.garbage:
             self.stats.errors[device, ErrorKind.NOISE] += 1
+
+
+def _holds_answer(request: frames.Request, data: bytes) -> bool:
+    """Whether ``data`` starts with a well-formed answer to ``request`` (CRC included)."""
+    try:
+        need = frames.response_length(request, data)
+    except MalformedFrameError:
+        return False
+    return 0 < need <= len(data) and frames.crc_ok(data[:need])
 
 
 async def _bytes_or_timeout(receiver: _Receiver, timeout_s: float) -> None:
@@ -449,10 +635,22 @@ _WAIT: Final = object()  # a plausible answer has started: wait for the rest
 
 
 class _Scan:
-    """Looks for the answer to one request in the bytes received so far."""
+    """Looks for the answer to one request in the bytes received so far.
+
+    Bytes before ``start`` are judged not to be the answer: an echo of the request, or a
+    frame complete before any answer could be (:func:`~gateway.line.echo.earliest_answer`).
+    """
 
     def __init__(
-        self, request: frames.Request, *, exceptions: Mapping[int, str], byte_count_16bit: bool
+        self,
+        request: frames.Request,
+        *,
+        exceptions: Mapping[int, str],
+        byte_count_16bit: bool,
+        echo: bytes | None = None,
+        echo_known: bool = False,
+        answer_floor: float = 0.0,
+        character_s: float = 0.0,
     ) -> None:
         self.request = request
         self.exceptions = exceptions
@@ -462,25 +660,74 @@ class _Scan:
         self.crc_bad = False
         self.other_device: int | None = None
         self.garbage = False
+        # The request's echo to look for ahead of the answer (None: read back already).
+        self._echo = echo
+        self._echo_known = echo_known  # the line has echoed before: a copy is its echo
+        self.echo_skipped = False
+        self.early = False  # a frame complete before the device could have answered
+        self._answer_floor = answer_floor  # sent + request on the wire + turnaround
+        self._character_s = character_s
+        self.start = 0
 
     @property
     def suspect(self) -> bool:
         return self.crc_bad or self.other_device is not None
 
-    def feed(self, buffer: bytearray) -> frames.Response | None:
-        """The answer if the bytes hold one; ``None`` while more bytes are needed."""
+    def _too_early(self, length: int, arrived_at: float) -> bool:
+        return arrived_at < self._answer_floor + length * self._character_s
+
+    def _skip_echo(self, data: bytes, arrived_at: float) -> bool | None:
+        """Skip the request's echo at ``start``; ``None`` while it may still be coming.
+
+        A read's echo is never its answer, so a copy of it is the echo whenever it comes.
+        A single write's answer is a copy of its request (function 06, and the first bytes
+        of 16): there, a copy is the echo only if it came too early to be the answer, or
+        if this line is known to echo (then the device's copy follows it).
+        """
+        echo = self._echo
+        if echo is None or self.echo_skipped:
+            return False
+        head = data[self.start : self.start + len(echo)]
+        if len(head) < len(echo):
+            return None if head and echo.startswith(head) else False
+        if head != echo:
+            return False
+        if not self.request.is_write or self._echo_known or self._too_early(len(echo), arrived_at):
+            self.start += len(echo)
+            self.echo_skipped = True
+            return True
+        return False
+
+    def feed(self, buffer: bytearray, arrived_at: float = math.inf) -> frames.Response | None:
+        """The answer if the bytes hold one; ``None`` while more bytes are needed.
+
+        ``arrived_at`` is when the last of the bytes came: a frame judged complete before
+        the device could have answered is not its answer, and is passed over for good.
+        """
         data = bytes(buffer)
-        for offset in range(len(data) - 1):
+        if self._skip_echo(data, arrived_at) is None:
+            return None
+        offset = self.start
+        while offset < len(data) - 1:
             try:
                 verdict = self._try(data[offset:])
             except DeviceExceptionError:
+                if self._too_early(self._length, arrived_at):
+                    offset = self.start = offset + self._length
+                    self.early = True
+                    continue
                 self.consumed = offset + self._length
                 raise
             if verdict is _WAIT:
                 return None
             if isinstance(verdict, frames.Response):
+                if self._too_early(self._length, arrived_at):
+                    offset = self.start = offset + self._length
+                    self.early = True
+                    continue
                 self.consumed = offset + self._length
                 return verdict
+            offset += 1
         return None
 
     def _try(self, head: bytes) -> frames.Response | object | None:
@@ -549,6 +796,8 @@ def _is_pseudo_terminal(port: str) -> bool:
 
 
 def _kind(exc: Exception) -> str:
+    if isinstance(exc, EchoMismatchError):
+        return ErrorKind.ECHO_MISMATCH
     if isinstance(exc, CrcError):
         return ErrorKind.CRC
     if isinstance(exc, UnexpectedDeviceError):

@@ -99,6 +99,9 @@ class Schedule:
                 state.identity_pending.add(unit_from)
         if profile.float_order_register is not None and state.target.float_order is None:
             state.identity_pending.add(profile.float_order_register.point)
+        # The device's own minimum response time: its timeouts follow it once read.
+        if profile.timing.min_response_time_point is not None:
+            state.identity_pending.add(profile.timing.min_response_time_point)
         state.attempts.clear()
         self.touch(state)
 

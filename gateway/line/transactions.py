@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from typing import TYPE_CHECKING, Final
 
@@ -20,7 +21,9 @@ from gateway.errors import (
     BusTimeoutError,
     CrcError,
     DeviceExceptionError,
+    EchoMismatchError,
     FrameError,
+    LineNoiseError,
     MalformedFrameError,
     UnexpectedDeviceError,
 )
@@ -44,21 +47,49 @@ _LOGGER = logging.getLogger(__name__)
 RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
 LATE_ANSWER_WINDOW_S: Final = 1.0  # after no answer of its own, a device's late one may come
 BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
+# digiLine 0x0305: the minimum response time is 0-500 ms (S10 and H10 manuals, interface
+# settings). Until a sensor has said its own, the gateway waits as if it were the longest.
+MIN_RESPONSE_TIME_MAX_S: Final = 0.5
 
 _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     BusTimeoutError: "timeout",
     CrcError: "crc_error",
     UnexpectedDeviceError: "wrong_address",
     MalformedFrameError: "malformed_answer",
+    EchoMismatchError: "echo_mismatch",
+    LineNoiseError: "no_silence",
 }
 
 
-def default_timeout_s(target: DeviceTarget, response_bytes: int, wire_s: float) -> float:
-    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + min. response time)."""
+def default_timeout_s(
+    target: DeviceTarget, response_bytes: int, wire_s: float, *, min_response_s: float | None = None
+) -> float:
+    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + min. response time).
+
+    ``min_response_s`` is the device's minimum response time as it reported it (its
+    register), where it did; the configured one otherwise. A configured timeout wins.
+    """
     if target.timeout_s is not None:
         return target.timeout_s
-    t1 = target.profile.timing.processing_time_s + target.min_response_time_s
+    if min_response_s is None:
+        min_response_s = target.min_response_time_s
+    t1 = target.profile.timing.processing_time_s + max(target.min_response_time_s, min_response_s)
     return wire_s * response_bytes + t1 + RESPONSE_MARGIN_S
+
+
+def reported_min_response_s(state: DeviceState) -> float | None:
+    """The minimum response time the device reports in its register, once read.
+
+    ``None``: the profile has no such register, the device refuses it, or it has not
+    been read yet (the read of it waits the manual's longest, see :meth:`Transactions.read_block`).
+    """
+    name = state.profile.timing.min_response_time_point
+    if name is None:
+        return None
+    value = state.values.get(name)
+    if isinstance(value, int) and not isinstance(value, bool):
+        return min(max(value, 0) / 1000, MIN_RESPONSE_TIME_MAX_S)
+    return None
 
 
 class Transactions:
@@ -98,18 +129,43 @@ class Transactions:
         # and again, and building one through pymodbus costs more than the rest of a read.
         self._read_requests: dict[tuple[int, int, int], frames.Request] = {}
         self._gaps: dict[str, float] = {}
-        self._timeouts: dict[tuple[str, int], float] = {}
+        self._timeouts: dict[tuple[str, int, float | None], float] = {}
+        self._by_address = {state.target.address: state for state in devices.values()}
         # What each device last answered, for other masters' reads (off unless asked for).
         self.cache = RegisterCache()
 
-    def timeout_for(self, state: DeviceState, response_bytes: int) -> float:
-        """How long to wait for an answer of ``response_bytes`` from the device."""
-        key = (state.target.name, response_bytes)
+    def timeout_for(
+        self, state: DeviceState, response_bytes: int, *, min_response_s: float | None = None
+    ) -> float:
+        """How long to wait for an answer of ``response_bytes`` from the device.
+
+        ``min_response_s`` stands in for a minimum response time the device has not
+        reported yet.
+        """
+        reported = reported_min_response_s(state)
+        if reported is None:
+            reported = min_response_s
+        key = (state.target.name, response_bytes, reported)
         timeout = self._timeouts.get(key)
         if timeout is None:  # the target, its profile and the line format never change
-            timeout = default_timeout_s(state.target, response_bytes, self.line.format.character_s)
+            timeout = default_timeout_s(
+                state.target,
+                response_bytes,
+                self.line.format.character_s,
+                min_response_s=reported,
+            )
             self._timeouts[key] = timeout
         return timeout
+
+    @staticmethod
+    def turnaround_s(state: DeviceState) -> float:
+        """The least time the device takes to answer: what it reported, once it has.
+
+        Not the configured value and not the manual's longest: an answer refused as too
+        early must never be the device's own, so only the device's word counts.
+        """
+        reported = reported_min_response_s(state)
+        return 0.0 if reported is None else reported
 
     def gap_s(self, state: DeviceState) -> float:
         """The silence the device needs before a request."""
@@ -122,7 +178,12 @@ class Transactions:
         return gap
 
     async def transact(
-        self, state: DeviceState, request: frames.Request, response_bytes: int
+        self,
+        state: DeviceState,
+        request: frames.Request,
+        response_bytes: int,
+        *,
+        min_response_s: float | None = None,
     ) -> frames.Response:
         """One transaction with the device; after no answer of its own, its late-answer window.
 
@@ -136,18 +197,63 @@ class Transactions:
         try:
             exchange = await self.line.transact(
                 request,
-                timeout_s=self.timeout_for(state, response_bytes),
+                timeout_s=self.timeout_for(state, response_bytes, min_response_s=min_response_s),
                 gap_s=self.gap_s(state),
                 not_before=state.not_before,
                 exceptions=state.profile.exceptions,
                 byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
+                turnaround_s=self.turnaround_s(state),
             )
-        except (BusTimeoutError, MalformedFrameError, UnexpectedDeviceError):
+        except LineNoiseError:
+            raise  # nothing was sent: no answer can come late
+        except (
+            BusTimeoutError,
+            MalformedFrameError,
+            UnexpectedDeviceError,
+            EchoMismatchError,
+        ):
             window_end = time.monotonic() + self.late_answer_window_s
             state.not_before = max(state.not_before, window_end)
             raise
+        finally:
+            if self.line.late_answer is not None:
+                self._late_answer_hint()
         assert exchange is not None  # noqa: S101 - unicast requests always have an answer
         return exchange.response
+
+    def _late_answer_hint(self) -> None:
+        """A device answered after its timeout: say once how late, and what to change."""
+        late, self.line.late_answer = self.line.late_answer, None
+        state = self._by_address.get(late.device) if late is not None else None
+        if late is None or state is None or state.late_hint_given:
+            return
+        state.late_hint_given = True
+        name = state.target.name
+        after_ms = late.after_s * 1000
+        suggestion = math.ceil(late.after_s * 1.5 * 10) / 10  # half as much again, in 0.1 s
+        point = state.profile.timing.min_response_time_point
+        reported = state.values.get(point) if point is not None else None
+        told = (
+            f" It reports a minimum response time of {reported} ms (register "
+            f"{state.profile.point(point).address:#06x}); set `min_response_time_ms: "
+            f"{reported}` for the device, or"
+            if point is not None and isinstance(reported, int)
+            else " Set"
+        )
+        _LOGGER.warning(
+            "%s/%s: an answer came %.0f ms after its request, %.0f ms after the gateway "
+            "had given up waiting (timeout %.0f ms), and was discarded as stale: the "
+            "timeout is too short for this device.%s `timeout: %.1f` for device %s in the "
+            "config",
+            self.bus,
+            name,
+            after_ms,
+            after_ms - late.timeout_s * 1000,
+            late.timeout_s * 1000,
+            told,
+            suggestion,
+            name,
+        )
 
     def plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
         """The reads of the named points of the device (the schedule names what is due)."""
@@ -156,7 +262,14 @@ class Transactions:
     def plan_points(self, state: DeviceState, points: Sequence[Point]) -> tuple[ReadBlock, ...]:
         """The reads of points of the device's profile."""
         planner = self._planners[state.target.name]
-        return planner.plan(points, split_before=frozenset(state.split_before))
+        blocks = planner.plan(points, split_before=frozenset(state.split_before))
+        learn = state.profile.timing.min_response_time_point
+        if learn is not None and learn not in state.values and len(blocks) > 1:
+            # The block with the device's minimum response time first: the reads after
+            # it in the same turn then wait as long as the device takes (``_learning``).
+            first = [b for b in blocks if any(p.name == learn for p in b.points)]
+            blocks = (*first, *(b for b in blocks if b not in first))
+        return blocks
 
     def plan_slow(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
         """The reads of due diagnostics: the blocks of their whole interval classes.
@@ -201,7 +314,9 @@ class Transactions:
         """
         request = self.read_request(state, block)
         try:
-            response = await self.transact(state, request, 5 + 2 * block.count)
+            response = await self.transact(
+                state, request, 5 + 2 * block.count, min_response_s=self._learning(state, block)
+            )
         except DeviceExceptionError as exc:
             await self.availability.answered(state, "answered")
             if exc.code == frames.ILLEGAL_ADDRESS and len(block.points) > 1:
@@ -239,6 +354,21 @@ class Transactions:
             self.cache.store(state.target.name, block.address, response.registers, time.monotonic())
         return self.decoder.decode(state, block, response.registers)
 
+    @staticmethod
+    def _learning(state: DeviceState, block: ReadBlock) -> float | None:
+        """The wait for a read of the device's minimum response time register itself.
+
+        Until the device has said its own, the read of it waits the manual's longest (500
+        ms): a sensor set slower than the config says would otherwise time out on every
+        read, that one included, and never be heard. Every other read waits as configured.
+        """
+        name = state.profile.timing.min_response_time_point
+        if name is None or name in state.values:
+            return None
+        if any(point.name == name for point in block.points):
+            return MIN_RESPONSE_TIME_MAX_S
+        return None
+
     def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
         names = [p.name for p in block.points]
         attempts = max(state.attempts[n] for n in names) + 1
@@ -255,6 +385,11 @@ class Transactions:
         """Read points (resolved where their names came in), waiting and retrying inline."""
         samples: dict[str, Sample] = {}
         todo = list(points)
+        learn = state.profile.timing.min_response_time_point
+        if learn is not None and learn not in state.values and learn not in state.unreadable:
+            # The device's own minimum response time first (once, see ``plan_points``),
+            # so the reads that follow wait as long as it takes to answer.
+            todo.append(state.profile.point(learn))
         while todo:
             blocks = self.plan_points(state, todo)
             todo = []
@@ -276,6 +411,8 @@ class Transactions:
         needed = {u for p in points if (u := p.unit_from) is not None}
         if profile.float_order_register is not None and state.target.float_order is None:
             needed.add(profile.float_order_register.point)
+        if profile.timing.min_response_time_point is not None:
+            needed.add(profile.timing.min_response_time_point)
         if needed:
             await self.read_now(state, [profile.point(name) for name in sorted(needed)])
         return await self.read_now(state, points)

@@ -122,7 +122,11 @@ class SimulatedBus:
         answer, wait_s = self._answer(device, frame, end)
         if answer[1] & 0x80:
             record.outcome = f"exception_{answer[2]:02d}"
-        return self._deliver(device, answer, end, wait_s)
+        # A slave answers once it has heard the whole request, paced or not: an answer
+        # sooner than the request's and its own wire time is one no line can carry, and
+        # the master rightly refuses it (it could only be the master's own echo).
+        heard = start + self.line.wire_s(len(frame))
+        return self._deliver(device, answer, heard, wait_s)
 
     def _judge(self, frame: bytes, start: float) -> bool:
         device = self.devices.get(frame[0])
@@ -191,9 +195,7 @@ class SimulatedBus:
         self, device: SimulatedDevice, answer: bytes, end: float, wait_s: float
     ) -> list[Reply]:
         plan = self.faults.get(device.address, FaultPlan())
-        at = (
-            end + self._processing_s(device) + (self.line.wire_s(len(answer)) if self.pace else 0.0)
-        )
+        at = end + self._processing_s(device) + self.line.wire_s(len(answer))
         if wait_s:
             device.last_write_end = at
             device.last_write_wait_s = wait_s

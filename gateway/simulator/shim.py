@@ -15,6 +15,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import subprocess
+import sys
 import termios
 import tty
 from dataclasses import dataclass, field
@@ -40,7 +42,6 @@ class ShimCounters:
     to_line: int = 0  # bytes from the master to the simulated line
     to_master: int = 0  # bytes from the line to the master
     echoed: int = 0
-    noise: int = 0
     deliveries: list[float] = field(default_factory=list)  # when held bytes were let go
 
 
@@ -78,7 +79,7 @@ class LineShim:
         self._slave = -1
         self._held = bytearray()
         self._release: asyncio.TimerHandle | None = None
-        self._noise: asyncio.TimerHandle | None = None
+        self._noise: subprocess.Popen[bytes] | None = None
         self.noise_interval_s = noise_interval_s
 
     # --- faults ------------------------------------------------------------------------
@@ -91,11 +92,34 @@ class LineShim:
     @noise_interval_s.setter
     def noise_interval_s(self, interval_s: float) -> None:
         self._noise_interval_s = interval_s
+        self._stop_noise()
+        self._start_noise()
+
+    def _stop_noise(self) -> None:
         if self._noise is not None:
-            self._noise.cancel()
+            self._noise.kill()
+            self._noise.wait()
+            if self._noise.stdout is not None:
+                self._noise.stdout.close()
             self._noise = None
-        if interval_s > 0:
-            self._noise = self._loop.call_later(interval_s, self._add_noise)
+
+    def _start_noise(self) -> None:
+        interval_s = self._noise_interval_s
+        if interval_s > 0 and self._master >= 0:
+            # A process of its own, not the event loop's timers or a thread: timers fire
+            # up to a millisecond late and not while the loop is busy, a thread waits for
+            # the GIL up to 5 ms; either let silent gaps through that a noisy line has not.
+            self._noise = subprocess.Popen(  # noqa: S603 - our own interpreter, fixed code
+                [sys.executable, "-c", _NOISE_LOOP, str(self._master), str(interval_s)],
+                pass_fds=(self._master,),
+                stdout=subprocess.PIPE,
+            )
+
+    async def noisy(self) -> None:
+        """Return once the noise is on the line (its process takes a while to start)."""
+        process = self._noise
+        if process is not None and process.stdout is not None:
+            await self._loop.run_in_executor(None, process.stdout.readline)
 
     def drop_carrier(self) -> None:
         """The master's port vanishes, as an unplugged USB adapter's does."""
@@ -143,8 +167,10 @@ class LineShim:
             raise ShimError(f"cannot create {self.path}: {exc.strerror}") from exc
         self._master, self._slave = master, slave
         self._loop.add_reader(master, self._from_master)
+        self._start_noise()
 
     def _close_master(self) -> None:
+        self._stop_noise()  # it holds the master open too
         if self._master >= 0:
             self._loop.remove_reader(self._master)
             os.close(self._master)
@@ -202,9 +228,23 @@ class LineShim:
         with contextlib.suppress(OSError):
             os.write(self._master, data)
 
-    def _add_noise(self) -> None:
-        self._noise = None
-        self._to_master(bytes([NOISE_BYTE]))
-        self.counters.noise += 1
-        if self._noise_interval_s > 0:
-            self._noise = self._loop.call_later(self._noise_interval_s, self._add_noise)
+
+# The noise process: a byte to the master's pty every interval until killed.
+_NOISE_LOOP: Final = f"""
+import os, sys, time
+fd, interval = int(sys.argv[1]), float(sys.argv[2])
+try:  # a noisy line does not pause when the machine is busy; root may say so
+    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+except (OSError, AttributeError):
+    pass
+written = 0
+while True:
+    try:
+        os.write(fd, bytes([{NOISE_BYTE}]))
+    except OSError:
+        pass
+    written += 1
+    if written == 100:  # steady by now: say so
+        print("noisy", flush=True)
+    time.sleep(interval)
+"""

@@ -182,13 +182,26 @@ def test_float_format_register_selects_the_word_order(code: int, order: WordOrde
 def test_processing_time_and_minimum_response_time() -> None:
     bus = make_bus(S10)
     master = ClockedMaster(bus)
+    char = 10 / 9600  # 8N1
+    wire = (8 + 9) * char  # the request heard in full, the answer on the line
     sent = master.now + 0.3
     reply = master.send(frames.read_request(1, 0x2620, 2))[0]
-    assert reply.at == pytest.approx(sent + 0.005)  # t1 typical 5 ms
+    assert reply.at == pytest.approx(sent + wire + 0.005)  # t1 typical 5 ms
     master.ask(frames.write_single_request(1, 0x0305, 120))  # minimum response time 120 ms
     sent = master.now + 0.3
     reply = master.send(frames.read_request(1, 0x2620, 2))[0]
-    assert reply.at == pytest.approx(sent + 0.005 + 0.120)
+    assert reply.at == pytest.approx(sent + wire + 0.005 + 0.120)
+
+
+def test_an_answer_never_comes_sooner_than_both_frames_take_on_the_wire() -> None:
+    # Unpaced, the master's frames arrive at once; the answer still cannot: a slave hears
+    # the whole request first, and its answer takes its own time on the line.
+    bus = make_bus(S10, line={"baudrate": 9600, "parity": "E", "stopbits": 1})
+    master = ClockedMaster(bus)
+    sent = master.now + 0.3
+    reply = master.send(frames.write_single_request(1, 0x0305, 0))[0]
+    char = 11 / 9600
+    assert reply.at == pytest.approx(sent + 8 * char + 0.005 + 8 * char)
 
 
 def test_pacing_takes_the_line_time_of_both_frames() -> None:
@@ -435,7 +448,8 @@ def test_request_while_an_answer_is_pending_is_a_collision() -> None:
     master.ask(frames.write_single_request(1, 0x0305, 300))
     master.now += 0.3
     first = bus.on_frame(frames.read_request(1, 0x2620, 2).frame, master.now)
-    assert first[0].at == pytest.approx(master.now + 0.305)
+    wire = (8 + 9) * 10 / 9600  # the request heard, the answer on the line (8N1)
+    assert first[0].at == pytest.approx(master.now + wire + 0.305)
     assert bus.on_frame(frames.read_request(1, 0x2620, 2).frame, master.now + 0.1) == []
     assert bus.violations[-1].rule == "answer_in_progress"
 
@@ -475,7 +489,7 @@ def test_injected_faults_change_the_answer() -> None:
     sent = master.now + 0.3
     reply = master.send(frames.read_request(1, 0x2620, 2))[0]
     assert reply.kind == "late"
-    assert reply.at == pytest.approx(sent + 0.805)
+    assert reply.at == pytest.approx(sent + (8 + 9) * 10 / 9600 + 0.805)
     bus = make_bus({**S10, "faults": {"noise": 1.0}})
     noise, answer = sorted(
         ClockedMaster(bus).send(frames.read_request(1, 0x2620, 2)), key=lambda r: r.at

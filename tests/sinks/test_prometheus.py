@@ -380,6 +380,9 @@ def test_bus_and_device_health(server: MetricsServer) -> None:
         "stale_frame": 0,
         "noise": 0,
         "malformed": 0,
+        "echo": 0,
+        "echo_mismatch": 0,
+        "no_silence": 0,
     }
     assert metrics.value("gateway_errors_total", device="basin_chlorine", kind="crc") == 1
     assert metrics.value("gateway_exceptions_total", device="basin_chlorine", code="02") == 1
@@ -482,8 +485,22 @@ def test_healthz_ok(server: MetricsServer) -> None:
     assert body["reasons"] == []
     open_port = {"port_open": True, "port_problem": None, "port_error": None}
     assert body["buses"] == {
-        "line1": {**open_port, "latency_timer_s": None, "devices_online": 1, "devices": 2},
-        "line2": {**open_port, "latency_timer_s": None, "devices_online": 0, "devices": 1},
+        "line1": {
+            **open_port,
+            "latency_timer_s": None,
+            "devices_online": 1,
+            "devices": 2,
+            "line_noise": None,
+            "no_silence_errors": 0,
+        },
+        "line2": {
+            **open_port,
+            "latency_timer_s": None,
+            "devices_online": 0,
+            "devices": 1,
+            "line_noise": None,
+            "no_silence_errors": 0,
+        },
     }
     assert body["mqtt"]["connected"] is True
 

@@ -38,6 +38,9 @@ ERROR_KINDS: Final = (
     ErrorKind.STALE,
     ErrorKind.NOISE,
     ErrorKind.MALFORMED,
+    ErrorKind.ECHO,
+    ErrorKind.ECHO_MISMATCH,
+    ErrorKind.NO_SILENCE,
 )
 
 # The identity labels of ``gateway_device_info`` and the points that fill each, first one

@@ -18,6 +18,7 @@ from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_late
 from prometheus_client.registry import Collector
 
 from gateway.errors import PublishError
+from gateway.line.port import ErrorKind
 from gateway.publish.prometheus.collector import GatewayCollector
 
 if TYPE_CHECKING:
@@ -90,10 +91,19 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
             "latency_timer_s": stats.latency_timer_s,
             "devices_online": online,
             "devices": len(devices),
+            "line_noise": stats.noisy,  # the line never fell silent before the last request
+            "no_silence_errors": sum(
+                # dict(): one copy under the GIL; the bus task counts on meanwhile
+                n
+                for (_, kind), n in dict(stats.errors).items()
+                if kind == ErrorKind.NO_SILENCE
+            ),
         }
         if not stats.port_open:
             why = f": {stats.port_problem}: {stats.port_error}" if stats.port_problem else ""
             reasons.append(f"bus {bus}: port not open ({stats.port_failures} failures){why}")
+        elif stats.noisy is not None:
+            reasons.append(f"bus {bus}: {stats.noisy}")
     mqtt = snapshot.mqtt
     if not mqtt.healthy:
         why = f": {mqtt.last_error}" if mqtt.last_error else ""
