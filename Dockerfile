@@ -2,7 +2,7 @@
 #
 #   docker build -t rs485-gateway .
 #   docker run -d --name rs485-gateway \
-#     --device /dev/ttyUSB0 --group-add dialout \
+#     --device /dev/serial/by-id/usb-FTDI_…:/dev/serial/by-id/usb-FTDI_… --group-add dialout \
 #     -v "$PWD/gateway.yaml:/etc/gateway/gateway.yaml:ro" \
 #     -v rs485-gateway-state:/var/lib/gateway \
 #     -e GATEWAY_MQTT__PASSWORD -p 9108:9108 rs485-gateway
@@ -25,7 +25,7 @@ FROM ${PYTHON_IMAGE}
 # Fixed ids, so that a bind-mounted state directory can be chowned on the host
 # (chown 10001:10001 DIR). dialout (gid 20 in Debian) owns /dev/ttyUSB* and /dev/ttyACM*
 # on Debian, Ubuntu and Raspberry Pi OS hosts; elsewhere add the device's group by number
-# (--group-add "$(stat -c %g /dev/ttyUSB0)").
+# (--group-add "$(stat -L -c %g /dev/serial/by-id/usb-…)").
 RUN groupadd --system --gid 10001 gateway \
     && useradd --system --uid 10001 --gid gateway --groups dialout \
         --home-dir /var/lib/gateway --no-create-home --shell /usr/sbin/nologin gateway \

@@ -53,6 +53,7 @@ if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
 
     from gateway.line.plan import ReadBlock
+    from gateway.line.port import LineStats
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.profiles import Point
 
@@ -156,7 +157,14 @@ def write_simulator_config(path: Path, line: LineFormat) -> None:
     )
 
 
-async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[str, float]:
+async def measure(
+    port: Path,
+    line_format: LineFormat,
+    seconds: float,
+    *,
+    keep_stats: list[LineStats] | None = None,
+) -> dict[str, float]:
+    """Poll the plant on ``port`` for ``seconds`` after a warm-up (line stats to ``keep_stats``)."""
     sink = CountingSink()
     line = Line(port=str(port), line=line_format)
     worker = BusWorker(name="bench", line=line, devices=targets(0.001), sinks=[sink])
@@ -179,6 +187,8 @@ async def measure(port: Path, line_format: LineFormat, seconds: float) -> dict[s
     with contextlib.suppress(asyncio.CancelledError):
         await task
     await line.close()
+    if keep_stats is not None:
+        keep_stats.append(stats)
     return {
         "wall_s": wall1 - wall0,
         "transactions": requests,

@@ -24,6 +24,7 @@ from gateway.line.devices import DeviceTarget
 from gateway.line.echo import EchoMode
 from gateway.line.foreign import SharePolicy
 from gateway.line.port import Line
+from gateway.line.port_access import SystemRoots, port_name_advice, port_options
 from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
@@ -78,10 +79,18 @@ def build_workers(
     """One worker per configured bus, with its devices; registered in ``state`` if given."""
     workers = []
     for bus in config.buses:
+        if (advice := port_name_advice(bus.port, SystemRoots())) is not None:
+            _LOGGER.warning("%s: %s", bus.name, advice)  # as check-config warns
         targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
         worker = BusWorker(
             name=bus.name,
-            line=Line(port=bus.port, line=bus.line, bus=bus.name, echo=EchoMode(bus.echo)),
+            line=Line(
+                port=bus.port,
+                line=bus.line,
+                bus=bus.name,
+                echo=EchoMode(bus.echo),
+                options=port_options(bus, config.shared_bus),
+            ),
             devices=targets,
             sinks=[StateSink(state), *sinks] if state is not None else sinks,
             reconnect_max_s=bus.reconnect_max_s,
@@ -318,6 +327,10 @@ async def run(
             stack.callback(metrics.stop)
         for worker in workers:
             stack.push_async_callback(worker.line.close)
+        # The ports first: a port another master holds stops the start here, with the
+        # remedy, before the shared bus's listeners or the sinks are up.
+        for worker in workers:
+            await worker.claim_port()
         await stack.enter_async_context(shared or contextlib.nullcontext())
         bus_tasks = [asyncio.create_task(w.run(), name=f"bus[{w.name}]") for w in workers]
         sink_tasks = await _start_sinks(mqtt, sparkplug, feeds, page)

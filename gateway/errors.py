@@ -18,6 +18,7 @@
     │   ├── BusTimeoutError         no (complete) answer in time
     │   │   └── LineNoiseError      the line never fell silent: the request was not sent
     │   ├── BusClosedError          the port is closed or went away
+    │   │   └── PortUnavailableError    the port cannot be opened: ``.reason`` says why
     │   └── BusBusyError            no bus time for another master's request now
     ├── PublishError                a sink could not deliver
     ├── CommandRejectedError        a write command failed validation; nothing was sent
@@ -131,6 +132,22 @@ class LineNoiseError(BusTimeoutError):
 
 class BusClosedError(BusError):
     """The port is closed locally or went away (adapter unplugged)."""
+
+
+class PortUnavailableError(BusClosedError):
+    """The port cannot be opened, for a reason the user can act on.
+
+    ``reason`` is one of ``missing``, ``permission_denied``, ``in_use``, ``no_rs485_mode``
+    or ``driver_error`` (:class:`gateway.line.port_access.PortReason`): callers (the bus
+    worker, ``/healthz``, the command line) branch on it, never on the message's text.
+    """
+
+    def __init__(self, message: str, *, port: str, reason: str, holder: int | None = None) -> None:
+        """Keep the port, why it is not open and, if in use, the process that holds it."""
+        self.port = port
+        self.reason = reason
+        self.holder = holder
+        super().__init__(message)
 
 
 class BusBusyError(BusError):

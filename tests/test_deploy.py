@@ -44,6 +44,9 @@ from gateway.publish.state import GatewayState, MqttStatus
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
+# The adapter compose.override.yaml maps, by its stable name on both sides.
+ADAPTER_ID = "/dev/serial/by-id/usb-FTDI_FT232R_USB_UART_A10K1234-if00-port0"
+ADAPTER = f"{ADAPTER_ID}:{ADAPTER_ID}"
 DOCKERFILE = ROOT / "Dockerfile"
 PROMETHEUS_DIR = DEPLOY / "prometheus"
 UNIT = DEPLOY / "systemd" / "rs485-gateway.service"
@@ -328,7 +331,7 @@ def test_compose_gateway_service() -> None:
     assert "devices" not in gateway
     assert "group_add" not in gateway
     (serial,) = compose("compose.override.yaml")["services"].values()
-    assert "/dev/ttyUSB0:/dev/ttyUSB0" in serial["devices"]
+    assert ADAPTER in serial["devices"]
     assert "dialout" in serial["group_add"]
 
 
@@ -579,10 +582,35 @@ def test_unit_is_hardened() -> None:
     }
     assert {key: settings[key][-1] for key in expected} == expected
     assert "dialout" in settings["SupplementaryGroups"][-1].split()
-    assert {"char-ttyUSB rw", "char-ttyACM rw"} <= set(settings["DeviceAllow"])
+    serial = {f"char-{name} rw" for name in ("ttyUSB", "ttyACM", "ttyS", "ttyAMA", "ttySC")}
+    assert serial <= set(settings["DeviceAllow"])
     # Either would keep the service from its serial port (see the comments in the unit).
     assert settings.get("PrivateDevices", ["no"])[-1] == "no"
     assert settings.get("PrivateUsers", ["no"])[-1] == "no"
+
+
+def test_the_udev_rule_sets_ftdi_adapters_to_a_latency_timer_below_the_warning() -> None:
+    from gateway.line.port_access import FTDI_DRIVER, LATENCY_WARN_S, UDEV_RULE  # noqa: PLC0415
+
+    rule = ROOT / UDEV_RULE  # the file the gateway's warning names
+    rules = [
+        line
+        for line in rule.read_text(encoding="utf-8").splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
+    assert len(rules) == 1
+    keys: dict[str, str] = {}
+    for part in rules[0].split(","):
+        match = re.fullmatch(r'\s*([A-Z]+(?:\{\w+\})?)\s*(?:==|=)\s*"([^"]*)"', part)
+        assert match is not None, part
+        keys[match[1]] = match[2]
+    assert keys == {
+        "ACTION": "add",
+        "SUBSYSTEM": "usb-serial",
+        "DRIVER": FTDI_DRIVER,
+        "ATTR{latency_timer}": "1",
+    }
+    assert int(keys["ATTR{latency_timer}"]) / 1000 <= LATENCY_WARN_S
 
 
 def test_unit_runs_the_gateway_with_its_config_and_secrets() -> None:

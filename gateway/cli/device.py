@@ -13,7 +13,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import inspect
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TypeVar, get_type_hints
 
@@ -27,6 +27,7 @@ from gateway.control.flash import LEDGER_FILE, FlashLedger
 from gateway.control.link import DeviceLink, open_link
 from gateway.errors import ConfigError, GatewayError
 from gateway.line.devices import DeviceTarget
+from gateway.line.port_access import PortOptions, port_options
 from gateway.profiles import get_profile
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat
@@ -85,6 +86,7 @@ class DeviceSpec:
     line: LineFormat
     target: DeviceTarget
     policy: FlashPolicy  # the configured allow-list, or none without --config
+    options: PortOptions = field(default_factory=PortOptions)  # the configured bus's
     state_dir: Path  # where the flash-write ledger is kept
     echo: str = "auto"  # the bus's echo setting (off, on, auto)
 
@@ -194,6 +196,7 @@ def device_spec(options: DeviceOptions) -> DeviceSpec:
         return DeviceSpec(
             port=bus.port,
             line=bus.line,
+            options=port_options(bus, settings.shared_bus),
             target=target,
             policy=chosen.flash_policy(),
             state_dir=state_directory(settings),
@@ -236,5 +239,7 @@ def _word_order(text: str | None) -> codec.WordOrder | None:
 @contextlib.asynccontextmanager
 async def device_link(spec: DeviceSpec) -> AsyncIterator[DeviceLink]:
     """Open the device's port and yield a link to it; the port is closed afterwards."""
-    async with open_link(spec.port, spec.line, spec.target, echo=spec.echo) as link:
+    async with open_link(
+        spec.port, spec.line, spec.target, echo=spec.echo, options=spec.options
+    ) as link:
         yield link

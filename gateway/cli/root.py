@@ -22,10 +22,11 @@ from gateway.cli import write as cli_write
 from gateway.cli.demo import LOCAL_BIND, run_demo
 from gateway.cli.device import fail
 from gateway.cli.heap import return_large_blocks
-from gateway.config import check_config, load_config
+from gateway.config import load_config, review_config
 from gateway.control.link import open_link
 from gateway.errors import ConfigError, GatewayError
 from gateway.line.devices import DeviceTarget
+from gateway.line.port_access import SystemRoots, port_advice
 from gateway.line.samples import Quality, Sample, hex_registers, json_value
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.publish.console import ConsoleSink, format_sample
@@ -444,11 +445,21 @@ def demo(
 @app.command("check-config")
 def check_config_command(
     config: Annotated[Path, typer.Argument(metavar="FILE", help="The gateway's YAML config.")],
+    dev_root: Annotated[
+        Path, typer.Option(hidden=True, help="Where /dev is (tests run on a fake tree).")
+    ] = Path("/dev"),
 ) -> None:
-    """Check a config and report every problem at once, with its key path and line."""
-    problems = check_config(config)
+    """Check a config and report every problem at once, with its key path and line.
+
+    Warnings (a port named ``/dev/ttyUSB0`` rather than its ``/dev/serial/by-id`` name)
+    are printed too; only problems make the exit status non-zero.
+    """
+    roots = SystemRoots(dev=dev_root)
+    problems, warnings = review_config(config, advise=lambda c: port_advice(c, roots))
+    for warning in warnings:
+        _err.print(f"{config}: warning: {warning}", markup=False)
     if not problems:
-        _out.print(f"{config}: OK")
+        _out.print(f"{config}: OK" + (f" ({len(warnings)} warnings)" if warnings else ""))
         return
     for problem in problems:
         _err.print(f"{config}: {problem}", markup=False)

@@ -9,7 +9,7 @@ guard in :mod:`gateway.config.flash_policy`. Import from here.
 """
 
 from gateway.config.flash_policy import FlashPolicy
-from gateway.config.loading import check_config, load_config, parse_config
+from gateway.config.loading import check_config, load_config, parse_config, review_config
 from gateway.config.model import (
     BAUDRATES,
     DEFAULT_FLASH_WRITE_BUDGET,
@@ -45,6 +45,7 @@ from gateway.config.model import (
     WebConfig,
 )
 from gateway.config.problems import ConfigProblems, Problem
+from gateway.config.rs485 import Rs485Config
 
 __all__ = [
     "BAUDRATES",
@@ -77,6 +78,7 @@ __all__ = [
     "PublishSettings",
     "ResponseTimeout",
     "Retries",
+    "Rs485Config",
     "Seconds",
     "SparkplugConfig",
     "TcpPort",
@@ -85,4 +87,5 @@ __all__ = [
     "check_config",
     "load_config",
     "parse_config",
+    "review_config",
 ]

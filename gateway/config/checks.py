@@ -108,11 +108,38 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
         bus = bus_models.get(model.bus)
         if bus is not None:
             yield from _check_timeout(here, model, bus)
+    yield from _check_ports(buses)
     yield from _check_shared_bus(data.get("shared_bus"), devices)
     mqtt = data.get("mqtt")
     mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
     yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
     yield from _check_sparkplug_deadbands(data.get("sparkplug"), devices)
+
+
+def _check_ports(buses: Sequence[_Entry[BusConfig]]) -> Iterator[tuple[KeyPath, str]]:
+    """One bus per port (two masters on one line collide), and RS485 mode on devices only."""
+    first: dict[str, _Entry[BusConfig]] = {}
+    for bus in buses:
+        port = bus.text("port")
+        if port is None:
+            continue
+        earlier = first.setdefault(port, bus)
+        if earlier is not bus:
+            yield (
+                ("buses", bus.index, "port"),
+                (
+                    f"{port} is already the port of buses[{earlier.index}] "
+                    f"({earlier.text('name')}): one bus per port, as it is opened exclusively"
+                ),
+            )
+        if "://" in port and bus.raw.get("rs485") is not None:
+            yield (
+                ("buses", bus.index, "rs485"),
+                (
+                    "the kernel's RS485 mode applies to a serial device of this machine, "
+                    f"not to {port}: the converter switches its own line; remove rs485"
+                ),
+            )
 
 
 def _check_sparkplug_deadbands(

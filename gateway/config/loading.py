@@ -52,7 +52,13 @@ from gateway.config.yaml_lines import parse_yaml
 from gateway.errors import ConfigError
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
+    from collections.abc import Callable, Iterable, Mapping
+
+    from gateway.config.problems import KeyPath
+
+    # What a config means on this machine (its ports' names under /dev, ...): warnings
+    # by key path, from a floor that may look at the system.
+    Advisor = Callable[[GatewayConfig], Iterable[tuple[KeyPath, str]]]
 
 
 def load_config(path: Path, *, environ: Mapping[str, str] | None = None) -> GatewayConfig:
@@ -87,6 +93,24 @@ def check_config(path: Path, *, environ: Mapping[str, str] | None = None) -> lis
     except ConfigError as exc:
         return [Problem("", None, str(exc))]
     return []
+
+
+def review_config(
+    path: Path, *, advise: Advisor, environ: Mapping[str, str] | None = None
+) -> tuple[list[Problem], list[Problem]]:
+    """The problems of a config file and, if it has none, the warnings ``advise`` finds.
+
+    Warnings are located like problems (key path and line) but change nothing: the
+    config loads and runs as it is. ``advise`` looks at the valid config only.
+    """
+    problems = check_config(path, environ=environ)
+    if problems:
+        return problems, []
+    text = path.read_text(encoding="utf-8")
+    config = parse_config(text, environ=environ)
+    env, _ = usable_environment(os.environ if environ is None else environ)
+    locate = Locator(parse_yaml(text).lines, env)
+    return [], [locate(key, message) for key, message in advise(config)]
 
 
 def parse_config(text: str, *, environ: Mapping[str, str] | None = None) -> GatewayConfig:

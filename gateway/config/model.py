@@ -45,6 +45,7 @@ from pydantic_settings import (
 )
 
 from gateway.config.flash_policy import FlashPolicy
+from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
 from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
@@ -188,6 +189,7 @@ class BusConfig(_Model):
     # "on" reads every request back before its answer, "off" expects none, "auto" decides
     # from the first reads and logs the setting that fits (gateway.line.echo).
     echo: Annotated[Literal["off", "on", "auto"], BeforeValidator(_on_off)] = "auto"
+    rs485: Rs485Config | None = None  # the kernel's RS485 mode (a UART or HAT switched by RTS)
 
     @property
     def line(self) -> LineFormat:

@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
     from gateway.line.devices import DeviceTarget
+    from gateway.line.port_access import PortOptions
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
     from gateway.wire import codec
@@ -128,14 +129,21 @@ class DeviceLink:
 
 @contextlib.asynccontextmanager
 async def open_link(
-    port: str, line_format: LineFormat, target: DeviceTarget, *, echo: str = "auto"
+    port: str,
+    line_format: LineFormat,
+    target: DeviceTarget,
+    *,
+    echo: str = "auto",
+    options: PortOptions | None = None,
 ) -> AsyncIterator[DeviceLink]:
     """Open the port for one device (the command line: no polling) and close it after.
 
     ``echo`` is the bus's setting (``off``, ``on``, ``auto``), from the config if the
-    device came from one.
+    device came from one. The port is opened exclusively: with the gateway polling it,
+    this fails at once with a :class:`~gateway.errors.PortUnavailableError` that says
+    what to stop.
     """
-    line = Line(port=port, line=line_format, echo=EchoMode(echo))
+    line = Line(port=port, line=line_format, echo=EchoMode(echo), options=options)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)

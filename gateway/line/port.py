@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import bisect
+import contextlib
 import logging
 import math
 import os
@@ -38,8 +39,10 @@ from gateway.errors import (
     FrameError,
     LineNoiseError,
     MalformedFrameError,
+    PortUnavailableError,
     UnexpectedDeviceError,
 )
+from gateway.line import port_access
 from gateway.line.echo import ECHO_MARGIN_S, EchoMode, EchoPolicy, earliest_answer
 from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
@@ -53,6 +56,7 @@ _LOGGER = logging.getLogger(__name__)
 
 SILENCE_CHARACTERS: Final = 3.5  # a frame ends after 3.5 silent characters (all manuals)
 MIN_SILENCE_S: Final = 0.003  # event-loop and USB-adapter latency make shorter waits unreliable
+CLOSE_WAIT_S: Final = 1.0  # bound on waiting for the device's close in its thread
 LATENCY_BUCKETS_S: Final = (0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
 # The longest the line may stay busy before a request: a late answer of the longest frame
 # (256 bytes) twice over, and never less than half a second. A line busy for longer is
@@ -94,6 +98,15 @@ class LineStats:
     port_open: bool = False
     port_failures: int = 0
     noisy: str | None = None  # why the last request could not go out, while the line is noisy
+    port_problem: str | None = None  # why the port is not open (port_access.PortReason)
+    port_error: str = ""  # the message that says so, with its remedy
+    latency_timer_s: float | None = None  # an FTDI adapter's latency timer, when read
+
+    def closed_because(self, reason: str | None, message: str) -> None:
+        """The port is not open, for this reason (``None``: no problem, it is opening)."""
+        self.port_open = False
+        self.port_problem = reason
+        self.port_error = message
 
     def observe_latency(self, device: int, seconds: float) -> None:
         """Add one request-to-response time to the histogram."""
@@ -166,9 +179,15 @@ class Line:
         stats: LineStats | None = None,
         bus: str = "",
         echo: EchoMode = EchoMode.AUTO,
+        options: port_access.PortOptions | None = None,
     ) -> None:
-        """Describe the line; :meth:`open` opens it. ``bus`` names it in log lines."""
+        """Describe the line; :meth:`open` opens it. ``bus`` names it in log lines.
+
+        ``options``: how the port is opened (RS485 mode, shared-bus hints, system roots).
+        """
         self.port = port
+        self.options = options or port_access.PortOptions()
+        self._latency_warned = False
         self.format = line
         self.stats = stats or LineStats()
         self.echo = EchoPolicy(bus=bus or port, port=port, mode=echo)
@@ -198,50 +217,84 @@ class Line:
         return self._receiver is not None and not self._receiver.lost.is_set()
 
     async def open(self) -> None:
-        """Open the port; a missing or busy port raises :class:`BusClosedError`."""
+        """Open the port exclusively; one that cannot be opened raises :class:`BusClosedError`.
+
+        A serial device that is missing, not permitted, in use or without the configured
+        RS485 mode raises :class:`PortUnavailableError` with its ``reason``
+        (:mod:`gateway.line.port_access`); its message names the remedy.
+        """
         loop = asyncio.get_running_loop()
         receiver = _Receiver()
         # A pseudo-terminal has no physical line: some kernels refuse a parity setting on
         # it (EINVAL), so parity is left off there. Timing still follows the configured
         # format, which is what the simulator on the other end referees.
-        parity = "N" if _is_pseudo_terminal(self.port) else self.format.parity
+        pty = _is_pseudo_terminal(self.port)
+        parity = "N" if pty else self.format.parity
         try:
-            transport, _ = await serial_asyncio_fast.create_serial_connection(
-                loop,
-                lambda: receiver,
-                self.port,
-                baudrate=self.format.baudrate,
-                parity=parity,
-                stopbits=self.format.stopbits,
-                bytesize=8,
-            )
+            if "://" in self.port:
+                transport, _ = await serial_asyncio_fast.create_serial_connection(
+                    loop,
+                    lambda: receiver,
+                    self.port,
+                    baudrate=self.format.baudrate,
+                    parity=parity,
+                    stopbits=self.format.stopbits,
+                    bytesize=8,
+                )
+            else:
+                opened = await port_access.open_device(
+                    self.port,
+                    self.format,
+                    parity=parity,
+                    tiocexcl=not pty,
+                    options=self.options,
+                    protocol=receiver,
+                )
+                transport = opened.transport
+                self.stats.latency_timer_s = opened.latency_timer_s
+                if opened.latency_advice is not None and not self._latency_warned:
+                    self._latency_warned = True  # once per line, not at every reconnection
+                    _LOGGER.warning("%s", opened.latency_advice)
+        except PortUnavailableError as exc:
+            self.stats.closed_because(exc.reason, str(exc))
+            raise
         except (OSError, serial.SerialException, ValueError, termios.error) as exc:
             # termios.error is no OSError: a line setting the port refuses (tcsetattr)
             # would otherwise end the gateway instead of this bus's retry with backoff.
-            self.stats.port_open = False
-            raise BusClosedError(f"cannot open {self.port}: {exc}") from exc
+            message = f"cannot open {self.port}: {exc}"
+            self.stats.closed_because(port_access.PortReason.DRIVER, message)
+            raise BusClosedError(message) from exc
         self._transport, self._receiver = transport, receiver
+        self.stats.closed_because(None, "")
         self.stats.port_open = True
         self.last_frame_end = time.monotonic()
 
     async def close(self) -> None:
-        """Close the port (idempotent)."""
-        transport, self._transport, self._receiver = self._transport, None, None
+        """Close the port (idempotent); back once the device is closed (its lock released)."""
+        transport, receiver = self._transport, self._receiver
+        self._transport = self._receiver = None
         self.stats.port_open = False
         self._timer.close()
         if transport is None:
             return
-        if transport.is_closing():
-            # The port went away and the transport is closing itself (a read error makes
-            # pyserial-asyncio-fast 0.16 close it). Aborting again starts its closing task
-            # a second time, which then calls connection_lost on the protocol the first
-            # one cleared: an AttributeError in a task nobody awaits, at every unplug.
-            return
-        # abort(), not close(): close() drains the output first (tcdrain in a thread),
-        # which can wait for ever on a line nobody reads, and a thread stuck there
-        # keeps the process from exiting. Nothing still queued matters after a stop.
-        transport.abort()
+        port_access.release(transport.get_extra_info("serial"))  # TIOCEXCL, for a clean stop
+        if not transport.is_closing():
+            # abort(), not close(): close() drains the output first (tcdrain in a thread),
+            # which can wait for ever on a line nobody reads, and a thread stuck there
+            # keeps the process from exiting. Nothing still queued matters after a stop.
+            # A transport that is closing already (a read error makes
+            # pyserial-asyncio-fast 0.16 close it when the port goes away) is not aborted
+            # again: its closing task would run twice and the second would call
+            # connection_lost on the protocol the first one cleared.
+            transport.abort()
         await asyncio.sleep(0)
+        if receiver is not None:
+            # The device is closed in an executor thread, and connection_lost follows.
+            # Until then the port's exclusive lock is held: a reopen at once (the next
+            # line format of a scan, the worker after a pause) would find it in use.
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(CLOSE_WAIT_S):
+                    await receiver.lost.wait()
 
     def _unread_input(self) -> bool:
         """Whether bytes have arrived that the receiver has not seen (one ioctl, no read).

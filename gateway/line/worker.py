@@ -21,12 +21,13 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.errors import BusClosedError, BusError
+from gateway.errors import BusClosedError, BusError, PortUnavailableError
 from gateway.line.decode import Decoder
 from gateway.line.devices import DeviceState
 from gateway.line.foreign import ForeignQueue
 from gateway.line.health import Availability
 from gateway.line.jobs import JobQueue
+from gateway.line.port_access import PortReason
 from gateway.line.samples import DeviceEvent
 from gateway.line.schedule import Schedule
 from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
@@ -98,6 +99,8 @@ class BusWorker:
             wake=self._wake,
         )
         self._port_failures_in_a_row = 0
+        self._ever_opened = False
+        self._last_reason: str | None = None
         self._stopping = False
         self._stop_requested = asyncio.Event()  # also set to end a backoff for a pause
         self._resume: asyncio.Event | None = None  # set while :meth:`paused` holds the line
@@ -127,7 +130,7 @@ class BusWorker:
                 continue
             try:
                 if not self.line.is_open:
-                    await self.line.open()
+                    await self._open()
                     if self._port_failures_in_a_row:
                         _LOGGER.info("%s: port %s is back", self.name, self.line.port)
                     self._port_failures_in_a_row = 0
@@ -136,15 +139,55 @@ class BusWorker:
                 await self._poll_forever()
             except BusClosedError as exc:
                 await self.line.close()
+                if self._fatal(exc):
+                    raise
                 self._port_failures_in_a_row += 1
                 self.line.stats.port_failures += 1
                 self.jobs.fail_all(exc)  # a command waits for no reconnection: it says why now
                 self.foreign.fail_all(exc)
-                log = _LOGGER.warning if self._port_failures_in_a_row == 1 else _LOGGER.debug
+                # The first failure of a streak, and a new reason within it (unplugged,
+                # then back without permission), loudly; the repeats quietly.
+                reason = getattr(exc, "reason", None)
+                first = self._port_failures_in_a_row == 1 or reason != self._last_reason
+                self._last_reason = reason
+                log = _LOGGER.warning if first else _LOGGER.debug
                 log("%s: %s; retrying in %.1f s", self.name, exc, delay)
                 await self.availability.all_offline(str(exc))
                 await self._backoff(delay * self._rng.uniform(0.8, 1.2))
                 delay = min(delay * 2, self.reconnect_max_s)
+
+    async def _open(self) -> None:
+        await self.line.open()
+        self._ever_opened = True
+
+    async def claim_port(self) -> None:
+        """Open the port before :meth:`run`, so that another master on it stops a start.
+
+        Raises :class:`PortUnavailableError` if the port is in use; any other failure is
+        left to :meth:`run`, which reports it and retries on its backoff.
+        """
+        try:
+            await self._open()
+        except BusClosedError as exc:
+            await self.line.close()
+            if self._fatal(exc):
+                raise
+            return
+        self.schedule.restart(time.monotonic())  # as run() does after it opens the port
+
+    def _fatal(self, exc: BusClosedError) -> bool:
+        """Whether a port failure ends the run: another master holds the port at start.
+
+        Retrying would only repeat the message every backoff (a second ``gateway run``
+        by mistake, or the service while a command holds the port), and the message
+        names what to stop. Once this worker has had the port, an in-use reopen
+        (``gateway read`` during an unplug) is retried like any other failure.
+        """
+        return (
+            isinstance(exc, PortUnavailableError)
+            and exc.reason == PortReason.IN_USE
+            and not self._ever_opened
+        )
 
     async def _backoff(self, delay_s: float) -> None:
         """Wait before reopening the port, or until a stop is asked for.

@@ -114,6 +114,7 @@ class LineScans:
                     addresses=job.addresses,
                     timeout_s=self.timeout_s,
                     progress=progress,
+                    options=worker.line.options,
                 )
             job.report = report.as_dict()
             job.found = len(report.devices)

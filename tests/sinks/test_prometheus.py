@@ -483,16 +483,19 @@ def test_healthz_ok(server: MetricsServer) -> None:
     body = reply.json()
     assert body["status"] == "ok"
     assert body["reasons"] == []
+    open_port = {"port_open": True, "port_problem": None, "port_error": None}
     assert body["buses"] == {
         "line1": {
-            "port_open": True,
+            **open_port,
+            "latency_timer_s": None,
             "devices_online": 1,
             "devices": 2,
             "line_noise": None,
             "no_silence_errors": 0,
         },
         "line2": {
-            "port_open": True,
+            **open_port,
+            "latency_timer_s": None,
             "devices_online": 0,
             "devices": 1,
             "line_noise": None,

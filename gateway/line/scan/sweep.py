@@ -14,6 +14,7 @@ from gateway.line.scan.report import FoundDevice, ScanReport
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
 
+    from gateway.line.port_access import PortOptions
     from gateway.wire.timing import LineFormat
 
 
@@ -25,13 +26,15 @@ async def scan(
     timeout_s: float | None = None,
     progress: Callable[[LineFormat, int, int], None] | None = None,
     line_factory: Callable[..., Line] = Line,
+    options: PortOptions | None = None,
 ) -> ScanReport:
     """Open ``port`` in each format in turn and probe every address.
 
     ``progress(format, address, found_so_far)`` is called after each address, with the
     devices found in all formats so far. A port that
     cannot be opened raises :class:`gateway.errors.BusClosedError` before anything is sent.
-    ``line_factory(port=..., line=...)`` builds each :class:`Line` (a seam for tests).
+    ``line_factory(port=..., line=...)`` builds each :class:`Line` (a seam for tests);
+    ``options`` (a configured bus's RS485 mode and shared-bus hints) are passed on to it.
     """
     if timeout_s is not None and not 0 < timeout_s <= MAX_RESPONSE_TIMEOUT_S:
         raise ConfigError(
@@ -43,7 +46,11 @@ async def scan(
     garbled: list[tuple[LineFormat, int]] = []
     requests = 0
     for fmt in formats:
-        line = line_factory(port=port, line=fmt)
+        line = (
+            line_factory(port=port, line=fmt)
+            if options is None
+            else line_factory(port=port, line=fmt, options=options)
+        )
         await line.open()
         try:
             scanner = Scanner(line, timeout_s=timeout_s)

@@ -233,6 +233,17 @@ class _LineFamilies:
             "Times the port could not be opened or was lost",
             labels=["bus"],
         )
+        self._port_problem = GaugeMetricFamily(
+            "gateway_bus_port_problem",
+            "1 for the reason the bus's port is not open (missing, permission_denied, "
+            "in_use, no_rs485_mode, driver_error); absent while it is open",
+            labels=["bus", "reason"],
+        )
+        self._latency_timer = GaugeMetricFamily(
+            "gateway_port_latency_timer_seconds",
+            "The USB adapter's latency timer (FTDI): how long it may hold received bytes",
+            labels=["bus"],
+        )
 
     def add(self, bus: str, stats: LineStats, names: Mapping[int, str], now: float) -> None:
         """One bus: its counters per device (by name; ``address_N`` if not configured)."""
@@ -261,12 +272,17 @@ class _LineFamilies:
         self._busy.add_metric([bus], stats.busy_s)
         self._port_open.add_metric([bus], float(stats.port_open))
         self._port_failures.add_metric([bus], stats.port_failures)
+        if not stats.port_open and stats.port_problem is not None:
+            self._port_problem.add_metric([bus, stats.port_problem], 1.0)
+        if stats.latency_timer_s is not None:
+            self._latency_timer.add_metric([bus], stats.latency_timer_s)
 
     def families(self) -> Iterator[Metric]:
         """Every family, empty ones included (their HELP and TYPE still document them)."""
         yield from (self._requests, self._responses, self._errors, self._exceptions)
         yield from (self._retries, self._quirks, self._latency)
         yield from (self._utilisation, self._busy, self._port_open, self._port_failures)
+        yield from (self._port_problem, self._latency_timer)
 
 
 def _buckets(counts: Mapping[tuple[int, float], int], address: int) -> list[tuple[str, float]]:

@@ -84,6 +84,11 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         )
         buses[bus] = {
             "port_open": stats.port_open,
+            # Why not (line/port_access.PortReason: missing, permission_denied, in_use,
+            # no_rs485_mode, driver_error) and the message with the remedy; null while open.
+            "port_problem": None if stats.port_open else stats.port_problem,
+            "port_error": None if stats.port_open else (stats.port_error or None),
+            "latency_timer_s": stats.latency_timer_s,
             "devices_online": online,
             "devices": len(devices),
             "line_noise": stats.noisy,  # the line never fell silent before the last request
@@ -95,7 +100,8 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
             ),
         }
         if not stats.port_open:
-            reasons.append(f"bus {bus}: port not open ({stats.port_failures} failures)")
+            why = f": {stats.port_problem}: {stats.port_error}" if stats.port_problem else ""
+            reasons.append(f"bus {bus}: port not open ({stats.port_failures} failures){why}")
         elif stats.noisy is not None:
             reasons.append(f"bus {bus}: {stats.noisy}")
     mqtt = snapshot.mqtt
