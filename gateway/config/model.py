@@ -131,6 +131,25 @@ def _standard_baudrate(value: int) -> int:
     return value
 
 
+def _serial_number(value: object) -> object:
+    """Text or a whole number (``devices[].serial_number``); never a float or a boolean.
+
+    YAML reads ``1.10`` as a float and ``yes`` as a boolean: either would be compared as
+    something the sensor never sent, so they are refused with the remedy instead.
+    """
+    if isinstance(value, bool) or not isinstance(value, str | int):
+        shown = "a boolean" if isinstance(value, bool) else f"a {type(value).__name__}"
+        raise ValueError(  # noqa: TRY004 - pydantic reports ValueError with the key and line
+            f"{value!r} is {shown}, not a serial number: write it in quotes as the sensor "
+            'reports it, e.g. serial_number: "S19010593"'
+        )
+    if isinstance(value, int) and value < 0:
+        raise ValueError(f"{value} is negative; a serial number is text or a whole number")
+    if isinstance(value, str) and not value.strip():
+        raise ValueError("is empty: give the serial number, or leave the key out")
+    return value
+
+
 def _upper(value: object) -> object:
     return value.upper() if isinstance(value, str) else value
 
@@ -290,6 +309,8 @@ class DeviceConfig(_Model):
     # is refused (RAM and volatile points need no permission).
     flash_writes: list[str] = []
     flash_write_budget: Annotated[int, Field(ge=0, le=1000)] = DEFAULT_FLASH_WRITE_BUDGET
+    # The serial number the sensor must report (README: pinning serial numbers); None: any.
+    serial_number: Annotated[str | int, BeforeValidator(_serial_number)] | None = None
 
     def get_profile(self) -> Profile:
         """The device's register map (a :class:`ConfigError` for an unknown profile id)."""
