@@ -260,10 +260,17 @@ async def test_another_serial_publishes_nothing_until_the_pinned_one_answers(
             assert to_s10
             assert set(to_s10) == {SERIAL_READ}
 
-            # Nor is it written to: the write is refused before the bus.
-            point = r.worker.device_profile("s10").point("tag_number")
-            with pytest.raises(CommandRejectedError, match="s10 is not the configured sensor"):
-                await r.worker.write_registers("s10", point, (0x4142, 0))
+            # Nor is it written to or read by commands: refused before the bus.
+            refused = (
+                f"s10 is not the configured sensor: serial number {OTHER_SERIAL} answers, "
+                f"{S10_SERIAL} is pinned; nothing is read from it or written to it"
+            )
+            profile = r.worker.device_profile("s10")
+            with pytest.raises(CommandRejectedError) as caught:
+                await r.worker.write_registers("s10", profile.point("tag_number"), (0x4142, 0))
+            assert str(caught.value) == refused
+            with pytest.raises(CommandRejectedError):
+                await r.worker.read_points("s10", [profile.point("temperature")])
             assert list(r.server.bus.devices[1].write_log) == []
 
             # The adapter swapped back: the pinned sensor answers again.

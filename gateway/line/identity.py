@@ -8,7 +8,7 @@ re-read then, :meth:`~gateway.line.schedule.Schedule.restart_device`).
 
 Until then its samples are held back and its coming online is not announced. On another
 serial (or none readable) the device is *held*: offline with a reason that says so, no
-values published, no writes let through, and no polling but a read of the serial number
+values published, no command's read or write let through, and no polling but a read of the serial number
 alone on the probe backoff, for a swapped adapter may be swapped back. The right serial
 releases it, polled in full again. The first verdict of a streak is an ERROR with both
 serials and the remedy; repeats are DEBUG; the release is INFO. Devices without a pin
@@ -124,15 +124,25 @@ class IdentityGuard:
         return False
 
     def require_expected(self, device: str) -> None:
-        """Refuse a write to a pinned device not confirmed: it may be another sensor."""
+        """Refuse a command's read or write of a pinned device not confirmed.
+
+        It may be another sensor, whose values would be shown, or which would be written
+        to, under this device's name.
+        """
         pin = self._pins.get(device)
         if pin is None or pin.verdict is IdentityVerdict.CONFIRMED:
             return
         if pin.verdict is IdentityVerdict.MISMATCH:
-            why = f"serial number {pin.answered} answers, not the pinned {pin.expected}"
+            why = (
+                f"{device} is not the configured sensor: serial number {pin.answered} "
+                f"answers, {pin.expected} is pinned"
+            )
         else:
-            why = f"serial number {pin.expected} not confirmed yet"
-        raise CommandRejectedError(f"{device} is not the configured sensor ({why}); not written")
+            why = (
+                f"{device}: its pinned serial number {pin.expected} is not confirmed, so "
+                "it may be another sensor"
+            )
+        raise CommandRejectedError(f"{why}; nothing is read from it or written to it")
 
     async def screen(self, state: DeviceState, samples: Sequence[Sample]) -> Sequence[Sample]:
         """The samples of a poll cycle that may be published: all of them, or none.

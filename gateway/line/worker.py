@@ -286,8 +286,9 @@ class BusWorker:
 
         Queued ahead of due reads while :meth:`run` polls, else run at once. A point that
         could not be read comes back with quality ``comms_error``; the samples are not
-        published.
+        published. A device whose pinned serial number is not confirmed refuses it.
         """
+        self.identity.require_expected(device)
         return await self.jobs.read_points(device, points)
 
     async def read_once(self, device: str) -> list[Sample]:
