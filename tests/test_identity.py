@@ -323,3 +323,46 @@ async def test_an_unread_identity_publishes_nothing_until_it_is_confirmed(tmp_pa
     s10_events = [e.online for e in r.sink.events if e.device == "s10"]
     assert s10_events[-1] is True
     assert r.worker.health()[0].identity == "confirmed"
+
+
+async def test_adapters_swapped_at_a_replug_are_caught_at_the_reconnection(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    devices = [{"profile": S10, "address": 1, "animate": False, "values": {"temperature": 20.25}}]
+    targets = [pinned("s10", S10, 1, S10_SERIAL, interval=0.2, probe_max_s=0.5)]
+    async with rig(tmp_path, devices, targets) as r:
+        task = asyncio.create_task(r.worker.run())
+        try:
+            await asyncio.sleep(1.0)
+            assert r.sink.good("s10", "temperature")
+            # Unplugged; what comes back at the same path is the other line's adapter, whose
+            # S10 has the same address and format.
+            r.server.unplug_pty()
+            await asyncio.sleep(1.0)
+            r.server.bus.devices[1].hold("serial_number", OTHER_SERIAL)
+            r.server.bus.devices[1].hold("temperature", 11.5)
+            back = asyncio.get_running_loop().time()
+            r.server.replug_pty()
+            await asyncio.sleep(2.5)
+        finally:
+            r.worker.request_stop()
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+    assert r.line.stats.port_failures >= 1
+    # The other sensor's temperature never reached a sink under this device's name.
+    assert {s.value for s in r.sink.good("s10", "temperature")} == {20.25}
+    assert not [s for s in r.sink.samples if s.device == "s10" and s.monotonic > back]
+    events = [(e.online, e.reason) for e in r.sink.events if e.device == "s10"]
+    assert events[0] == (True, "answered")
+    assert events[-1] == (
+        False,
+        f"not the configured sensor: serial number {OTHER_SERIAL} answered, {S10_SERIAL} is pinned",
+    )
+    assert [e for e in events[1:] if e[0]] == []  # never "online" again
+    errors = [r.getMessage() for r in identity_records(caplog) if r.levelno == logging.ERROR]
+    assert len(errors) == 1
+    assert (
+        f"serial number {OTHER_SERIAL} answered, but serial_number pins {S10_SERIAL}" in (errors[0])
+    )
+    assert r.worker.health()[0].identity == "mismatch"
