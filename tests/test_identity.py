@@ -98,10 +98,10 @@ def test_an_unquoted_serial_yaml_reads_as_octal_still_matches_its_digits() -> No
 @pytest.mark.parametrize(
     ("value", "message"),
     [
-        ("1.5", "1.5 is a float, not a serial number: write it in quotes"),
-        ("true", "True is a boolean, not a serial number"),
-        ('""', "is empty: give the serial number, or leave the key out"),
-        ("[S1, S2]", "['S1', 'S2'] is a list, not a serial number"),
+        ("1.10", "YAML reads this as the number 1.1 (digits lost), not a serial number"),
+        ("yes", "YAML reads this as the boolean true (as it does yes, no, on, off)"),
+        ('""', "an empty serial number pins nothing: give the serial number, or leave"),
+        ("[S1, S2]", "['S1', 'S2'] is a list, not a serial number: write it in quotes"),
         ("-5", "-5 is negative"),
     ],
 )

@@ -48,6 +48,7 @@ from gateway.config.flash_policy import FlashPolicy
 from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
+from gateway.profiles.identity import EMPTY_SERIAL
 from gateway.wire.codec import WordOrder  # noqa: TC001 - pydantic resolves it at run time
 from gateway.wire.timing import LineFormat, Parity
 
@@ -137,16 +138,24 @@ def _serial_number(value: object) -> object:
     YAML reads ``1.10`` as a float and ``yes`` as a boolean: either would be compared as
     something the sensor never sent, so they are refused with the remedy instead.
     """
-    if isinstance(value, bool) or not isinstance(value, str | int):
-        shown = "a boolean" if isinstance(value, bool) else f"a {type(value).__name__}"
+    quote = 'write it in quotes as the sensor reports it, e.g. serial_number: "S19010593"'
+    if isinstance(value, bool):
         raise ValueError(  # noqa: TRY004 - pydantic reports ValueError with the key and line
-            f"{value!r} is {shown}, not a serial number: write it in quotes as the sensor "
-            'reports it, e.g. serial_number: "S19010593"'
+            f"YAML reads this as the boolean {str(value).lower()} (as it does yes, no, on, "
+            f"off), not a serial number: {quote}"
+        )
+    if isinstance(value, float):
+        raise ValueError(  # noqa: TRY004
+            f"YAML reads this as the number {value!r} (digits lost), not a serial number: {quote}"
+        )
+    if not isinstance(value, str | int):
+        raise ValueError(  # noqa: TRY004
+            f"{value!r} is a {type(value).__name__}, not a serial number: {quote}"
         )
     if isinstance(value, int) and value < 0:
         raise ValueError(f"{value} is negative; a serial number is text or a whole number")
     if isinstance(value, str) and not value.strip():
-        raise ValueError("is empty: give the serial number, or leave the key out")
+        raise ValueError(EMPTY_SERIAL)
     return value
 
 

@@ -8,11 +8,11 @@ re-read then, :meth:`~gateway.line.schedule.Schedule.restart_device`).
 
 Until then its samples are held back and its coming online is not announced. On another
 serial (or none readable) the device is *held*: offline with a reason that says so, no
-values published, no command's read or write let through, and no polling but a read of the serial number
-alone on the probe backoff, for a swapped adapter may be swapped back. The right serial
-releases it, polled in full again. The first verdict of a streak is an ERROR with both
-serials and the remedy; repeats are DEBUG; the release is INFO. Devices without a pin
-pass through untouched.
+values published, no command's read or write let through, and no polling but a read of
+the serial number alone on the probe backoff, for a swapped adapter may be swapped back.
+The right serial releases it, polled in full again. The first verdict of a streak is an
+ERROR with both serials and the remedy; repeats are DEBUG; the release is INFO. Devices
+without a pin pass through untouched.
 """
 
 from __future__ import annotations

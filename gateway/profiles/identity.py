@@ -33,6 +33,9 @@ if TYPE_CHECKING:
 # The point every profile names its sensor's serial number by (digiLine 0x0100, tecLine and
 # Reiss 0x030C): one name across families, as MQTT and the metrics already use it.
 SERIAL_NUMBER_POINT: Final = "serial_number"
+EMPTY_SERIAL: Final = (
+    "an empty serial number pins nothing: give the serial number, or leave the key out"
+)
 
 _TEXT_TYPES: Final = frozenset({DataType.STRING})
 _WHOLE_TYPES: Final = frozenset(
@@ -88,7 +91,7 @@ class PinnedSerial:
         if isinstance(configured, str):
             configured = configured.strip()
             if not configured:
-                raise ValueError("is empty: give the serial number, or leave the key out")
+                raise ValueError(EMPTY_SERIAL)
         if dtype in _WHOLE_TYPES:
             if isinstance(configured, str) and not _digits(configured):
                 raise ValueError(
