@@ -366,3 +366,40 @@ async def test_adapters_swapped_at_a_replug_are_caught_at_the_reconnection(
         f"serial number {OTHER_SERIAL} answered, but serial_number pins {S10_SERIAL}" in (errors[0])
     )
     assert r.worker.health()[0].identity == "mismatch"
+
+
+async def test_a_serial_number_the_sensor_refuses_holds_the_device(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # This unit answers everything but its serial number (exception 02 at 0x0100).
+    devices = [{"profile": S10, "address": 1, "animate": False, "unmapped": [0x0100]}]
+    targets = [pinned("s10", S10, 1, S10_SERIAL, interval=0.2, probe_max_s=0.5)]
+    async with rig(tmp_path, devices, targets) as r:
+        await r.run_for(2.0)
+        health = r.worker.health()[0]
+    assert [s for s in r.sink.samples if s.device == "s10"] == []
+    assert [(e.online, e.reason) for e in r.sink.events] == [
+        (
+            False,
+            "identity not confirmed: its serial number could not be read (exception_02)",
+        )
+    ]
+    assert (health.identity, health.online, health.answered_serial) == (
+        "unread",
+        False,
+        "exception_02",
+    )
+    errors = [r.getMessage() for r in identity_records(caplog) if r.levelno == logging.ERROR]
+    assert errors == [
+        (
+            "line1/s10 (address 1): its serial number could not be read (exception_02), so "
+            "it cannot be told from another sensor: nothing is published for it until "
+            f"serial number {S10_SERIAL} is read; check the profile and the device. "
+            "Checking again on the probe backoff"
+        )
+    ]
+    # Still checked on the backoff: the serial alone, several times in two seconds.
+    serial_reads = [
+        f for f in r.frames() if f.device == 1 and (f.address, f.quantity) == SERIAL_READ
+    ]
+    assert len(serial_reads) >= 3
