@@ -26,6 +26,7 @@ from gateway.line.foreign import SharePolicy
 from gateway.line.port import Line
 from gateway.line.port_access import SystemRoots, port_name_advice, port_options
 from gateway.line.worker import BusWorker
+from gateway.profiles.identity import pinned_serial
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
 from gateway.publish.sparkplug import SparkplugSink
@@ -70,6 +71,7 @@ def device_target(device: DeviceConfig, bus: BusConfig) -> DeviceTarget:
         extra_gap_s=device.inter_frame_gap_ms / 1000,
         retries=device.retries_on(bus),
         offline_after=device.offline_after,
+        serial_number=pinned_serial(profile, device.serial_number),
     )
 
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.config import check_config
+from gateway.config import check_config, load_config
 from gateway.errors import BusClosedError, ConfigError
 from gateway.line.port import Line
 from gateway.line.scan import (
@@ -160,6 +160,31 @@ async def test_config_snippet_passes_the_config_check(tmp_path: Path) -> None:
         assert f"name: {family}_{address}\n" in text
         assert f"profile: {profile}" in text
     assert "profile: jumo-tecline-cl2  # guess" in text
+
+
+async def test_config_snippet_pins_each_serial_number_read(tmp_path: Path) -> None:
+    async with simulated(tmp_path, PLANT) as (_server, port):
+        report = await scan(
+            str(port), formats=[FAST_LINE], addresses=(7, 45, 201), timeout_s=SHORT_TIMEOUT_S
+        )
+    text = report.config_yaml()
+    # Quoted: the tecLine's digits would be an (octal) number to YAML unquoted.
+    assert '    profile: jumo-digiline-odo-s10\n    serial_number: "S100000007"\n' in text
+    assert '    serial_number: "0104714601000000045"\n' in text
+    assert (
+        "    profile: jumo-tecline-cl2  # guess: check the nameplate\n"
+        '    serial_number: "0104714601000000201"\n'
+    ) in text
+    config = tmp_path / "scanned.yaml"
+    config.write_text(text, encoding="utf-8")
+    pinned = {
+        device.name: device.serial_number for device in load_config(config, environ={}).devices
+    }
+    assert pinned == {
+        "digiline_7": "S100000007",
+        "reiss_45": "0104714601000000045",
+        "tecline_201": "0104714601000000201",
+    }
 
 
 # --- identification details --------------------------------------------------------------

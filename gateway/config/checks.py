@@ -1,8 +1,9 @@
 """Cross-field checks: what needs the whole config, not one entry.
 
 Bus and device names unique, buses and profiles known, one address per device on a bus,
-per-point settings, flash writes and feeds that name points of the device's profile, and
-response timeouts that fit in the device's poll interval.
+per-point settings, flash writes and feeds that name points of the device's profile, a
+pinned serial number the profile can read, and response timeouts that fit in the device's
+poll interval.
 
 Each check runs on every entry that can be checked, even if others are broken, and yields
 ``(key path, message)``; :mod:`gateway.config.loading` locates them.
@@ -24,6 +25,7 @@ from pydantic import (
     ValidationError,
 )
 
+from gateway.config.identity import check_serial_number
 from gateway.config.model import (
     BusConfig,
     DeviceConfig,
@@ -93,6 +95,7 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
         if profile_id is not None:
             yield from _check_profile(here, profile_id, device.raw.get("points"))
             yield from _check_flash_writes(here, profile_id, device.raw.get("flash_writes"))
+            yield from check_serial_number(here, _profile_or_none(profile_id), device.raw)
         model = device.model
         if model is None:
             continue

@@ -49,6 +49,7 @@ from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves 
 from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
+from gateway.profiles.identity import EMPTY_SERIAL
 from gateway.wire.codec import WordOrder  # noqa: TC001 - pydantic resolves it at run time
 from gateway.wire.timing import LineFormat, Parity
 
@@ -129,6 +130,33 @@ def _standard_baudrate(value: int) -> int:
         raise ValueError(
             f"{value} is not a standard baud rate; use one of {', '.join(map(str, BAUDRATES))}"
         )
+    return value
+
+
+def _serial_number(value: object) -> object:
+    """Text or a whole number (``devices[].serial_number``); never a float or a boolean.
+
+    YAML reads ``1.10`` as a float and ``yes`` as a boolean: either would be compared as
+    something the sensor never sent, so they are refused with the remedy instead.
+    """
+    quote = 'write it in quotes as the sensor reports it, e.g. serial_number: "S19010593"'
+    if isinstance(value, bool):
+        raise ValueError(  # noqa: TRY004 - pydantic reports ValueError with the key and line
+            f"YAML reads this as the boolean {str(value).lower()} (as it does yes, no, on, "
+            f"off), not a serial number: {quote}"
+        )
+    if isinstance(value, float):
+        raise ValueError(  # noqa: TRY004
+            f"YAML reads this as the number {value!r} (digits lost), not a serial number: {quote}"
+        )
+    if not isinstance(value, str | int):
+        raise ValueError(  # noqa: TRY004
+            f"{value!r} is a {type(value).__name__}, not a serial number: {quote}"
+        )
+    if isinstance(value, int) and value < 0:
+        raise ValueError(f"{value} is negative; a serial number is text or a whole number")
+    if isinstance(value, str) and not value.strip():
+        raise ValueError(EMPTY_SERIAL)
     return value
 
 
@@ -305,6 +333,8 @@ class DeviceConfig(_Model):
     # is refused (RAM and volatile points need no permission).
     flash_writes: list[str] = []
     flash_write_budget: Annotated[int, Field(ge=0, le=1000)] = DEFAULT_FLASH_WRITE_BUDGET
+    # The serial number the sensor must report (README: pinning serial numbers); None: any.
+    serial_number: Annotated[str | int, BeforeValidator(_serial_number)] | None = None
 
     def get_profile(self) -> Profile:
         """The device's register map (a :class:`ConfigError` for an unknown profile id)."""

@@ -13,6 +13,7 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from gateway.profiles import Point, Profile
+    from gateway.profiles.identity import PinnedSerial
 
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
 # Polled in the time process values leave free (the schedule's "slow" class).
@@ -34,6 +35,7 @@ class DeviceTarget:
     retries: int = 2
     offline_after: int = 3
     probe_max_s: float = PROBE_MAX_S
+    serial_number: PinnedSerial | None = None  # the serial it must report; None: any
 
     # Points of the diagnostics and configuration groups, polled in free line time; resolved
     # once here, not looked up on every scheduling step.

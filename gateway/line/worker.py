@@ -26,6 +26,7 @@ from gateway.line.decode import Decoder
 from gateway.line.devices import DeviceState
 from gateway.line.foreign import ForeignQueue
 from gateway.line.health import Availability
+from gateway.line.identity import IdentityGuard
 from gateway.line.jobs import JobQueue
 from gateway.line.port_access import PortReason
 from gateway.line.samples import DeviceEvent
@@ -89,6 +90,15 @@ class BusWorker:
         )
         self.jobs = JobQueue(
             bus=name, devices=self.devices, transactions=self.transactions, wake=self._wake
+        )
+        # Pinned serial numbers: nothing published for, or written to, another sensor.
+        self.identity = IdentityGuard(
+            bus=name,
+            devices=self.devices,
+            transactions=self.transactions,
+            availability=self.availability,
+            schedule=self.schedule,
+            announce=self._send_event,
         )
         # Other masters' requests (shared_bus:), refused until the gateway opens it.
         self.foreign = ForeignQueue(
@@ -257,8 +267,8 @@ class BusWorker:
         return self.jobs.running
 
     def health(self) -> list[DeviceHealth]:
-        """Each device's availability, lag and missed deadlines (read by the metrics)."""
-        return self.availability.health()
+        """Each device's availability, lag, missed deadlines and identity (for the metrics)."""
+        return self.identity.annotate(self.availability.health())
 
     # --- the devices ------------------------------------------------------------------
 
@@ -297,6 +307,7 @@ class BusWorker:
         self, device: str, point: str, value: object
     ) -> asyncio.Future[frames.Response | None]:
         """Queue a write; it runs before pending reads but after any wait the rules require."""
+        self.identity.require_expected(device)
         return self.jobs.submit_write(device, point, value)
 
     async def write_registers(
@@ -306,8 +317,11 @@ class BusWorker:
 
         While :meth:`run` polls, the write queues ahead of due reads; otherwise (the command
         line) it runs at once, after any wait still pending. Failures raise as the bus
-        reports them (:class:`DeviceExceptionError`, :class:`BusTimeoutError`, ...).
+        reports them (:class:`DeviceExceptionError`, :class:`BusTimeoutError`, ...); a
+        device whose pinned serial number is not confirmed refuses it
+        (:class:`CommandRejectedError`).
         """
+        self.identity.require_expected(device)
         return await self.jobs.write_registers(device, point, registers)
 
     async def read_points(self, device: str, points: Sequence[Point]) -> list[Sample]:
@@ -315,8 +329,9 @@ class BusWorker:
 
         Queued ahead of due reads while :meth:`run` polls, else run at once. A point that
         could not be read comes back with quality ``comms_error``; the samples are not
-        published.
+        published. A device whose pinned serial number is not confirmed refuses it.
         """
+        self.identity.require_expected(device)
         return await self.jobs.read_points(device, points)
 
     async def read_once(self, device: str) -> list[Sample]:
@@ -356,7 +371,9 @@ class BusWorker:
                 foreign_turn = False
                 continue
             if (state := self.schedule.pick(now, slow=False)) is not None:
-                if state.online is False:
+                if self.identity.holds(state):
+                    await self.identity.recheck(state, now)
+                elif state.online is False:
                     await self.transactions.probe(state, now)
                 else:
                     await self._poll(state, now, slow=False)
@@ -406,9 +423,10 @@ class BusWorker:
                 late.lag_s,
                 late.interval_s,
             )
-        if samples:
+        published = await self.identity.screen(state, samples)
+        if published:
             for sink in self.sinks:
-                await sink.publish(samples)
+                await sink.publish(published)
 
     @staticmethod
     def _block_deadline(state: DeviceState, block: ReadBlock) -> float:
@@ -416,6 +434,10 @@ class BusWorker:
         return min(state.next_due.get(p.name, 0.0) for p in block.points)
 
     async def _event(self, state: DeviceState, *, online: bool, reason: str) -> None:
+        if self.identity.announces(state, online=online, reason=reason):
+            await self._send_event(state, online=online, reason=reason)
+
+    async def _send_event(self, state: DeviceState, *, online: bool, reason: str) -> None:
         event = DeviceEvent(
             bus=self.name,
             device=state.target.name,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -91,7 +92,9 @@ class ScanReport:
         """A config snippet to paste: one bus in the chosen format, its devices.
 
         Devices without a profile, or found only in another format, are listed as comments:
-        one line carries one format.
+        one line carries one format. Each device's serial number, where it was read, is
+        pinned (``serial_number:``), so a swapped adapter cannot pass one line's sensors off
+        as the other's.
         """
         chosen = self.config_format
         if chosen is None:
@@ -125,6 +128,7 @@ class ScanReport:
             if device.guess:
                 item[-1] += "  # guess: check the nameplate"
             lines.extend(item)
+            lines.extend(_serial_line(device))
         taken = {device.address for device in on_bus}
         for device in self.devices:
             if device in on_bus or device.address in taken:
@@ -148,6 +152,17 @@ class ScanReport:
             "requests": self.requests,
             "elapsed_s": round(self.elapsed_s, 3),
         }
+
+
+def _serial_line(device: FoundDevice) -> list[str]:
+    """``serial_number:`` as read, quoted if text (digits unquoted would be a number to YAML)."""
+    serial = device.details.get("serial_number")
+    if isinstance(serial, str) and serial.strip():
+        # JSON's double-quoted string is YAML's: "0104714601000000201" stays text.
+        return [f"    serial_number: {json.dumps(serial.strip())}"]
+    if isinstance(serial, int) and not isinstance(serial, bool):
+        return [f"    serial_number: {serial}"]
+    return []
 
 
 def _yaml_item(mapping: Mapping[str, object]) -> list[str]:

@@ -9,6 +9,7 @@ from prometheus_client.metrics_core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from gateway.publish.prometheus.health import device_families, line_families
+from gateway.publish.prometheus.identity import identity_families
 from gateway.publish.prometheus.shared_bus import shared_bus_families
 from gateway.publish.prometheus.values import value_families
 from gateway.publish.prometheus.writes import mqtt_families, sparkplug_families, write_families
@@ -54,6 +55,7 @@ class GatewayCollector(Collector):
         )
         yield from value_families(snapshot, now)
         yield from device_families(snapshot, health)
+        yield from identity_families(health)
         yield from line_families(snapshot, health, now)
         yield from mqtt_families(snapshot)
         yield from sparkplug_families(snapshot)

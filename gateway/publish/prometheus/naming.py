@@ -70,6 +70,7 @@ RESERVED_NAMES: Final = frozenset(
         "gateway_enum_info",
         "gateway_device_info",
         "gateway_device_online",
+        "gateway_device_identity_mismatch",
         "gateway_poll_lag_seconds",
         "gateway_unreadable_points",
         "gateway_bus_utilisation_ratio",

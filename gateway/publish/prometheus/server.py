@@ -20,6 +20,7 @@ from prometheus_client.registry import Collector
 from gateway.errors import PublishError
 from gateway.line.port import ErrorKind
 from gateway.publish.prometheus.collector import GatewayCollector
+from gateway.publish.prometheus.identity import identity_report
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Sequence
@@ -71,10 +72,13 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
 
     Healthy: every bus port is open, and MQTT is connected or buffering within its bound.
     A device that does not answer is the device's problem, not the gateway's: it shows
-    in ``devices_online`` and the metrics, not in the status.
+    in ``devices_online`` and the metrics, not in the status; so does a device whose
+    pinned serial number another sensor answers with, listed under ``identity`` with
+    both serials and what to do.
     """
     snapshot = state.snapshot()
-    availability = {(h.bus, h.device): h.online for h in snapshot.health()}
+    health = snapshot.health()
+    availability = {(h.bus, h.device): h.online for h in health}
     reasons: list[str] = []
     buses: dict[str, object] = {}
     for bus, stats in sorted(snapshot.lines.items()):
@@ -114,6 +118,7 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         "status": "unhealthy" if reasons else "ok",
         "reasons": reasons,
         "buses": buses,
+        "identity": identity_report(health),
         **_shared_bus(snapshot),
         "mqtt": {
             "enabled": mqtt.enabled,
