@@ -36,7 +36,7 @@ def _reader(sock: socket.socket, tally: Counter[str], stop: threading.Event) -> 
             tally["eof"] += 1
             return
         buffer += chunk
-        while len(buffer) >= 6:  # noqa: PLR2004 - the MBAP header's first six bytes
+        while len(buffer) >= 6:  # the MBAP header up to its length
             length = int.from_bytes(buffer[4:6], "big")
             if len(buffer) < 6 + length:
                 break

@@ -27,6 +27,7 @@ from gateway.line.devices import DeviceState
 from gateway.line.foreign import ForeignQueue
 from gateway.line.health import Availability
 from gateway.line.jobs import JobQueue
+from gateway.line.lateness import Lateness, loop_watch
 from gateway.line.samples import DeviceEvent
 from gateway.line.schedule import Schedule
 from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
@@ -97,6 +98,7 @@ class BusWorker:
             schedule=self.schedule,
             wake=self._wake,
         )
+        self.lateness = Lateness(line)  # what made a late poll late, for the log
         self._port_failures_in_a_row = 0
         self._stopping = False
         self._stop_requested = asyncio.Event()  # also set to end a backoff for a pause
@@ -110,9 +112,12 @@ class BusWorker:
         """Open the port, poll, and on port failure reopen with capped jittered backoff."""
         delay = PORT_BACKOFF_FIRST_S
         self.jobs.running = True
+        watch = self.lateness.watch = loop_watch()
+        watch.attach()
         try:
             await self._run(delay)
         finally:
+            watch.detach()
             self.jobs.running = False
             self.foreign.accepting = False
             self._released.set()  # a pause waiting for the line has it now
@@ -340,6 +345,7 @@ class BusWorker:
             raise BusClosedError(f"{self.line.port} went away")
 
     async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
+        self.lateness.mark(now)
         names = self.schedule.due_points(state, now, slow=slow)
         samples: list[Sample] = []
         reads = self.transactions
@@ -354,14 +360,9 @@ class BusWorker:
             samples.extend(await reads.read_block(state, block) or ())
         late = self.schedule.advance(state, [s.point for s in samples], now)
         if late is not None:
+            # The line, or the process: what took the time decides the remedy.
             _LOGGER.warning(
-                "%s/%s: the line cannot keep up: %s is %.2f s late (interval %.2f s); "
-                "see the poll lag metric",
-                self.name,
-                state.target.name,
-                late.point,
-                late.lag_s,
-                late.interval_s,
+                "%s/%s: %s", self.name, state.target.name, self.lateness.explain(late, now)
             )
         if samples:
             for sink in self.sinks:

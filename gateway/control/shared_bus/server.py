@@ -19,6 +19,7 @@ import time
 from typing import TYPE_CHECKING, Final, Self
 
 from gateway.control.flash import utc_today
+from gateway.control.shared_bus.connection import ClientConnection
 from gateway.control.shared_bus.framing import FramingError, framer_for
 from gateway.control.shared_bus.pdu import (
     DEVICE_BUSY,
@@ -36,6 +37,7 @@ from gateway.control.shared_bus.pdu import (
     parse_request,
 )
 from gateway.control.shared_bus.policy import client_for, client_policies
+from gateway.control.shared_bus.throttle import Throttle
 from gateway.errors import (
     BusBusyError,
     BusClosedError,
@@ -45,6 +47,7 @@ from gateway.errors import (
     DeviceExceptionError,
     FrameError,
 )
+from gateway.line.lateness import loop_watch
 from gateway.profiles.model import Storage
 
 if TYPE_CHECKING:
@@ -61,8 +64,17 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-READ_CHUNK: Final = 4096
-DRAIN_TIMEOUT_S: Final = 10.0  # a client that reads no answers for this long is dropped
+DRAIN_TIMEOUT_S: Final = 10.0  # a client that reads no answers for this long is reset
+CLOSE_WAIT_S: Final = 2.0  # for the client's end of an orderly close, then it is reset
+LOOP_SOURCE: Final = "answering other masters on the shared bus"  # named in late-poll logs
+
+
+class _SilentError(Exception):
+    """The client sent nothing for ``idle_timeout``."""
+
+
+class _NotReadingError(Exception):
+    """The client read no answer for ``DRAIN_TIMEOUT_S``."""
 
 
 class SharedBusServer:
@@ -88,6 +100,8 @@ class SharedBusServer:
         self._clients = client_policies(config.clients)
         self._servers: list[asyncio.Server] = []
         self._connections: set[asyncio.Task[None]] = set()
+        self._open: set[ClientConnection] = set()
+        self._throttle = Throttle(max_wait_s=config.max_wait)
         self.status.enabled = True
         self.status.share = config.bus_share
         for name, worker in workers.items():
@@ -95,10 +109,13 @@ class SharedBusServer:
 
     async def start(self) -> None:
         """Listen on every configured address; one that cannot be bound is a ConfigError."""
+        loop = asyncio.get_running_loop()
         for index, listen in enumerate(self.config.listen):
             try:
-                server = await asyncio.start_server(
-                    functools.partial(self._connection, listen=listen),
+                server = await loop.create_server(
+                    functools.partial(
+                        ClientConnection, functools.partial(self._opened, listen=listen)
+                    ),
                     host=listen.host,
                     port=listen.port,
                 )
@@ -143,75 +160,148 @@ class SharedBusServer:
                     await server.wait_closed()
         self._servers.clear()
 
+    @property
+    def open_connections(self) -> int:
+        """Sockets of clients not yet closed (they count toward ``max_connections``)."""
+        return len(self._open)
+
     # --- connections ----------------------------------------------------------------------
 
-    async def _connection(
-        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, *, listen: ListenConfig
-    ) -> None:
-        task = asyncio.current_task()
-        peer = writer.get_extra_info("peername") or ("?", 0)
-        host, port = str(peer[0]), int(peer[1])
-        client = client_for(self._clients, host)
-        if len(self._connections) >= self.config.max_connections:
+    def _opened(self, connection: ClientConnection, *, listen: ListenConfig) -> None:
+        """A client connected: serve it in a task of its own, or refuse it over the limit."""
+        host, port = connection.peer
+        if len(self._open) >= self.config.max_connections:
             _LOGGER.warning(
                 "shared bus: %s:%d refused: %d connections already",
                 host,
                 port,
-                len(self._connections),
+                len(self._open),
             )
-            writer.close()
+            self.status.client(client_for(self._clients, host).name).closed["limit"] += 1
+            connection.close()
             return
-        assert task is not None  # noqa: S101 - a connection runs in its own task
+        # A socket counts until it is really closed, not until its task ends: a client
+        # that reads nothing must not leave sockets behind that no limit sees.
+        self._open.add(connection)
+        connection.when_gone(self._open.discard)
+        task = asyncio.create_task(
+            self._connection(connection, listen=listen), name=f"shared_bus[{host}:{port}]"
+        )
         self._connections.add(task)
+        task.add_done_callback(self._connections.discard)
+
+    async def _connection(self, connection: ClientConnection, *, listen: ListenConfig) -> None:
+        host, port = connection.peer
+        client = client_for(self._clients, host)
         stats = self.status.client(client.name)
         name = f"{host}:{port}"
         stats.peers[name] = time.time()
         _LOGGER.info("shared bus: %s connected (client %s)", name, client.name)
+        ending = "eof"
         try:
-            await self._serve(reader, writer, framer_for(listen.framing), client, stats)
+            await self._serve(connection, framer_for(listen.framing), client, stats)
         except FramingError as exc:
+            ending = "malformed_frame"
             stats.refused["malformed_frame"] += 1
             _LOGGER.warning("shared bus: %s: %s; connection closed", name, exc)
-        except TimeoutError:
-            _LOGGER.info("shared bus: %s silent or not reading; connection closed", name)
+        except _SilentError:
+            ending = "idle"
+            _LOGGER.info("shared bus: %s silent; connection closed", name)
+        except _NotReadingError:
+            ending = "not_reading"
+            _LOGGER.warning(
+                "shared bus: %s read no answer for %.0f s; connection reset", name, DRAIN_TIMEOUT_S
+            )
         except (ConnectionError, OSError) as exc:
+            ending = "lost"
             _LOGGER.debug("shared bus: %s: %s", name, exc)
         finally:
             stats.peers.pop(name, None)
-            self._connections.discard(task)
-            writer.close()
-            with contextlib.suppress(ConnectionError, OSError, TimeoutError):
-                async with asyncio.timeout(1.0):
-                    await writer.wait_closed()
+            stats.closed[ending] += 1
+            await self._end(connection, graceful=ending in {"eof", "idle", "malformed_frame"})
             _LOGGER.info("shared bus: %s disconnected", name)
+
+    @staticmethod
+    async def _end(connection: ClientConnection, *, graceful: bool) -> None:
+        """Close the socket for good: an orderly end to a client that reads, else a reset."""
+        if graceful:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(CLOSE_WAIT_S):
+                    await connection.finish()
+        connection.abort()  # nothing left to send, or a client that does not take it
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(CLOSE_WAIT_S):
+                await connection.gone()
 
     async def _serve(
         self,
-        reader: asyncio.StreamReader,
-        writer: asyncio.StreamWriter,
+        connection: ClientConnection,
         framer: Framer,
         client: ClientPolicy,
         stats: SharedBusClient,
     ) -> None:
-        """One request at a time, in order: the next is read once this one is answered."""
+        """One request at a time, in order; at most ``max_in_flight`` read ahead of answers.
+
+        Each answer yields to the event loop, so requests the gateway answers itself (a
+        refusal, a cache hit) take turns with the polls however fast they come.
+        """
+        host = connection.peer[0]
+        rate = client.rate_limit or self.config.rate_limit
+        # One read holds at most ``max_in_flight`` requests, and the socket is read only
+        # when no whole request is left: the rest waits in TCP's buffers.
+        read_size = self.config.max_in_flight * framer.min_frame
         buffer = b""
+        watch = loop_watch()
         while True:
             frame = framer.decode(buffer)
             if frame is None:
-                async with asyncio.timeout(self.config.idle_timeout):
-                    chunk = await reader.read(READ_CHUNK)
-                if not chunk:
-                    return
-                stats.received_bytes += len(chunk)
-                buffer += chunk
-                continue
+                chunk = await self._receive(connection, framer, buffer, read_size)
+                if chunk is None:  # a silence ended the frame the buffer holds
+                    frame = framer.decode(buffer, silent=True)
+                else:
+                    if not chunk:
+                        return
+                    stats.received_bytes += len(chunk)
+                    buffer += chunk
+                    continue
+            assert frame is not None  # noqa: S101 - a silent decode returns one or raises
             buffer = buffer[frame.used :]
-            pdu = await self.answer(client, frame.unit, frame.pdu, stats)
+            wait = self._throttle.reserve(host, rate, time.monotonic())
+            started = time.perf_counter()
+            if wait is None:
+                stats.shed["rate_limit"] += 1
+                pdu = exception_pdu(frame.pdu[0] if frame.pdu else 0, DEVICE_BUSY)
+                stats.exceptions[DEVICE_BUSY] += 1
+                local = True
+            else:
+                if wait > 0:
+                    stats.throttled_s += wait
+                    await asyncio.sleep(wait)
+                    started = time.perf_counter()
+                pdu, local = await self._answer(client, frame.unit, frame.pdu, stats)
             out = framer.encode(pdu, frame.unit, frame.transaction)
-            writer.write(out)
             stats.sent_bytes += len(out)
-            async with asyncio.timeout(DRAIN_TIMEOUT_S):
-                await writer.drain()
+            if local:
+                watch.charge(LOOP_SOURCE, time.perf_counter() - started, started)
+            try:
+                async with asyncio.timeout(DRAIN_TIMEOUT_S):
+                    await connection.send(out)
+            except TimeoutError as exc:
+                raise _NotReadingError from exc
+            await asyncio.sleep(0)  # the polls' turn, whatever the client sends next
+
+    async def _receive(
+        self, connection: ClientConnection, framer: Framer, buffer: bytes, read_size: int
+    ) -> bytes | None:
+        """The next bytes (``b""`` at EOF); ``None`` when a silence ends the buffer's frame."""
+        silence = framer.silence_s if buffer else None
+        try:
+            async with asyncio.timeout(silence or self.config.idle_timeout):
+                return await connection.receive(read_size)
+        except TimeoutError as exc:
+            if silence is not None:
+                return None
+            raise _SilentError from exc
 
     # --- requests -------------------------------------------------------------------------
 
@@ -219,8 +309,20 @@ class SharedBusServer:
         self, client: ClientPolicy, unit: int, pdu: bytes, stats: SharedBusClient
     ) -> bytes:
         """The answer PDU to one request of ``client`` for ``unit``."""
+        answer, _ = await self._answer(client, unit, pdu, stats)
+        return answer
+
+    async def _answer(
+        self, client: ClientPolicy, unit: int, pdu: bytes, stats: SharedBusClient
+    ) -> tuple[bytes, bool]:
+        """The answer PDU, and whether the gateway gave it itself (without the line).
+
+        An answer given without the line is given without a pause (no ``await``): the
+        caller's clock around it is the time it held the event loop.
+        """
         function = pdu[0] if pdu else 0
         stats.requests[function] += 1
+        forwarded = False
         try:
             target = self.units.get(unit)
             if target is None:
@@ -234,15 +336,16 @@ class SharedBusServer:
                 self._check_flash(target, request, worker)
             elif (cached := self._cached(client, target, request, worker)) is not None:
                 stats.cache_answers += 1
-                return cached
-            return await self._forward(client, target, request, worker, stats)
+                return cached, True
+            forwarded = True
+            return await self._forward(client, target, request, worker, stats), False
         except RequestRefusedError as refused:
             stats.exceptions[refused.code] += 1
             stats.refused[refused.label] += 1
             # A refused write is news for whoever runs the plant; a busy line is not.
             log = _LOGGER.warning if function in WRITE_FUNCTIONS else _LOGGER.debug
             log("shared bus: client %s, unit %d: %s", client.name, unit, refused.reason)
-            return exception_pdu(function, refused.code)
+            return exception_pdu(function, refused.code), not forwarded
 
     def _cached(
         self, client: ClientPolicy, target: Unit, request: ClientRequest, worker: BusWorker
