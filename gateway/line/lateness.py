@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from gateway.line.schedule import Late
 
 TICK_S: Final = 0.05  # the watch's timer; 20 wakes a second cost ~1 ms of CPU
-STALL_MIN_S: Final = 0.01  # a timer this much late: the loop was busy, not just scheduling
+STALL_MIN_S: Final = 0.002  # a timer this much late: the loop was busy, not just scheduling
 SLOT_S: Final = 0.1  # charges are summed per source in slots this long
 HISTORY: Final = 4096  # stalls, charge slots and busy marks kept (minutes of history)
 LINE_BUSY_SHARE: Final = 0.5  # the line carried transactions this much of the lateness: its fault

@@ -128,7 +128,11 @@ class ClientConnection(asyncio.BufferedProtocol):
         """
         transport = self.transport
         if transport is not None and not transport.is_closing():
-            transport.write_eof()
+            try:
+                transport.write_eof()
+            except OSError:  # the client reset it meanwhile: nothing to end
+                transport.abort()
+                return
             self._discarding = True
             self._chunk = bytearray(DISCARD_CHUNK)
             transport.resume_reading()

@@ -215,6 +215,9 @@ class SharedBusServer:
         except (ConnectionError, OSError) as exc:
             ending = "lost"
             _LOGGER.debug("shared bus: %s: %s", name, exc)
+        except asyncio.CancelledError:
+            ending = "stopped"  # the gateway stops: no time for an orderly end
+            raise
         finally:
             stats.peers.pop(name, None)
             stats.closed[ending] += 1
@@ -267,17 +270,20 @@ class SharedBusServer:
             assert frame is not None  # noqa: S101 - a silent decode returns one or raises
             buffer = buffer[frame.used :]
             wait = self._throttle.reserve(host, rate, time.monotonic())
+            if wait != 0:
+                # Over its rate: this connection waits, reading nothing. A request whose
+                # turn comes after ``max_wait`` gets 06 then, as one the line cannot take
+                # in time; it waits too, so shedding costs no more than answering.
+                paused = self.config.max_wait if wait is None else wait
+                stats.throttled_s += paused
+                await asyncio.sleep(paused)
             started = time.perf_counter()
             if wait is None:
+                stats.requests[frame.pdu[0] if frame.pdu else 0] += 1
                 stats.shed["rate_limit"] += 1
-                pdu = exception_pdu(frame.pdu[0] if frame.pdu else 0, DEVICE_BUSY)
                 stats.exceptions[DEVICE_BUSY] += 1
-                local = True
+                pdu, local = exception_pdu(frame.pdu[0] if frame.pdu else 0, DEVICE_BUSY), True
             else:
-                if wait > 0:
-                    stats.throttled_s += wait
-                    await asyncio.sleep(wait)
-                    started = time.perf_counter()
                 pdu, local = await self._answer(client, frame.unit, frame.pdu, stats)
             out = framer.encode(pdu, frame.unit, frame.transaction)
             stats.sent_bytes += len(out)

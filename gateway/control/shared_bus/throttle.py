@@ -5,8 +5,9 @@ a read that goes to the line (whose bus time the share already bounds); the even
 that answers them also polls the lines. A token bucket per source address, of a second's
 worth, lets a client's burst through and holds the rest: the connection waits for its
 next token and reads nothing meanwhile, so a pipelining client waits in TCP's buffers.
-A request that would wait longer than the client may (``max_wait``: several connections
-of one address taking turns) is shed: exception 06 at once.
+A request whose turn would come later than the client may wait (``max_wait``: a rate
+below one per ``max_wait``, or several connections of one address taking turns) is shed:
+its connection waits ``max_wait`` all the same, then answers exception 06.
 
 Pure: the time is passed in.
 """
@@ -43,7 +44,7 @@ class Throttle:
         self._buckets: dict[str, _Bucket] = {}
 
     def reserve(self, host: str, rate: float, now: float) -> float | None:
-        """The seconds the request must wait for its token (taken); ``None``: shed it.
+        """The seconds the request must wait for its token (taken); ``None``: shed it (no token).
 
         Tokens are promised in the order requests ask, so connections of one address
         take turns.
