@@ -339,3 +339,26 @@ async def test_rtu_over_tcp_frames_of_every_length_are_answered_one_by_one(
     assert last[:3] == bytes([TECLINE, 3, 4])
     assert foreign == []
     assert client.refused["malformed_frame"] == 0
+
+
+async def test_a_connection_is_read_no_further_than_max_in_flight_requests_ahead(
+    tmp_path: Path,
+) -> None:
+    shared = (
+        "shared_bus:\n  listen: [{host: 127.0.0.1, port: 0}]\n  max_in_flight: 4\n  rate_limit: 2\n"
+    )
+    request = _mbap(1, 99, bytes.fromhex("0300000001"))  # 12 bytes
+    async with plant(tmp_path, shared) as p:
+        reader, writer = await asyncio.open_connection("127.0.0.1", p.tcp_port)
+        writer.write(request * 1000)  # all at once, as a pipelining client does
+        await asyncio.sleep(2.0)
+        other = p.state.shared_bus.clients["other"]
+        answered, received = other.refused["unknown_unit"], other.received_bytes
+        got = await asyncio.wait_for(reader.readexactly(9 * answered), timeout=5)
+        writer.close()
+    # Two a second, a burst of two: some six answered in 2 s. The socket was read only
+    # when no whole request was left, 4 requests' worth of the smallest (32 bytes) a time:
+    # what the gateway took in is what it answered and the few it held, not 12 kB.
+    assert 5 <= answered <= 7
+    assert got == _mbap(1, 99, bytes.fromhex("830A")) * answered
+    assert received <= 12 * answered + 4 * 8 + 12
