@@ -1,11 +1,13 @@
-"""The shared bus: other masters' Modbus TCP (or RTU-over-TCP) requests, bridged to the lines.
+"""The shared bus: other masters' Modbus TCP (or RTU-over-TCP) connections to the lines.
 
-Each request is checked here (unit id, function, lengths, the client's write grants, the
-flash budget) and answered from the cache where the client accepts it; the rest goes to
-its bus task's queue (:class:`~gateway.line.foreign.ForeignQueue`), sent under the line's
-timing rules within the bus time other masters may have. A client gets the device's
-answer or a Modbus exception, never a value made up; nothing malformed reaches the line,
-since line requests are framed anew from what was checked.
+The listeners and every client's connection: requests cut from its bytes, each answered
+by the :class:`~gateway.control.shared_bus.bridge.Bridge` (checked, from the cache, or
+through its bus's queue) and framed back, in order.
+
+The same event loop polls the lines, so no client may hold it: every answer yields
+before the next request is taken, each source address gets ``rate_limit`` requests a
+second (:mod:`~gateway.control.shared_bus.throttle`), and a connection is read only as
+far as ``max_in_flight`` requests ahead (:mod:`~gateway.control.shared_bus.connection`).
 """
 
 from __future__ import annotations
@@ -18,37 +20,14 @@ import os
 import time
 from typing import TYPE_CHECKING, Final, Self
 
-from gateway.control.flash import utc_today
+from gateway.control.shared_bus.bridge import Bridge
 from gateway.control.shared_bus.connection import ClientConnection
 from gateway.control.shared_bus.framing import FramingError, framer_for
-from gateway.control.shared_bus.pdu import (
-    DEVICE_BUSY,
-    DEVICE_FAILURE,
-    ILLEGAL_FUNCTION,
-    PATH_UNAVAILABLE,
-    TARGET_FAILED,
-    WRITE_FUNCTIONS,
-    RequestRefusedError,
-    answer_pdu,
-    cached_read_pdu,
-    device_exception_pdu,
-    exception_pdu,
-    line_request,
-    parse_request,
-)
+from gateway.control.shared_bus.pdu import DEVICE_BUSY, exception_pdu
 from gateway.control.shared_bus.policy import client_for, client_policies
 from gateway.control.shared_bus.throttle import Throttle
-from gateway.errors import (
-    BusBusyError,
-    BusClosedError,
-    BusTimeoutError,
-    CommandRejectedError,
-    ConfigError,
-    DeviceExceptionError,
-    FrameError,
-)
+from gateway.errors import ConfigError
 from gateway.line.lateness import loop_watch
-from gateway.profiles.model import Storage
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -56,11 +35,9 @@ if TYPE_CHECKING:
     from gateway.config.shared_bus import ListenConfig, SharedBusConfig
     from gateway.control.flash import FlashLedger
     from gateway.control.shared_bus.framing import Framer
-    from gateway.control.shared_bus.pdu import ClientRequest
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
     from gateway.line.worker import BusWorker
     from gateway.publish.state import GatewayState, SharedBusClient
-    from gateway.wire import frames
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -92,10 +69,9 @@ class SharedBusServer:
     ) -> None:
         """Bridge requests for ``units`` to the ``workers`` of their buses."""
         self.config = config
-        self.units = units
-        self.workers = workers
-        self.ledger = ledger
-        self.flash_budgets = flash_budgets
+        self.bridge = Bridge(
+            units=units, workers=workers, ledger=ledger, flash_budgets=flash_budgets
+        )
         self.status = state.shared_bus
         self._clients = client_policies(config.clients)
         self._servers: list[asyncio.Server] = []
@@ -159,11 +135,6 @@ class SharedBusServer:
                 async with asyncio.timeout(1.0):
                     await server.wait_closed()
         self._servers.clear()
-
-    @property
-    def open_connections(self) -> int:
-        """Sockets of clients not yet closed (they count toward ``max_connections``)."""
-        return len(self._open)
 
     # --- connections ----------------------------------------------------------------------
 
@@ -279,12 +250,13 @@ class SharedBusServer:
                 await asyncio.sleep(paused)
             started = time.perf_counter()
             if wait is None:
-                stats.requests[frame.pdu[0] if frame.pdu else 0] += 1
+                function = frame.pdu[0] if frame.pdu else 0
+                stats.requests[function] += 1
                 stats.shed["rate_limit"] += 1
                 stats.exceptions[DEVICE_BUSY] += 1
-                pdu, local = exception_pdu(frame.pdu[0] if frame.pdu else 0, DEVICE_BUSY), True
+                pdu, local = exception_pdu(function, DEVICE_BUSY), True
             else:
-                pdu, local = await self._answer(client, frame.unit, frame.pdu, stats)
+                pdu, local = await self.bridge.answer(client, frame.unit, frame.pdu, stats)
             out = framer.encode(pdu, frame.unit, frame.transaction)
             stats.sent_bytes += len(out)
             if local:
@@ -308,133 +280,3 @@ class SharedBusServer:
             if silence is not None:
                 return None
             raise _SilentError from exc
-
-    # --- requests -------------------------------------------------------------------------
-
-    async def answer(
-        self, client: ClientPolicy, unit: int, pdu: bytes, stats: SharedBusClient
-    ) -> bytes:
-        """The answer PDU to one request of ``client`` for ``unit``."""
-        answer, _ = await self._answer(client, unit, pdu, stats)
-        return answer
-
-    async def _answer(
-        self, client: ClientPolicy, unit: int, pdu: bytes, stats: SharedBusClient
-    ) -> tuple[bytes, bool]:
-        """The answer PDU, and whether the gateway gave it itself (without the line).
-
-        An answer given without the line is given without a pause (no ``await``): the
-        caller's clock around it is the time it held the event loop.
-        """
-        function = pdu[0] if pdu else 0
-        stats.requests[function] += 1
-        forwarded = False
-        try:
-            target = self.units.get(unit)
-            if target is None:
-                raise RequestRefusedError(  # noqa: TRY301 - one place turns refusals into answers
-                    PATH_UNAVAILABLE, f"no device answers to unit {unit}", label="unknown_unit"
-                )
-            request = parse_request(pdu)
-            worker = self.workers[target.bus]
-            if request.is_write:
-                client.check_write(target.device, request)
-                self._check_flash(target, request, worker)
-            elif (cached := self._cached(client, target, request, worker)) is not None:
-                stats.cache_answers += 1
-                return cached, True
-            forwarded = True
-            return await self._forward(client, target, request, worker, stats), False
-        except RequestRefusedError as refused:
-            stats.exceptions[refused.code] += 1
-            stats.refused[refused.label] += 1
-            # A refused write is news for whoever runs the plant; a busy line is not.
-            log = _LOGGER.warning if function in WRITE_FUNCTIONS else _LOGGER.debug
-            log("shared bus: client %s, unit %d: %s", client.name, unit, refused.reason)
-            return exception_pdu(function, refused.code), not forwarded
-
-    def _cached(
-        self, client: ClientPolicy, target: Unit, request: ClientRequest, worker: BusWorker
-    ) -> bytes | None:
-        if client.cache_max_age_s is None:
-            return None
-        registers = worker.transactions.cache.lookup(
-            target.device,
-            request.address,
-            request.count,
-            not_before=time.monotonic() - client.cache_max_age_s,
-        )
-        return cached_read_pdu(request, registers) if registers is not None else None
-
-    def _check_flash(self, target: Unit, request: ClientRequest, worker: BusWorker) -> None:
-        """Refuse a write over the flash budget; count it against the budget otherwise.
-
-        The budget is the device's own (``flash_write_budget``), the one the gateway's own
-        writes count against, per flash-backed point the write touches. Counted before
-        sending: a write that times out may still have reached the flash.
-        """
-        profile = worker.device_profile(target.device)
-        touched = [
-            point
-            for point in profile.points
-            if point.storage is Storage.FLASH
-            and point.address <= request.last
-            and point.last >= request.address
-        ]
-        if not touched:
-            return
-        budget = self.flash_budgets.get(target.device, 0)
-        today = utc_today()
-        for point in touched:
-            if self.ledger.count_today(target.device, point.name, today) >= budget:
-                raise RequestRefusedError(
-                    ILLEGAL_FUNCTION,
-                    f"the flash budget of {budget} writes per day for "
-                    f"{target.device}/{point.name} is spent",
-                    label="flash_budget",
-                )
-        try:
-            for point in touched:
-                self.ledger.record(target.device, point.name, today)
-        except CommandRejectedError as exc:  # the ledger cannot count it: it is not sent
-            raise RequestRefusedError(DEVICE_FAILURE, exc.reason, label="flash_ledger") from exc
-
-    async def _forward(
-        self,
-        client: ClientPolicy,
-        target: Unit,
-        request: ClientRequest,
-        worker: BusWorker,
-        stats: SharedBusClient,
-    ) -> bytes:
-        """Send the request in its turn on the line; the device's answer or an exception."""
-        line = line_request(request, target.address)
-        try:
-            job = worker.foreign.submit(target.device, line)
-        except BusBusyError as exc:
-            raise RequestRefusedError(DEVICE_BUSY, str(exc), label="busy") from exc
-        except BusClosedError as exc:
-            raise RequestRefusedError(PATH_UNAVAILABLE, str(exc), label="bus_down") from exc
-        try:
-            response: frames.Response = await job.done
-        except DeviceExceptionError as exc:
-            stats.exceptions[exc.code] += 1
-            return device_exception_pdu(exc)
-        except BusBusyError as exc:
-            raise RequestRefusedError(DEVICE_BUSY, str(exc), label="busy") from exc
-        except BusClosedError as exc:
-            raise RequestRefusedError(PATH_UNAVAILABLE, str(exc), label="bus_down") from exc
-        except (BusTimeoutError, FrameError) as exc:
-            raise RequestRefusedError(TARGET_FAILED, str(exc), label="no_answer") from exc
-        finally:
-            if job.sent_at is not None:
-                stats.observe_wait(job.sent_at - job.queued_at)
-        if request.is_write:
-            _LOGGER.info(
-                "shared bus: client %s wrote %d registers at %#06x of %s",
-                client.name,
-                request.count,
-                request.address,
-                target.device,
-            )
-        return answer_pdu(request, response)
