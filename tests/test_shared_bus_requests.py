@@ -23,6 +23,7 @@ from gateway.control.shared_bus.pdu import (
     parse_request,
 )
 from gateway.control.shared_bus.policy import client_for, client_policies
+from gateway.control.shared_bus.throttle import Throttle
 from gateway.wire import frames
 from tests.fuzzing import fuzz
 
@@ -333,3 +334,20 @@ def test_a_broken_shared_bus_section_is_named(section: str, where: str) -> None:
         parse_config(_config(f"shared_bus: {section}\n", ", unit_id: 21"), environ={})
     assert where in str(problems.value)
     assert "shared_bus" in str(problems.value)
+
+
+# --- the rate limit ----------------------------------------------------------------------
+
+
+def test_the_rate_limit_lets_a_burst_through_then_spaces_requests_and_sheds_past_max_wait() -> None:
+    throttle = Throttle(max_wait_s=1.0)
+    # 2 a second: a second's worth (2) at once, then one every 0.5 s, promised in order
+    # (connections of one address take turns); a turn later than 1 s away is refused and
+    # takes no token.
+    waits = [throttle.reserve("10.0.0.5", 2.0, 0.0) for _ in range(5)]
+    assert waits == [0.0, 0.0, 0.5, 1.0, None]
+    assert throttle.reserve("10.0.0.6", 2.0, 0.0) == 0.0  # another address: its own bucket
+    assert throttle.reserve("10.0.0.5", 2.0, 1.0) == 0.5  # two refilled, two promised
+    assert throttle.reserve("10.0.0.5", 2.0, 10.0) == 0.0  # idle: full again, no more
+    assert throttle.reserve("10.0.0.5", 2.0, 10.0) == 0.0
+    assert throttle.reserve("10.0.0.5", 2.0, 10.0) == 0.5
