@@ -362,3 +362,18 @@ async def test_a_connection_is_read_no_further_than_max_in_flight_requests_ahead
     assert 5 <= answered <= 7
     assert got == _mbap(1, 99, bytes.fromhex("830A")) * answered
     assert received <= 12 * answered + 4 * 8 + 12
+
+
+async def test_a_client_that_ends_its_side_first_still_reads_every_answer(
+    tmp_path: Path,
+) -> None:
+    async with plant(tmp_path, "shared_bus:\n  listen: [{host: 127.0.0.1, port: 0}]\n") as p:
+        reader, writer = await asyncio.open_connection("127.0.0.1", p.tcp_port)
+        writer.write(b"".join(_mbap(n, 99, bytes.fromhex("0300000001")) for n in range(3)))
+        writer.write_eof()  # half-closed: sent all it will
+        rest = await asyncio.wait_for(reader.read(), timeout=5)  # until the gateway's end
+        writer.close()
+        await asyncio.sleep(0.1)
+        closed = dict(p.state.shared_bus.clients["other"].closed)
+    assert rest == b"".join(_mbap(n, 99, bytes.fromhex("830A")) for n in range(3))
+    assert closed == {"eof": 1}

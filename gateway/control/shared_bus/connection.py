@@ -70,10 +70,13 @@ class ClientConnection(asyncio.BufferedProtocol):
         self._arrived.set()
 
     def eof_received(self) -> bool:
-        """The client sent its last byte: close once what it gets is sent."""
+        """The client sent its last byte; it may still read the answers to what it sent.
+
+        Kept open (``True``) for them, unless we are closing and waited for just this.
+        """
         self._eof = True
         self._arrived.set()
-        return False
+        return not self._discarding
 
     def connection_lost(self, exc: Exception | None) -> None:  # noqa: ARG002 - told as EOF
         """The socket is closed: wake whoever waits on it."""
@@ -127,7 +130,9 @@ class ClientConnection(asyncio.BufferedProtocol):
         bytes unread resets the connection, where a client that reads is owed an end.
         """
         transport = self.transport
-        if transport is not None and not transport.is_closing():
+        if transport is not None and self._eof:
+            transport.close()  # the client ended first: ours follows what is queued
+        elif transport is not None and not transport.is_closing():
             try:
                 transport.write_eof()
             except OSError:  # the client reset it meanwhile: nothing to end
