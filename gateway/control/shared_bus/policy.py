@@ -37,7 +37,7 @@ class Unit:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ClientPolicy:
-    """What one client may do: read (always), read from the cache, write where granted; how fast."""
+    """What one client may do: read (always), from the cache, write where granted; how fast."""
 
     name: str
     networks: tuple[IpNetwork, ...] = ()
