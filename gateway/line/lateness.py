@@ -148,7 +148,8 @@ class Lateness:
         """What made ``late`` late, in words for the log."""
         lag = late.lag_s
         head = f"{late.point} is {lag:.2f} s late (interval {late.interval_s:.2f} s)"
-        busy = self.busy_since(now - lag)
+        # The mark before the lateness began may fall inside a transaction: at most the lag.
+        busy = min(lag, self.busy_since(now - lag))
         if busy >= LINE_BUSY_SHARE * lag:
             return (
                 f"the line cannot keep up: {head}; it carried transactions {busy:.2f} s "
