@@ -86,7 +86,6 @@ async def test_a_client_pipelining_unknown_unit_ids_does_not_stop_the_polling(
         gaps = largest_gaps(p, since, until)
         missed_after = missed(p)
         other = p.state.shared_bus.clients["other"]
-    print(result, gaps, missed_after - missed_before)  # noqa: T201 - figures for the report
     assert result["answers"]
     assert set(result["answers"]) == {"830a"}
     assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
@@ -106,7 +105,6 @@ async def test_a_client_pipelining_unknown_unit_ids_is_answered_in_turn_with_the
         result = await flood(p.tcp_port, 99, 4.0)
         gaps = largest_gaps(p, since, bus_time(p))
         missed_after = missed(p)
-    print(result, gaps)  # noqa: T201 - figures for the report
     assert result["answers"]["830a"] > 2_000  # far more than the default limit lets through
     assert set(result["answers"]) == {"830a"}
     assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
@@ -130,7 +128,6 @@ async def test_a_client_pipelining_cache_hits_does_not_stop_the_polling(tmp_path
         polls = len(p.frames_to(TECLINE)) - on_the_line
         missed_after = missed(p)
         scada = p.state.shared_bus.clients["scada"]
-    print(result, gaps, scada.throttled_s)  # noqa: T201 - figures for the report
     answered = result["answers"]["03"]
     assert set(result["answers"]) == {"03"}  # every one the device's registers, from the cache
     # The default limit: a second's worth at once, then 50 a second (the last may be cut off).
