@@ -13,8 +13,18 @@ back (each waits for its answer, then asks again), spread over the five sensors,
 - bus time: the share of the line the gateway's polls and the other masters took, against
   their share; the line's utilisation: the share of the wall time it carried a transaction.
 
-Written to bench/results/shared_bus.json.
-Run from the repository root: .venv/bin/python -m bench.shared_bus [--seconds 60] [--clients 3]
+With ``--flood unknown`` (or ``cache``) one client instead pipelines requests as fast as
+TCP takes them, for ``--seconds``: reads of a unit id no device has (each refused with
+exception 0A by the gateway itself), or reads the cache answers (the client granted a
+``cache_max_age``). Printed: the polls' lateness (the deadlines missed, and the gateway's
+warnings of a poll over an interval late, with the latest such lateness), what the client
+sent and got, and what the gateway shed and held back. ``--rate-limit`` sets the
+gateway's ``shared_bus.rate_limit`` (10000 leaves the yield per answer alone at work).
+
+Written to bench/results/shared_bus.json (shared_bus_flood_KIND.json with ``--flood``).
+Run from the repository root:
+.venv/bin/python -m bench.shared_bus [--seconds 60] [--clients 3]
+    [--flood unknown|cache [--rate-limit N]]
 """
 
 from __future__ import annotations
@@ -23,11 +33,14 @@ import argparse
 import asyncio
 import contextlib
 import json
+import re
+import select
 import socket
 import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -64,7 +77,14 @@ devices:
 """
 
 
-def gateway_config(port: Path, metrics: int, shared: int, state: Path) -> str:
+FLOODS = {  # what a flooding client asks: (unit, PDU)
+    "unknown": (99, bytes.fromhex("0300000002")),  # a unit no device has: 0A
+    "cache": (20, bytes.fromhex("0300000006")),  # the tecLine's values, fresh in the cache
+}
+CACHE_CLIENT = "  clients: [{name: scada, networks: [127.0.0.0/8], cache_max_age: 5.0}]\n"
+
+
+def gateway_config(port: Path, metrics: int, shared: int, state: Path, *, clients: str = "") -> str:
     """Five sensors polled at 1 s, MQTT off, Prometheus and the shared bus on localhost."""
     devices = "".join(
         f"  - {{name: {name}, bus: line, address: {address}, profile: {profile}}}\n"
@@ -81,7 +101,7 @@ def gateway_config(port: Path, metrics: int, shared: int, state: Path) -> str:
         f"devices:\n{devices}"
         "mqtt: {enabled: false}\n"
         f"prometheus: {{host: 127.0.0.1, port: {metrics}}}\n"
-        f"shared_bus: {{listen: [{{host: 127.0.0.1, port: {shared}}}]}}\n"
+        f"shared_bus:\n  listen: [{{host: 127.0.0.1, port: {shared}}}]\n{clients}"
         f"state_dir: {state}\n"
         "logging: {level: WARNING}\n"
     )
@@ -126,12 +146,12 @@ async def hammer(port: int, first: int, until: float, figures: ClientFigures) ->
 
 
 @contextlib.contextmanager
-def processes(work: Path, metrics: int, shared: int) -> Iterator[Path]:
+def processes(work: Path, metrics: int, shared: int, *, clients: str = "") -> Iterator[Path]:
     """The simulator and the gateway, each its own process; yields the simulator's stats."""
     pty, stats = work / "ttySIM", work / "stats.json"
     (work / "sim.yaml").write_text(SIMULATOR, encoding="utf-8")
     (work / "gateway.yaml").write_text(
-        gateway_config(pty, metrics, shared, work / "state"), encoding="utf-8"
+        gateway_config(pty, metrics, shared, work / "state", clients=clients), encoding="utf-8"
     )
     simulate = [sys.executable, "-m", "gateway", "simulate", "--config", str(work / "sim.yaml")]
     with subprocess.Popen(  # noqa: S603 - the gateway's own command line
@@ -212,17 +232,126 @@ async def measure(seconds: float, clients: int = CLIENTS) -> dict[str, Any]:
     }
 
 
+@dataclass
+class FloodFigures:
+    sent: int = 0  # requests the kernel took
+    answers: dict[str, int] = field(default_factory=dict)  # by function or exception
+
+
+def _write_flood(
+    sock: socket.socket, unit: int, pdu: bytes, figures: FloodFigures, stop: threading.Event
+) -> None:
+    while not stop.is_set():
+        batch = b"".join(
+            struct.pack(">HHHB", (figures.sent + n) & 0xFFFF, 0, len(pdu) + 1, unit) + pdu
+            for n in range(64)
+        )
+        try:
+            sock.sendall(batch)  # blocks while the gateway reads no more
+        except OSError:
+            return
+        figures.sent += 64
+
+
+def _read_flood(sock: socket.socket, figures: FloodFigures, stop: threading.Event) -> None:
+    buffer = b""
+    while not stop.is_set():
+        if not select.select([sock], [], [], 0.1)[0]:
+            continue
+        try:
+            chunk = sock.recv(65536)
+        except OSError:
+            return
+        if not chunk:
+            return
+        buffer += chunk
+        while len(buffer) >= 6:  # noqa: PLR2004 - up to the MBAP length
+            end = 6 + int.from_bytes(buffer[4:6], "big")
+            if len(buffer) < end:
+                break
+            answer, buffer = buffer[7:end], buffer[end:]
+            key = answer[:2].hex() if answer[0] & 0x80 else f"{answer[0]:02x}"
+            figures.answers[key] = figures.answers.get(key, 0) + 1
+
+
+def flood_client(port: int, kind: str, seconds: float, figures: FloodFigures) -> None:
+    """Pipeline one request over and over for ``seconds``; tally the answers meanwhile.
+
+    Blocking sockets in threads of their own, so the flood does not wait on this
+    process's event loop (the one that scrapes the metrics).
+    """
+    unit, pdu = FLOODS[kind]
+    sock = socket.create_connection(("127.0.0.1", port))
+    stop = threading.Event()
+    writer = threading.Thread(target=_write_flood, args=(sock, unit, pdu, figures, stop))
+    reader = threading.Thread(target=_read_flood, args=(sock, figures, stop))
+    writer.start()
+    reader.start()
+    time.sleep(seconds)
+    stop.set()
+    reader.join(timeout=1.0)
+    with contextlib.suppress(OSError):
+        sock.shutdown(socket.SHUT_RDWR)  # wakes a writer held by the gateway's backpressure
+    writer.join(timeout=1.0)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    sock.close()
+
+
+async def measure_flood(seconds: float, kind: str, rate_limit: float | None) -> dict[str, Any]:
+    metrics, shared = free_port(), free_port()
+    clients = CACHE_CLIENT if kind == "cache" else ""
+    if rate_limit is not None:
+        clients += f"  rate_limit: {rate_limit}\n"
+    with tempfile.TemporaryDirectory() as directory:
+        work = Path(directory)
+        with processes(work, metrics, shared, clients=clients):
+            wait_healthy(metrics)
+            await asyncio.sleep(5.0)  # identity and the first slow reads are through
+            before = scrape(metrics)
+            figures = FloodFigures()
+            await asyncio.to_thread(flood_client, shared, kind, seconds, figures)
+            await asyncio.sleep(1.5)  # a poll after the flood shows how late the last was
+            after = scrape(metrics)
+        log = (work / "gateway.log").read_text(encoding="utf-8")
+
+    def delta(name: str) -> float:
+        return total(after, name) - total(before, name)
+
+    late = [line for line in log.splitlines() if " late (interval " in line]
+    lags = [float(m[1]) for line in late if (m := re.search(r" is ([\d.]+) s late", line))]
+    return {
+        "seconds": seconds,
+        "flood": kind,
+        "rate_limit": rate_limit if rate_limit is not None else "default",
+        "requests_sent": figures.sent,
+        "answers": figures.answers,
+        "deadlines_missed": int(delta("gateway_missed_deadlines_total")),
+        "late_warnings": len(late),  # a device's first poll over an interval late
+        "latest_poll_late_s": max(lags, default=0.0),
+        "first_late_warning": late[0].split(": ", 1)[-1] if late else "",
+        "shed": int(delta("gateway_shared_bus_shed_total")),
+        "throttled_s": round(delta("gateway_shared_bus_throttled_seconds_total"), 2),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--clients", type=int, default=CLIENTS)
+    parser.add_argument("--flood", choices=sorted(FLOODS), default=None)
+    parser.add_argument("--rate-limit", type=float, default=None, help="shared_bus.rate_limit")
     args = parser.parse_args()
-    figures = asyncio.run(measure(args.seconds, args.clients))
+    if args.flood is None:
+        figures = asyncio.run(measure(args.seconds, args.clients))
+        name = "shared_bus.json"
+    else:
+        figures = asyncio.run(measure_flood(args.seconds, args.flood, args.rate_limit))
+        name = f"shared_bus_flood_{args.flood}.json"
     for key, value in figures.items():
         print(f"{key:28} {value}")
     RESULTS.mkdir(exist_ok=True)
     figures["date"] = datetime.now(UTC).isoformat(timespec="seconds")
-    (RESULTS / "shared_bus.json").write_text(json.dumps(figures, indent=2) + "\n")
+    (RESULTS / name).write_text(json.dumps(figures, indent=2) + "\n")
 
 
 if __name__ == "__main__":

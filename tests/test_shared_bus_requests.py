@@ -23,6 +23,7 @@ from gateway.control.shared_bus.pdu import (
     parse_request,
 )
 from gateway.control.shared_bus.policy import client_for, client_policies
+from gateway.control.shared_bus.throttle import Throttle
 from gateway.wire import frames
 from tests.fuzzing import fuzz
 
@@ -115,9 +116,68 @@ def test_rtu_frames_need_their_crc() -> None:
     assert cut is not None
     assert (cut.used, cut.unit, cut.pdu) == (8, 20, good[1:-2])
     assert framer.decode(good[:5]) is None
+    # Bytes that fail the CRC at their function's length may be a frame of another
+    # length: the silence after them says where it ends, and then the CRC decides.
+    bad = good[:-1] + bytes([good[-1] ^ 0xFF])
+    assert framer.decode(bad) is None
     with pytest.raises(FramingError):
-        framer.decode(good[:-1] + bytes([good[-1] ^ 0xFF]))
+        framer.decode(bad, silent=True)
     assert framer.encode(bytes.fromhex("8306"), 20, 0) == frames.exception_response(20, 3, 6)
+
+
+def _rtu(body: str) -> bytes:
+    data = bytes.fromhex(body)
+    return data + frames.crc16(data)
+
+
+@pytest.mark.parametrize(
+    ("frame", "length"),
+    [
+        ("14 11", 4),  # report server id (Modbus application protocol 6.13)
+        ("14 07", 4),  # read exception status
+        ("14 2B 0E 01 00", 7),  # read device identification, basic (6.21)
+        ("14 08 0000 1234", 8),  # diagnostics, return query data
+        ("14 16 0004 00F2 0025", 10),  # mask write register
+        ("14 18 04DE", 6),  # read FIFO queue
+        ("14 0F 0013 000A 02 CD01", 11),  # write multiple coils: its byte count
+        ("14 17 0003 0006 000E 0003 06 00FF 00FF 00FF", 19),  # read/write registers
+    ],
+)
+def test_rtu_frames_of_other_functions_are_cut_at_their_length(frame: str, length: int) -> None:
+    data = _rtu(frame)
+    assert len(data) == length
+    following = frames.read_request(20, 0, 2).frame  # a client that does not wait
+    first = RtuFramer().decode(data + following)
+    assert first is not None
+    assert (first.used, first.unit, first.pdu) == (length, 0x14, data[1:-2])
+    second = RtuFramer().decode((data + following)[first.used :])
+    assert second is not None
+    assert second.pdu == following[1:-2]
+
+
+def test_an_rtu_frame_of_unknown_length_ends_at_the_silence() -> None:
+    framer = RtuFramer()
+    private = _rtu("14 41 00 01 02 03 04 05 06 07 08")  # a function no standard knows
+    assert framer.decode(private) is None  # more may come, until a silence
+    cut = framer.decode(private, silent=True)
+    assert cut is not None
+    assert (cut.used, cut.pdu) == (len(private), private[1:-2])
+    # A read cut short, its CRC over what came: a frame of the wrong length (exception 03).
+    short = _rtu("14 03 00 00 02")
+    assert framer.decode(short) is None
+    cut = framer.decode(short, silent=True)
+    assert cut is not None
+    assert parse_request_code(cut.pdu) == 0x03
+    with pytest.raises(FramingError):
+        framer.decode(bytes(2 * 256 + 1))  # no frame in twice the longest: given up
+
+
+def parse_request_code(pdu: bytes) -> int:
+    try:
+        parse_request(pdu)
+    except RequestRefusedError as refused:
+        return refused.code
+    return 0
 
 
 @fuzz(400)
@@ -132,6 +192,13 @@ def test_any_bytes_on_a_modbus_tcp_socket_give_a_frame_a_wait_or_a_clean_close(
 @given(st.binary(max_size=300))
 def test_any_bytes_on_an_rtu_socket_give_a_frame_a_wait_or_a_clean_close(data: bytes) -> None:
     _check_cut(RtuFramer(), data)
+    # After a silence: a frame or a close, never a wait.
+    try:
+        cut = RtuFramer().decode(data, silent=True)
+    except FramingError:
+        return
+    assert cut is not None
+    assert 0 < cut.used <= len(data)
 
 
 def _check_cut(framer: TcpFramer | RtuFramer, data: bytes) -> None:
@@ -267,3 +334,20 @@ def test_a_broken_shared_bus_section_is_named(section: str, where: str) -> None:
         parse_config(_config(f"shared_bus: {section}\n", ", unit_id: 21"), environ={})
     assert where in str(problems.value)
     assert "shared_bus" in str(problems.value)
+
+
+# --- the rate limit ----------------------------------------------------------------------
+
+
+def test_the_rate_limit_lets_a_burst_through_then_spaces_requests_and_sheds_past_max_wait() -> None:
+    throttle = Throttle(max_wait_s=1.0)
+    # 2 a second: a second's worth (2) at once, then one every 0.5 s, promised in order
+    # (connections of one address take turns); a turn later than 1 s away is refused and
+    # takes no token.
+    waits = [throttle.reserve("10.0.0.5", 2.0, 0.0) for _ in range(5)]
+    assert waits == [0.0, 0.0, 0.5, 1.0, None]
+    assert throttle.reserve("10.0.0.6", 2.0, 0.0) == 0.0  # another address: its own bucket
+    assert throttle.reserve("10.0.0.5", 2.0, 1.0) == 0.5  # two refilled, two promised
+    assert throttle.reserve("10.0.0.5", 2.0, 10.0) == 0.0  # idle: full again, no more
+    assert throttle.reserve("10.0.0.5", 2.0, 10.0) == 0.0
+    assert throttle.reserve("10.0.0.5", 2.0, 10.0) == 0.5

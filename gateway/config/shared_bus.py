@@ -7,6 +7,7 @@ Example::
         - {host: 127.0.0.1, port: 1502}              # Modbus TCP
         - {host: 127.0.0.1, port: 1503, framing: rtu}  # RTU frames over TCP
       bus_share: 0.25      # of each bus's time, at most
+      rate_limit: 50       # requests per second from one address (a burst of a second's worth)
       clients:
         - name: scada
           networks: [10.0.0.0/24]
@@ -97,6 +98,13 @@ RegisterRange = Annotated[
 ]
 
 
+# Requests per second from one source address, whatever they ask (refusals and cache hits
+# cost the gateway's process too). 50/s is some ten times what a SCADA polling every
+# device of a full line each second sends, and a burst of a second's worth passes at once.
+RateLimit = Annotated[float, Field(gt=0, le=10_000)]
+DEFAULT_RATE_LIMIT: Final = 50.0
+
+
 class WriteGrant(_Model):
     """Registers of one device a client may write (all its registers when not listed)."""
 
@@ -113,6 +121,8 @@ class ClientConfig(_Model):
     # None: every read goes to the wire.
     cache_max_age: Annotated[float, Field(gt=0, le=3600)] | None = None
     writes: list[WriteGrant] = []  # none: the client only reads
+    # Requests per second from each of its addresses; None: the section's ``rate_limit``.
+    rate_limit: RateLimit | None = None
 
 
 class SharedBusConfig(_Model):
@@ -123,6 +133,10 @@ class SharedBusConfig(_Model):
     max_wait: Annotated[float, Field(gt=0, le=60)] = 2.0  # seconds, then exception 06
     max_pending: Annotated[int, Field(ge=1, le=1000)] = 16  # per bus, then exception 06
     max_connections: Annotated[int, Field(ge=1, le=1000)] = 16
+    # Requests read from one connection and not yet answered; the socket is read no
+    # further meanwhile, so a pipelining client waits in TCP's buffers (backpressure).
+    max_in_flight: Annotated[int, Field(ge=1, le=256)] = 16
+    rate_limit: RateLimit = DEFAULT_RATE_LIMIT  # per source address; a client may set its own
     idle_timeout: Annotated[float, Field(gt=0, le=86_400)] = 300.0  # a silent connection closes
     clients: list[ClientConfig] = []  # a source not listed reads only, as client "other"
 

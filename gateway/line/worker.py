@@ -28,6 +28,7 @@ from gateway.line.foreign import ForeignQueue
 from gateway.line.health import Availability
 from gateway.line.identity import IdentityGuard
 from gateway.line.jobs import JobQueue
+from gateway.line.lateness import Lateness, loop_watch
 from gateway.line.port_access import PortReason
 from gateway.line.samples import DeviceEvent
 from gateway.line.schedule import Schedule
@@ -108,6 +109,7 @@ class BusWorker:
             schedule=self.schedule,
             wake=self._wake,
         )
+        self.lateness = Lateness(line)  # what made a late poll late, for the log
         self._port_failures_in_a_row = 0
         self._ever_opened = False
         self._last_reason: str | None = None
@@ -123,9 +125,12 @@ class BusWorker:
         """Open the port, poll, and on port failure reopen with capped jittered backoff."""
         delay = PORT_BACKOFF_FIRST_S
         self.jobs.running = True
+        watch = self.lateness.watch = loop_watch()
+        watch.attach()
         try:
             await self._run(delay)
         finally:
+            watch.detach()
             self.jobs.running = False
             self.foreign.accepting = False
             self._released.set()  # a pause waiting for the line has it now
@@ -400,6 +405,7 @@ class BusWorker:
             raise BusClosedError(f"{self.line.port} went away")
 
     async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
+        self.lateness.mark(now)
         names = self.schedule.due_points(state, now, slow=slow)
         samples: list[Sample] = []
         reads = self.transactions
@@ -414,14 +420,9 @@ class BusWorker:
             samples.extend(await reads.read_block(state, block) or ())
         late = self.schedule.advance(state, [s.point for s in samples], now)
         if late is not None:
+            # The line, or the process: what took the time decides the remedy.
             _LOGGER.warning(
-                "%s/%s: the line cannot keep up: %s is %.2f s late (interval %.2f s); "
-                "see the poll lag metric",
-                self.name,
-                state.target.name,
-                late.point,
-                late.lag_s,
-                late.interval_s,
+                "%s/%s: %s", self.name, state.target.name, self.lateness.explain(late, now)
             )
         published = await self.identity.screen(state, samples)
         if published:

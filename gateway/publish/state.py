@@ -107,6 +107,9 @@ class SharedBusClient:
     received_bytes: int = 0
     sent_bytes: int = 0
     cache_answers: int = 0  # reads answered from what the device last sent
+    shed: Counter[str] = field(default_factory=Counter)  # answered 06, not served, by reason
+    throttled_s: float = 0.0  # time its requests waited for its rate limit
+    closed: Counter[str] = field(default_factory=Counter)  # connections ended, by reason
     wait_buckets: Counter[float] = field(default_factory=Counter)  # queue wait histogram
     wait_sum_s: float = 0.0
     peers: dict[str, float] = field(default_factory=dict)  # connected now: "host:port" -> since

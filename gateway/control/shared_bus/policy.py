@@ -37,11 +37,12 @@ class Unit:
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class ClientPolicy:
-    """What one client may do: read (always), read from the cache, write where granted."""
+    """What one client may do: read (always), from the cache, write where granted; how fast."""
 
     name: str
     networks: tuple[IpNetwork, ...] = ()
     cache_max_age_s: float | None = None
+    rate_limit: float | None = None  # requests/s per source address; None: the section's
     # device -> register ranges (first, last) it may write; None: every register
     writes: Mapping[str, tuple[tuple[int, int], ...] | None] = field(default_factory=dict)
 
@@ -82,6 +83,7 @@ def client_policies(clients: Sequence[ClientConfig]) -> tuple[ClientPolicy, ...]
             name=client.name,
             networks=tuple(client.networks),
             cache_max_age_s=client.cache_max_age,
+            rate_limit=client.rate_limit,
             writes={
                 grant.device: tuple(grant.registers) if grant.registers is not None else None
                 for grant in client.writes

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 
 def shared_bus_families(snapshot: GatewayState) -> Iterator[Metric]:
-    """Requests, bytes, exceptions and queue wait per client; bus time per bus (if enabled).
+    """Every family of the shared bus, per client and per bus (if it is enabled).
 
     The counters belong to the event loop; each is copied whole (``dict()``, atomic in
     CPython) before it is read here, as the lines' counters are.
@@ -60,6 +60,22 @@ def shared_bus_families(snapshot: GatewayState) -> Iterator[Metric]:
     connections = GaugeMetricFamily(
         "gateway_shared_bus_connections", "Connections open now", labels=["client"]
     )
+    shed = CounterMetricFamily(
+        "gateway_shared_bus_shed",
+        "Requests answered with exception 06 without being served, to keep the process for "
+        "the polls, by client and reason",
+        labels=["client", "reason"],
+    )
+    throttled = CounterMetricFamily(
+        "gateway_shared_bus_throttled_seconds",
+        "Time the client's connections waited for its rate limit, reading nothing",
+        labels=["client"],
+    )
+    closed = CounterMetricFamily(
+        "gateway_shared_bus_connections_closed",
+        "Connections ended, by client and reason",
+        labels=["client", "reason"],
+    )
     wait = HistogramMetricFamily(
         "gateway_shared_bus_queue_wait_seconds",
         "Time other masters' requests waited for the line",
@@ -76,12 +92,18 @@ def shared_bus_families(snapshot: GatewayState) -> Iterator[Metric]:
         sent.add_metric([name], client.sent_bytes)
         cached.add_metric([name], client.cache_answers)
         connections.add_metric([name], len(dict(client.peers)))
+        for reason, count in sorted(dict(client.shed).items()):
+            shed.add_metric([name, reason], count)
+        throttled.add_metric([name], client.throttled_s)
+        for reason, count in sorted(dict(client.closed).items()):
+            closed.add_metric([name, reason], count)
         wait.add_metric(
             [name],
             cumulative_buckets(WAIT_BUCKETS_S, Counter(client.wait_buckets).__getitem__),
             sum_value=client.wait_sum_s,
         )
     yield from (requests, exceptions, refused, received, sent, cached, connections, wait)
+    yield from (shed, throttled, closed)
     yield from _bus_families(snapshot)
 
 

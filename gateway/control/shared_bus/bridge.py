@@ -1,0 +1,192 @@
+"""Other masters' requests answered: checked, from the cache, or through their bus's queue.
+
+Each request is checked here (unit id, function, lengths, the client's write grants, the
+flash budget) and answered from the cache where the client accepts it; the rest goes to
+its bus task's queue (:class:`~gateway.line.foreign.ForeignQueue`), sent under the line's
+timing rules within the bus time other masters may have. A client gets the device's
+answer or a Modbus exception, never a value made up; nothing malformed reaches the line,
+since line requests are framed anew from what was checked.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING
+
+from gateway.control.flash import utc_today
+from gateway.control.shared_bus.pdu import (
+    DEVICE_BUSY,
+    DEVICE_FAILURE,
+    ILLEGAL_FUNCTION,
+    PATH_UNAVAILABLE,
+    TARGET_FAILED,
+    WRITE_FUNCTIONS,
+    RequestRefusedError,
+    answer_pdu,
+    cached_read_pdu,
+    device_exception_pdu,
+    exception_pdu,
+    line_request,
+    parse_request,
+)
+from gateway.errors import (
+    BusBusyError,
+    BusClosedError,
+    BusTimeoutError,
+    CommandRejectedError,
+    DeviceExceptionError,
+    FrameError,
+)
+from gateway.profiles.model import Storage
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from gateway.control.flash import FlashLedger
+    from gateway.control.shared_bus.pdu import ClientRequest
+    from gateway.control.shared_bus.policy import ClientPolicy, Unit
+    from gateway.line.worker import BusWorker
+    from gateway.publish.state import SharedBusClient
+    from gateway.wire import frames
+
+_LOGGER = logging.getLogger(__name__)
+
+
+class Bridge:
+    """The way from a request's PDU to its answer's, for every unit of every bus."""
+
+    def __init__(
+        self,
+        *,
+        units: Mapping[int, Unit],
+        workers: Mapping[str, BusWorker],
+        ledger: FlashLedger,
+        flash_budgets: Mapping[str, int],
+    ) -> None:
+        """Requests for ``units`` go to the ``workers`` of their buses."""
+        self.units = units
+        self.workers = workers
+        self.ledger = ledger
+        self.flash_budgets = flash_budgets
+
+    async def answer(
+        self, client: ClientPolicy, unit: int, pdu: bytes, stats: SharedBusClient
+    ) -> tuple[bytes, bool]:
+        """The answer PDU to one request for ``unit``; whether it came without the line.
+
+        An answer given without the line is given without a pause (no ``await``): the
+        caller's clock around it is the time it held the event loop.
+        """
+        function = pdu[0] if pdu else 0
+        stats.requests[function] += 1
+        forwarded = False
+        try:
+            target = self.units.get(unit)
+            if target is None:
+                raise RequestRefusedError(  # noqa: TRY301 - one place turns refusals into answers
+                    PATH_UNAVAILABLE, f"no device answers to unit {unit}", label="unknown_unit"
+                )
+            request = parse_request(pdu)
+            worker = self.workers[target.bus]
+            if request.is_write:
+                client.check_write(target.device, request)
+                self._check_flash(target, request, worker)
+            elif (cached := self._cached(client, target, request, worker)) is not None:
+                stats.cache_answers += 1
+                return cached, True
+            forwarded = True
+            return await self._forward(client, target, request, worker, stats), False
+        except RequestRefusedError as refused:
+            stats.exceptions[refused.code] += 1
+            stats.refused[refused.label] += 1
+            # A refused write is news for whoever runs the plant; a busy line is not.
+            log = _LOGGER.warning if function in WRITE_FUNCTIONS else _LOGGER.debug
+            log("shared bus: client %s, unit %d: %s", client.name, unit, refused.reason)
+            return exception_pdu(function, refused.code), not forwarded
+
+    def _cached(
+        self, client: ClientPolicy, target: Unit, request: ClientRequest, worker: BusWorker
+    ) -> bytes | None:
+        if client.cache_max_age_s is None:
+            return None
+        registers = worker.transactions.cache.lookup(
+            target.device,
+            request.address,
+            request.count,
+            not_before=time.monotonic() - client.cache_max_age_s,
+        )
+        return cached_read_pdu(request, registers) if registers is not None else None
+
+    def _check_flash(self, target: Unit, request: ClientRequest, worker: BusWorker) -> None:
+        """Refuse a write over the flash budget; count it against the budget otherwise.
+
+        The budget is the device's own (``flash_write_budget``), the one the gateway's own
+        writes count against, per flash-backed point the write touches. Counted before
+        sending: a write that times out may still have reached the flash.
+        """
+        profile = worker.device_profile(target.device)
+        touched = [
+            point
+            for point in profile.points
+            if point.storage is Storage.FLASH
+            and point.address <= request.last
+            and point.last >= request.address
+        ]
+        if not touched:
+            return
+        budget = self.flash_budgets.get(target.device, 0)
+        today = utc_today()
+        for point in touched:
+            if self.ledger.count_today(target.device, point.name, today) >= budget:
+                raise RequestRefusedError(
+                    ILLEGAL_FUNCTION,
+                    f"the flash budget of {budget} writes per day for "
+                    f"{target.device}/{point.name} is spent",
+                    label="flash_budget",
+                )
+        try:
+            for point in touched:
+                self.ledger.record(target.device, point.name, today)
+        except CommandRejectedError as exc:  # the ledger cannot count it: it is not sent
+            raise RequestRefusedError(DEVICE_FAILURE, exc.reason, label="flash_ledger") from exc
+
+    async def _forward(
+        self,
+        client: ClientPolicy,
+        target: Unit,
+        request: ClientRequest,
+        worker: BusWorker,
+        stats: SharedBusClient,
+    ) -> bytes:
+        """Send the request in its turn on the line; the device's answer or an exception."""
+        line = line_request(request, target.address)
+        try:
+            job = worker.foreign.submit(target.device, line)
+        except BusBusyError as exc:
+            raise RequestRefusedError(DEVICE_BUSY, str(exc), label="busy") from exc
+        except BusClosedError as exc:
+            raise RequestRefusedError(PATH_UNAVAILABLE, str(exc), label="bus_down") from exc
+        try:
+            response: frames.Response = await job.done
+        except DeviceExceptionError as exc:
+            stats.exceptions[exc.code] += 1
+            return device_exception_pdu(exc)
+        except BusBusyError as exc:
+            raise RequestRefusedError(DEVICE_BUSY, str(exc), label="busy") from exc
+        except BusClosedError as exc:
+            raise RequestRefusedError(PATH_UNAVAILABLE, str(exc), label="bus_down") from exc
+        except (BusTimeoutError, FrameError) as exc:
+            raise RequestRefusedError(TARGET_FAILED, str(exc), label="no_answer") from exc
+        finally:
+            if job.sent_at is not None:
+                stats.observe_wait(job.sent_at - job.queued_at)
+        if request.is_write:
+            _LOGGER.info(
+                "shared bus: client %s wrote %d registers at %#06x of %s",
+                client.name,
+                request.count,
+                request.address,
+                target.device,
+            )
+        return answer_pdu(request, response)

@@ -1,0 +1,171 @@
+"""Why a poll was late: the line busy with transactions, or the gateway's process busy elsewhere.
+
+A poll is late when its deadline passed before the bus task got to it. Either the line
+carried transactions all along (it cannot keep up: too many points for its speed, a
+device that times out), or the line was idle while the bus task did not run: the event
+loop that runs every bus, sink and server was busy (another master's requests, a sink),
+or the bus task waited on something else. The remedies differ (fewer points or a faster
+line; a limit on who loads the process), so the log says which, from two measures over
+the time the poll was late: the line's busy time (``LineStats.busy_s``) and how late the
+event loop ran a timer (:class:`LoopWatch`). Work that knows it holds the loop (the shared
+bus answering requests itself) charges its time to the watch, so the report names it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import weakref
+from collections import defaultdict, deque
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Final
+
+if TYPE_CHECKING:
+    from gateway.line.port import Line
+    from gateway.line.schedule import Late
+
+TICK_S: Final = 0.05  # the watch's timer; 20 wakes a second cost ~1 ms of CPU
+STALL_MIN_S: Final = 0.002  # a timer this much late: the loop was busy, not just scheduling
+SLOT_S: Final = 0.1  # charges are summed per source in slots this long
+HISTORY: Final = 4096  # stalls, charge slots and busy marks kept (minutes of history)
+LINE_BUSY_SHARE: Final = 0.5  # the line carried transactions this much of the lateness: its fault
+LOOP_BUSY_SHARE: Final = 0.5  # the loop was late this much of the line's idle time: the process's
+NAMED_SHARE: Final = 0.5  # a source charged this much of the loop's lateness is named
+
+
+@dataclass(frozen=True, slots=True)
+class LoopLoad:
+    """How late the event loop ran, over a stretch of time, and who said it held it."""
+
+    stalled_s: float
+    charged_s: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(slots=True, kw_only=True)
+class _Charge:
+    """Time one source held the loop within one slot (summed: a flood is many small ones)."""
+
+    slot: int
+    source: str
+    seconds: float
+
+
+class LoopWatch:
+    """How late one event loop runs a timer; time that work charges to it, by source.
+
+    One per event loop (:func:`loop_watch`); its timer runs while a bus worker runs.
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        """Idle until :meth:`attach`."""
+        self._loop = loop
+        self._users = 0
+        self._handle: asyncio.TimerHandle | None = None
+        self._due = 0.0
+        self._stalls: deque[tuple[float, float]] = deque(maxlen=HISTORY)  # (end, seconds)
+        self._charges: deque[_Charge] = deque(maxlen=HISTORY)
+
+    def attach(self) -> None:
+        """A worker runs: watch (the first starts the timer)."""
+        self._users += 1
+        if self._users == 1:
+            self._arm(time.monotonic())
+
+    def detach(self) -> None:
+        """A worker stopped: the last one stops the timer."""
+        self._users = max(0, self._users - 1)
+        if self._users == 0 and self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+    def _arm(self, now: float) -> None:
+        self._due = now + TICK_S
+        self._handle = self._loop.call_later(TICK_S, self._tick)
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        late = now - self._due
+        if late > STALL_MIN_S:
+            self._stalls.append((now, late))
+        self._arm(now)
+
+    def charge(self, source: str, seconds: float, now: float) -> None:
+        """``source`` held the loop for ``seconds`` just now."""
+        slot = int(now / SLOT_S)
+        last = self._charges[-1] if self._charges else None
+        if last is not None and last.slot == slot and last.source == source:
+            last.seconds += seconds
+        else:
+            self._charges.append(_Charge(slot=slot, source=source, seconds=seconds))
+
+    def since(self, start: float) -> LoopLoad:
+        """How late the loop ran from ``start`` until now, and who charged time meanwhile."""
+        stalled = sum(min(late, end - start) for end, late in self._stalls if end > start)
+        charged: defaultdict[str, float] = defaultdict(float)
+        for charge in self._charges:
+            if (charge.slot + 1) * SLOT_S > start:
+                charged[charge.source] += charge.seconds
+        return LoopLoad(stalled_s=stalled, charged_s=dict(charged))
+
+
+_WATCHES: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, LoopWatch] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def loop_watch() -> LoopWatch:
+    """The watch of the running event loop (made at the first call)."""
+    loop = asyncio.get_running_loop()
+    watch = _WATCHES.get(loop)
+    if watch is None:
+        watch = _WATCHES[loop] = LoopWatch(loop)
+    return watch
+
+
+class Lateness:
+    """One line's busy time as it went, to tell what made a poll late (:meth:`explain`)."""
+
+    def __init__(self, line: Line, watch: LoopWatch | None = None) -> None:
+        """Marks of ``line``'s busy time; the loop's ``watch`` is found when first needed."""
+        self.line = line
+        self.watch = watch
+        self._marks: deque[tuple[float, float]] = deque(maxlen=HISTORY)  # (when, busy_s)
+
+    def mark(self, now: float) -> None:
+        """The line's busy time now (the worker marks every poll)."""
+        self._marks.append((now, self.line.stats.busy_s))
+
+    def busy_since(self, start: float) -> float:
+        """Seconds the line carried transactions from about ``start`` until now."""
+        before = self._marks[0][1] if self._marks else self.line.stats.busy_s
+        for when, busy in self._marks:
+            if when > start:
+                break
+            before = busy
+        return self.line.stats.busy_s - before
+
+    def explain(self, late: Late, now: float) -> str:
+        """What made ``late`` late, in words for the log."""
+        lag = late.lag_s
+        head = f"{late.point} is {lag:.2f} s late (interval {late.interval_s:.2f} s)"
+        # The mark before the lateness began may fall inside a transaction: at most the lag.
+        busy = min(lag, self.busy_since(now - lag))
+        if busy >= LINE_BUSY_SHARE * lag:
+            return (
+                f"the line cannot keep up: {head}; it carried transactions {busy:.2f} s "
+                f"of those {lag:.2f} s; see the poll lag metric"
+            )
+        watch = self.watch or loop_watch()
+        load = watch.since(now - lag)
+        idle = f"{head} while the line was idle ({busy:.2f} s busy of {lag:.2f} s)"
+        if load.stalled_s < LOOP_BUSY_SHARE * (lag - busy):
+            return (
+                f"{idle} and the event loop on time ({load.stalled_s:.2f} s late): "
+                "the bus task waited on something else (its sinks, a pause)"
+            )
+        text = f"{idle}: the gateway's process was busy, its event loop {load.stalled_s:.2f} s late"
+        if load.charged_s:
+            source, seconds = max(load.charged_s.items(), key=lambda item: item[1])
+            if seconds >= NAMED_SHARE * load.stalled_s:
+                text += f", {seconds:.2f} s of it {source}"
+        return text
