@@ -300,6 +300,7 @@ class SparkplugSession:
         self.seq = (self.seq + 1) % payloads.SEQ_MODULUS
         await client.publish(message.topic, payload, qos=0, retain=False)
         self.status.published += 1
+        _cancelled_meanwhile()
 
     # --- receiving -------------------------------------------------------------------
 
@@ -413,3 +414,16 @@ def _read_bd_seq(path: Path) -> int:
 
 def _now_ms() -> int:
     return payloads.epoch_ms(datetime.now(UTC))
+
+
+def _cancelled_meanwhile() -> None:
+    """Re-raise a cancellation that a publish swallowed.
+
+    aiomqtt waits for a publish with ``asyncio.wait_for``, which on Python 3.11 returns the
+    result, not the cancellation, when both arrive together: the sender would then wait for
+    the next message with its cancellation lost, and a stop would hang on it (seen while a
+    device was reborn). The task still counts the request (``cancelling()``).
+    """
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
