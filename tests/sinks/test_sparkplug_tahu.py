@@ -142,9 +142,9 @@ def raw_value(raw: dict[str, Any], datatype: str) -> object:
 
     Tahu's ``decodePayload`` gives no value to a DDATA metric (it has no datatype there: a
     host looks the type up in the birth by alias), and Tahu 1.0.3 reads a UInt32 from
-    ``long_value``, where Sparkplug 2.2's Java encoder put it, while the gateway sends it
-    in ``int_value`` as 3.0's data type table has it. So values are compared here, field
-    by field, by the datatype of the birth.
+    ``long_value`` only, while the gateway sends it in ``int_value``, the schema's
+    ``uint32`` field (README, Sparkplug B, Conformance). So values are compared here,
+    field by field, by the datatype of the birth.
     """
     if raw.get("isNull"):
         return None
