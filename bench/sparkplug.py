@@ -39,7 +39,7 @@ import aiomqtt
 from bench.publish import mosquitto
 from gateway.config import MqttConfig, SparkplugConfig
 from gateway.line.samples import Quality, Sample
-from gateway.profiles import get_profile
+from gateway.profiles import PollGroup, get_profile
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.sparkplug import SparkplugSink
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
@@ -179,8 +179,14 @@ async def sparkplug(
     label: str,
 ) -> dict[str, float]:
     profile = get_profile(PROFILE)
+    # Every group: the six values include configuration (compensation) and diagnostics
+    # points, which a host gets only when asked for (the default is process and status).
     settings = SparkplugConfig(
-        enabled=True, group_id="bench", edge_node_id=label, deadband=deadband
+        enabled=True,
+        group_id="bench",
+        edge_node_id=label,
+        deadband=deadband,
+        groups=list(PollGroup),
     )
     broker = MqttConfig(host="127.0.0.1", port=port)
     sink = SparkplugSink(

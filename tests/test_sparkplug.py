@@ -1,10 +1,13 @@
 """Sparkplug B without a broker: payloads, report by exception, seq, and the config section.
 
 Payloads are read back with the hand-written decoder of ``tests/sparkplug_decoder.py``.
+Test names that carry a Sparkplug 3.0 statement id (``tck_id_…``) are the proof of that
+statement in docs/sparkplug-conformance.md.
 """
 
 from __future__ import annotations
 
+import json
 import textwrap
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Any
@@ -15,10 +18,11 @@ from gateway.config import ConfigProblems, parse_config
 from gateway.errors import CommandRejectedError
 from gateway.line.samples import Quality
 from gateway.profiles import get_profile
+from gateway.profiles.model import PollGroup
 from gateway.publish.sparkplug import payloads
-from gateway.publish.sparkplug.catalogue import Catalogue
+from gateway.publish.sparkplug.catalogue import DEFAULT_GROUPS, Catalogue
 from gateway.publish.sparkplug.reports import Reporter
-from gateway.publish.sparkplug.session import SparkplugSession
+from gateway.publish.sparkplug.session import HostOfflineError, SparkplugSession
 from gateway.publish.sparkplug.topics import SparkplugTopics
 from gateway.publish.store import MessageStore
 from gateway.wire.codec import EnumValue
@@ -26,6 +30,7 @@ from tests.sinks.test_prometheus import sample
 from tests.sparkplug_decoder import command, decode
 
 if TYPE_CHECKING:
+    from collections.abc import Collection
     from pathlib import Path
 
     from gateway.line.samples import Sample
@@ -35,13 +40,32 @@ S10 = "jumo-digiline-odo-s10"
 TOPICS = SparkplugTopics("plant", "gw1")
 
 
-def reporter(**deadbands: float) -> Reporter:
+ALL_GROUPS = [g.value for g in PollGroup]
+
+
+class FakeClock:
+    """Monotonic seconds that move only when a test says so."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def reporter(
+    *,
+    groups: Collection[str] = DEFAULT_GROUPS,
+    clock: FakeClock | None = None,
+    wait_s: float = 10.0,
+    **deadbands: float,
+) -> Reporter:
     profile = get_profile(S10)
     polled = [p.name for p in profile.points if not p.view]
     catalogue = Catalogue.build(
-        [("tank", profile, polled)], deadband=0.0, deadbands={"tank": deadbands}
+        [("tank", profile, polled)], deadband=0.0, deadbands={"tank": deadbands}, groups=groups
     )
-    return Reporter(catalogue, TOPICS)
+    return Reporter(catalogue, TOPICS, birth_wait_s=wait_s, clock=clock or FakeClock())
 
 
 def cycle(report: Reporter, *samples: Sample, live: bool = True) -> list[Message]:
@@ -53,8 +77,8 @@ def s10(point: str, value: Any = None, **options: Any) -> Sample:
 
 
 def test_first_cycle_births_then_only_changes_past_the_deadband() -> None:
-    report = reporter(temperature=0.5)
-    birth = cycle(report, s10("temperature", 20.0, unit="°C"), s10("oxygen", 8.0))
+    report = reporter(temperature=0.5, groups=ALL_GROUPS, wait_s=0.0)
+    birth = cycle(report, s10("temperature", 20.0, unit="°C"), s10("oxygen", 8.0, unit="mg/l"))
     assert [m.topic for m in birth] == ["spBv1.0/plant/DBIRTH/gw1/tank"]
     metrics = decode(birth[0].payload).by_name()
     alias = {name: m.alias for name, m in metrics.items()}
@@ -75,7 +99,7 @@ def test_first_cycle_births_then_only_changes_past_the_deadband() -> None:
 
 
 def test_a_fault_is_null_with_a_bad_quality_and_its_end_is_reported() -> None:
-    report = reporter()
+    report = reporter(wait_s=0.0)
     cycle(report, s10("oxygen", 8.0))
     alias = decode(report.dbirth("tank", 1).payload).by_name()["oxygen"].alias
     faulted = cycle(report, s10("oxygen", 2.0e37, fault="overrange", quality=Quality.FAULT))
@@ -93,7 +117,7 @@ def test_a_fault_is_null_with_a_bad_quality_and_its_end_is_reported() -> None:
 
 
 def test_types_on_the_wire_signed_enums_and_dates() -> None:
-    report = reporter()
+    report = reporter(groups=ALL_GROUPS, wait_s=0.0)
     stamp = datetime(2026, 5, 4, 3, 2, 1, tzinfo=UTC)
     enum = EnumValue(code=3, label="x")
     cycle(report, s10("commissioning_date", stamp), s10("baud_rate", enum))
@@ -108,12 +132,13 @@ def test_types_on_the_wire_signed_enums_and_dates() -> None:
 
 
 def test_offline_is_a_ddeath_and_not_live_cycles_are_historical() -> None:
-    report = reporter()
+    report = reporter(wait_s=0.0)
     cycle(report, s10("oxygen", 8.0))
     death = report.ddeath("tank", 5)
     assert death is not None
     assert death.topic == "spBv1.0/plant/DDEATH/gw1/tank"
     assert report.ddeath("tank", 6) is None  # dead once
+    report.alive("tank")
     # Back while the host is away: born for the next births, nothing to send now ...
     assert cycle(report, s10("oxygen", 8.0), live=False) == []
     assert "tank" in report.born
@@ -136,7 +161,7 @@ async def test_seq_wraps_from_255_to_0_on_every_message(tmp_path: Path) -> None:
     config = parse_config(
         "buses: [{name: a, port: /dev/ttyUSB0}]\nsparkplug: {enabled: true}\n", environ={}
     )
-    report = reporter()
+    report = reporter(wait_s=0.0)
     cycle(report, s10("oxygen", 8.0))
     session = SparkplugSession(
         config.mqtt,
@@ -227,9 +252,33 @@ def test_the_sparkplug_section_is_off_by_default_and_checked() -> None:
     assert "did you mean 'temperature'" in messages
 
 
-def test_a_unit_read_after_the_birth_is_told_by_a_new_dbirth() -> None:
-    report = reporter()
-    first = cycle(report, s10("oxygen", 8.0))  # the unit register not read yet
+def test_a_birth_waits_for_the_unit_register_and_comes_once() -> None:
+    clock = FakeClock()
+    report = reporter(clock=clock)
+    # The first answer without the unit of the oxygen (its unit register not read yet):
+    # no birth, and nothing else either.
+    assert cycle(report, s10("oxygen", 8.0), s10("temperature", 20.0, unit="°C")) == []
+    clock.now += 1.0
+    births = cycle(report, s10("oxygen", 8.1, unit="mg/l"), s10("temperature", 20.0))
+    assert [m.topic for m in births] == ["spBv1.0/plant/DBIRTH/gw1/tank"]
+    metrics = decode(births[0].payload).by_name()
+    assert metrics["oxygen"].properties["engUnit"] == "mg/l"
+    assert metrics["oxygen"].value == pytest.approx(8.1)
+    assert metrics["temperature"].value == 20.0  # kept from the cycle before the birth
+    # The same unit again is no news: one DBIRTH, then data.
+    data = cycle(report, s10("oxygen", 8.2, unit="mg/l"))
+    assert [m.topic for m in data] == ["spBv1.0/plant/DDATA/gw1/tank"]
+
+
+def test_a_unit_that_never_comes_births_after_the_wait_and_a_later_one_rebirths() -> None:
+    clock = FakeClock()
+    report = reporter(clock=clock, wait_s=10.0)
+    assert cycle(report, s10("oxygen", 8.0)) == []
+    clock.now += 9.9
+    assert cycle(report, s10("oxygen", 8.0)) == []
+    clock.now += 0.1
+    first = cycle(report, s10("oxygen", 8.0))
+    assert [m.topic for m in first] == ["spBv1.0/plant/DBIRTH/gw1/tank"]
     assert "engUnit" not in decode(first[0].payload).by_name()["oxygen"].properties
     again = cycle(report, s10("oxygen", 8.0, unit="mg/l"))
     assert [m.topic for m in again] == ["spBv1.0/plant/DBIRTH/gw1/tank"]
@@ -237,3 +286,157 @@ def test_a_unit_read_after_the_birth_is_told_by_a_new_dbirth() -> None:
     assert cycle(report, s10("oxygen", 8.0, unit="mg/l")) == []
     changed = cycle(report, s10("oxygen", 8.0, unit="%"))
     assert decode(changed[0].payload).by_name()["oxygen"].properties["engUnit"] == "%"
+
+
+def test_tck_id_operational_behavior_device_ddeath_a_dead_device_stays_dead() -> None:
+    """DDEATH, then nothing of the device until it answers again, then one DBIRTH."""
+    report = reporter(wait_s=0.0)
+    cycle(report, s10("oxygen", 8.0, unit="mg/l"))
+    assert "tank" in report.born
+    death = report.ddeath("tank", 5)
+    assert death is not None
+    # The failed cycle reaches the reporter after the DDEATH: dropped, no DBIRTH of nulls.
+    failed = s10("oxygen", None, fault="timeout", quality=Quality.COMMS_ERROR)
+    assert cycle(report, failed) == []
+    # Even a cycle with an answer in it, while the device is announced offline.
+    assert cycle(report, s10("oxygen", 8.0, unit="mg/l"), failed) == []
+    assert "tank" not in report.born
+    report.alive("tank")
+    # Online again, but a cycle without any answer is no birth either.
+    assert cycle(report, failed) == []
+    back = cycle(report, s10("oxygen", 8.3, unit="mg/l"))
+    assert [m.topic for m in back] == ["spBv1.0/plant/DBIRTH/gw1/tank"]
+    assert decode(back[0].payload).by_name()["oxygen"].value == pytest.approx(8.3)
+
+
+def test_quality_has_one_meaning_per_code() -> None:
+    report = reporter(groups=ALL_GROUPS, wait_s=0.0)
+    births = cycle(
+        report,
+        s10("oxygen", 2.0e37, unit="mg/l", fault="overrange", quality=Quality.FAULT),
+        s10("temperature", None, fault="timeout after 3 tries", quality=Quality.COMMS_ERROR),
+        s10("commissioning_date", None),  # registers all zero: a date never set
+        s10("temperature_highest", 31.5, unit="°C"),
+    )
+    metrics = decode(births[0].payload).by_name()
+    # Good: the value the sensor holds; null for none, and no fault.
+    assert metrics["commissioning_date"].is_null
+    assert metrics["commissioning_date"].properties["Quality"] == payloads.QUALITY_GOOD
+    assert "fault" not in metrics["commissioning_date"].properties
+    assert metrics["temperature_highest"].properties["Quality"] == payloads.QUALITY_GOOD
+    # Bad: the sensor sent a fault, named.
+    assert metrics["oxygen"].properties["Quality"] == payloads.QUALITY_BAD
+    assert metrics["oxygen"].properties["fault"] == "overrange"
+    # Stale: no current reading (the read failed), null, no fault.
+    assert metrics["temperature"].is_null
+    assert metrics["temperature"].properties["Quality"] == payloads.QUALITY_STALE
+    assert "fault" not in metrics["temperature"].properties
+    # The property's codes are the three Sparkplug 3.0 allows, always an Int32.
+    for metric in decode(births[0].payload).metrics:
+        assert metric.properties["Quality"] in {0, 192, 500}
+
+
+def test_an_enum_carries_its_label_in_a_string_metric_beside_its_code() -> None:
+    report = reporter(groups=ALL_GROUPS, wait_s=0.0)
+    births = cycle(report, s10("analog_output_function", EnumValue(code=2, label="standard")))
+    metrics = decode(births[0].payload).by_name()
+    code, label = metrics["analog_output_function"], metrics["analog_output_function/label"]
+    assert (code.datatype, code.value) == ("UInt16", 2)
+    assert (label.datatype, label.value) == ("String", "standard")
+    assert label.properties["readOnly"] is True
+    assert code.properties["readOnly"] is False
+    # A new code: both change, in one DDATA.
+    data = cycle(report, s10("analog_output_function", EnumValue(code=1, label="fixed_value")))
+    changed = {m.alias: m.value for m in decode(data[0].payload).metrics}
+    assert changed == {code.alias: 1, label.alias: "fixed_value"}
+
+
+def test_a_host_gets_process_and_status_by_default_and_the_groups_it_asks_for() -> None:
+    profile = get_profile(S10)
+    polled = [p.name for p in profile.points if not p.view]
+    default = Catalogue.build([("tank", profile, polled)]).devices["tank"]
+    groups = {m.point.group for m in default.metrics if m.point is not None}
+    assert groups == {PollGroup.PROCESS, PollGroup.STATUS}
+    assert "Write/Result" in default.by_name
+    every = Catalogue.build([("tank", profile, polled)], groups=ALL_GROUPS).devices["tank"]
+    assert len(every.metrics) > 3 * len(default.metrics)
+    own = Catalogue.build(
+        [("tank", profile, polled), ("other", profile, polled)],
+        device_groups={"tank": ["diagnostics"]},
+    ).devices
+    assert {m.point.group for m in own["tank"].metrics if m.point} == {PollGroup.DIAGNOSTICS}
+    assert {m.point.group for m in own["other"].metrics if m.point} == groups
+    text = (
+        "buses: [{name: a, port: /dev/ttyUSB0}]\n"
+        "devices: [{name: tank, bus: a, address: 1, profile: jumo-digiline-odo-s10}]\n"
+        "sparkplug: {groups: [process, diagnostics], device_groups: {tank: [status]}}\n"
+    )
+    config = parse_config(text, environ={}).sparkplug
+    assert config.groups == [PollGroup.PROCESS, PollGroup.DIAGNOSTICS]
+    assert config.device_groups == {"tank": [PollGroup.STATUS]}
+    bad = text.replace("[process, diagnostics]", "[process, logbook]").replace("{tank:", "{tnk:")
+    with pytest.raises(ConfigProblems) as info:
+        parse_config(bad, environ={})
+    found = {p.key for p in info.value.problems}
+    assert found == {"sparkplug.groups[1]", "sparkplug.device_groups.tnk"}
+
+
+def test_tck_id_operational_behavior_data_commands_rebirth_name_aliases() -> None:
+    """NBIRTH's ``Node Control/Rebirth``: Boolean, false, and without an alias."""
+    nbirth = decode(reporter().nbirth(3, 1).payload).by_name()
+    rebirth = nbirth["Node Control/Rebirth"]
+    assert rebirth.alias is None
+    assert (rebirth.datatype, rebirth.value) == ("Boolean", False)
+    assert nbirth["bdSeq"].alias is None
+
+
+def state_session(tmp_path: Path) -> SparkplugSession:
+    config = parse_config(
+        "buses: [{name: a, port: /dev/ttyUSB0}]\n"
+        "sparkplug: {enabled: true, primary_host_id: scada}\n",
+        environ={},
+    )
+    store = MessageStore(tmp_path / "q.sqlite", max_messages=1000)
+    store.close()
+    return SparkplugSession(
+        config.mqtt,
+        config.sparkplug,
+        SparkplugTopics("plant", "gw1", "scada"),
+        store,
+        births=reporter(),  # type: ignore[arg-type]
+        client_id="t",
+        bd_seq_path=tmp_path / "bdseq",
+    )
+
+
+def state(*, online: bool, timestamp: int) -> bytes:
+    return json.dumps({"online": online, "timestamp": timestamp}).encode()
+
+
+def test_tck_id_operational_behavior_edge_node_termination_host_offline_timestamp(
+    tmp_path: Path,
+) -> None:
+    """An offline STATE older than the online one acted on is ignored; a newer one ends it."""
+    session = state_session(tmp_path)
+    session._host_state(state(online=True, timestamp=2000))
+    assert session.host_online
+    session._host_state(state(online=False, timestamp=1999))  # a stale will: ignored
+    assert session.host_online
+    session._host_state(state(online=True, timestamp=1000))  # older, though online: ignored
+    assert session.host_timestamp == 2000
+    # The will of the session the host is in carries its birth's timestamp: acted on.
+    with pytest.raises(HostOfflineError):
+        session._host_state(state(online=False, timestamp=2000))
+    assert not session.host_online
+    session._host_state(state(online=True, timestamp=3000))
+    assert session.host_online
+    with pytest.raises(HostOfflineError):
+        session._host_state(b"OFFLINE")  # Sparkplug 2.2: no timestamp to compare
+
+
+def test_an_ncmd_names_the_rebirth_metric_by_name_only() -> None:
+    from gateway.publish.sparkplug.session import _node_command_metrics  # noqa: PLC0415
+
+    assert _node_command_metrics(command(("Node Control/Rebirth", "Boolean", True))) == [True]
+    with pytest.raises(CommandRejectedError, match="no metric alias 1"):
+        _node_command_metrics(command((1, "Boolean", True)))

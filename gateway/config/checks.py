@@ -148,11 +148,21 @@ def _check_ports(buses: Sequence[_Entry[BusConfig]]) -> Iterator[tuple[KeyPath, 
 def _check_sparkplug_deadbands(
     sparkplug: object, devices: Sequence[_Entry[DeviceConfig]]
 ) -> Iterator[tuple[KeyPath, str]]:
-    """``sparkplug.deadbands`` names configured devices and points of their profiles."""
-    deadbands = sparkplug.get("deadbands") if isinstance(sparkplug, dict) else None
-    if not isinstance(deadbands, dict):
+    """``sparkplug.deadbands`` names configured devices and points of their profiles.
+
+    ``sparkplug.device_groups`` names configured devices.
+    """
+    if not isinstance(sparkplug, dict):
         return
     profiles = {n: d.text("profile") for d in devices if (n := d.text("name")) is not None}
+    groups = sparkplug.get("device_groups")
+    for device in groups if isinstance(groups, dict) else {}:
+        if device not in profiles:
+            message = f"no device {device!r}; devices: {_names(profiles)}"
+            yield ("sparkplug", "device_groups", device), message
+    deadbands = sparkplug.get("deadbands")
+    if not isinstance(deadbands, dict):
+        return
     for device, points in deadbands.items():
         here: KeyPath = ("sparkplug", "deadbands", device)
         if device not in profiles:

@@ -496,6 +496,14 @@ class SparkplugConfig(_Model):
     client of its own, whose last will is the NDEATH; ``mqtt.enabled: false`` leaves it on.
     ``deadband`` applies to every Float metric, ``deadbands`` per device and point (in the
     point's unit); a change smaller than it is not reported by exception.
+
+    ``groups`` are the poll groups whose points are metrics (``device_groups`` per device):
+    process values and status by default, what a host expects of a sensor. Diagnostics,
+    configuration and identity are polled all the same, but each adds to every DBIRTH (an
+    H10 with every group is 312 metrics), so a host gets them only when asked for.
+    ``birth_wait_s`` bounds how long a device's DBIRTH waits for the unit registers its
+    metrics take their unit from (tecLine, Reiss): one birth with its units rather than a
+    birth without them and another a second later.
     """
 
     enabled: bool = False
@@ -505,6 +513,9 @@ class SparkplugConfig(_Model):
     client_id: str | None = None  # None: spb-<group>-<edge node>
     deadband: Deadband = 0.0
     deadbands: dict[str, dict[str, Deadband]] = {}  # device -> point -> deadband
+    groups: Annotated[list[PollGroup], Field(min_length=1)] = [PollGroup.PROCESS, PollGroup.STATUS]
+    device_groups: dict[str, Annotated[list[PollGroup], Field(min_length=1)]] = {}
+    birth_wait_s: Annotated[float, Field(ge=0, le=600)] = 10.0
     queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
 
 

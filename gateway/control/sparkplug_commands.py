@@ -76,8 +76,9 @@ class SparkplugCommands:
         writes = []
         for metric in payloads.decode_command(payload):
             spec = _resolve(metrics, metric)
-            if spec.point is None:
-                raise CommandRejectedError(f"metric {spec.name!r} is read-only")
+            if spec.point is None or spec.label:
+                hint = f" (write {spec.point.name!r} by its code)" if spec.point else ""
+                raise CommandRejectedError(f"metric {spec.name!r} is read-only{hint}")
             point = writer.point(spec.point.name)  # read-only points are refused here
             value: object = payloads.command_value(metric, spec.datatype)
             if spec.bit is not None:

@@ -12,6 +12,7 @@ import json
 import logging
 import signal
 import sys
+import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -56,6 +57,7 @@ SPARKPLUG_TYPE = {
 class Seen:
     topic: str
     payload: bytes
+    at: float = field(default_factory=time.monotonic)
 
     @property
     def kind(self) -> str:
@@ -151,8 +153,12 @@ def assert_seq_never_skips(seen: SpRecorder) -> None:
 
 
 def polled_points(profile_id: str) -> dict[str, Any]:
-    """The points a device polls by default (all but views), by name."""
-    return {p.name: p for p in get_profile(profile_id).points if not p.view}
+    """The points a host gets by default (process values and status), by name."""
+    return {
+        p.name: p
+        for p in get_profile(profile_id).points
+        if not p.view and p.group.value in {"process", "status"}
+    }
 
 
 async def test_births_name_every_point_with_type_unit_and_alias(
@@ -165,20 +171,18 @@ async def test_births_name_every_point_with_type_unit_and_alias(
     ):
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/aeration")
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/basin")
-
-        def unit_told() -> bool:
-            births = seen.on(f"{NODE}/DBIRTH/{EDGE}/basin")
-            return "engUnit" in births[-1].by_name()["concentration"].properties
-
-        # The unit of a concentration is in a register of its own: read after the first
-        # cycle, it comes with a new DBIRTH.
-        await seen.wait_until(unit_told)
+        await asyncio.sleep(2.0)  # several cycles: a second DBIRTH would be out by now
+    # The unit of a concentration is in a register of its own: the birth waits for it, so
+    # each device has one DBIRTH, with its units.
+    assert len(seen.on(f"{NODE}/DBIRTH/{EDGE}/basin")) == 1
+    assert len(seen.on(f"{NODE}/DBIRTH/{EDGE}/aeration")) == 1
     nbirth = seen.on(f"{NODE}/NBIRTH/{EDGE}")[0]
     node = nbirth.by_name()
     assert node["bdSeq"].datatype == "Int64"
     assert isinstance(node["bdSeq"].value, int)
     assert node["Node Control/Rebirth"].datatype == "Boolean"
     assert node["Node Control/Rebirth"].value is False
+    assert node["Node Control/Rebirth"].alias is None
     # A clean stop publishes the NDEATH with the NBIRTH's bdSeq.
     ndeath = seen.on(f"{NODE}/NDEATH/{EDGE}")[-1]
     assert ndeath.by_name()["bdSeq"].value == node["bdSeq"].value
@@ -189,7 +193,7 @@ async def test_births_name_every_point_with_type_unit_and_alias(
         birth = seen.on(f"{NODE}/DBIRTH/{EDGE}/{device}")[-1]
         metrics = birth.by_name()
         points = polled_points(profile_id)
-        assert set(points) <= set(metrics)
+        assert {n.split("/")[0] for n in metrics} == {*points, "Write"}  # process, status
         assert "Write/Result" in metrics
         for name, point in points.items():
             metric = metrics[name]
@@ -249,7 +253,7 @@ async def test_data_by_exception_with_a_deadband(tmp_path: Path, broker: Broker)
     assert all(m.name is None and m.datatype is None for d in data for m in d.metrics)
     # Report by exception: a metric that did not change is not repeated.
     for d in data:
-        assert alias["serial_number"] not in {m.alias for m in d.metrics}
+        assert alias["status"] not in {m.alias for m in d.metrics}
     assert_seq_never_skips(seen)
 
 
@@ -296,10 +300,12 @@ async def test_dcmd_writes_through_the_safe_path_and_bad_input_writes_nothing(
     tmp_path: Path, broker: Broker, caplog: pytest.LogCaptureFixture
 ) -> None:
     dcmd = f"{NODE}/DCMD/{EDGE}/aeration"
+    # The S10's compensation values are configuration: the host gets them when asked.
+    groups = ", groups: [process, status, configuration]"
     async with (
         simulated(tmp_path) as server,
         sp_recording(broker.port) as seen,
-        gateway(sp_yaml(tmp_path, broker.port)) as state,
+        gateway(sp_yaml(tmp_path, broker.port, sparkplug=groups)) as state,
         aiomqtt.Client("127.0.0.1", broker.port, identifier="host") as host,
     ):
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/aeration")
@@ -314,6 +320,7 @@ async def test_dcmd_writes_through_the_safe_path_and_bad_input_writes_nothing(
                 command(("compensation_temperature", "Boolean", True)),  # wrong datatype
                 command(("compensation_temperature", "Int32", 21)),  # wrong datatype
                 command(("oxygen", "Float", 8.0)),  # read-only
+                command(("analog_output_function/label", "String", "inactive")),  # a label
                 # One bad metric refuses the whole payload: the good one is not written.
                 command(("compensation_temperature", "Float", 21.5), ("nope", "Float", 1.0)),
             ]
@@ -330,6 +337,8 @@ async def test_dcmd_writes_through_the_safe_path_and_bad_input_writes_nothing(
         assert "no metric of alias 999999" in refused[2]
         assert "is a Float, the command says Boolean" in refused[3]
         assert "read-only" in refused[5]
+        assert "'analog_output_function/label' is read-only" in refused[6]
+        assert "by its code" in refused[6]
         assert state.writes.outcomes["aeration", "sparkplug", "rejected"] == len(bad)
         scrape = "".join(
             str(s)
@@ -405,12 +414,22 @@ async def test_ddeath_when_a_device_goes_offline_and_dbirth_when_it_returns(
     ):
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/aeration")
         server.bus.silence(1, 4.0, asyncio.get_running_loop().time())
+        silent_until = time.monotonic() + 4.0
         await seen.wait_for(f"{NODE}/DDEATH/{EDGE}/aeration")
         assert not seen.on(f"{NODE}/DDEATH/{EDGE}/basin")
         await seen.wait_for(f"{NODE}/DBIRTH/{EDGE}/aeration", count=2, within_s=30)
-    kinds = [m.kind for m in seen.messages if m.topic.endswith("/aeration")]
+        await asyncio.sleep(1.0)  # a flicker of births would show by now
+    mine = [m for m in seen.messages if m.topic.endswith("/aeration")]
+    kinds = [m.kind for m in mine]
     death = kinds.index("DDEATH")
-    assert "DDATA" not in kinds[death : kinds.index("DBIRTH", death)]
+    # Dead from its DDEATH until its first answer: nothing, then one DBIRTH, then data.
+    assert kinds[death + 1] == "DBIRTH"
+    assert kinds.count("DBIRTH") == 2
+    assert "DDEATH" not in kinds[death + 1 :]
+    assert mine[death + 1].at >= silent_until - 0.05, "born again before it answered"
+    reborn = mine[death + 1].decoded().by_name()
+    assert reborn["temperature"].value == 20.25
+    assert reborn["temperature"].properties["Quality"] == 192
     assert_seq_never_skips(seen)
 
 
@@ -432,6 +451,15 @@ async def test_primary_host_offline_stores_and_its_return_births_and_forwards(
             await seen.wait_for(f"{NODE}/DDATA/{EDGE}/aeration")
             assert state.sparkplug.host_online
             assert state.sparkplug.births == 1
+            # An offline STATE older than the online one (a stale will of the host): ignored
+            # (tck-id-operational-behavior-edge-node-termination-host-offline-timestamp).
+            data_before = len(seen.on(f"{NODE}/DDATA/{EDGE}/aeration"))
+            await host.publish(
+                state_topic, b'{"online": false, "timestamp": 0}', qos=1, retain=True
+            )
+            await seen.wait_for(f"{NODE}/DDATA/{EDGE}/aeration", count=data_before + 3)
+            assert not seen.on(f"{NODE}/NDEATH/{EDGE}")
+            assert state.sparkplug.host_online
             await host.publish(
                 state_topic, b'{"online": false, "timestamp": 2}', qos=1, retain=True
             )

@@ -1,23 +1,36 @@
 """Births, data and deaths, without I/O: what the host is told, and what it was told last.
 
 :class:`Reporter` keeps, per device, whether it is born (a DBIRTH went out since the last
-NBIRTH or DDEATH) and the value, quality and unit last reported of each metric. A poll
-cycle becomes a DDATA of the metrics that changed (report by exception): a Float by at
-least its deadband, anything else by any change, any metric whose quality changed. A
-fault is a null value (``is_null``) with the ``Quality`` property 0 (bad) and the fault's
-name, never the fault float the sensor sent. Payloads are built without ``seq``; the
-session adds it as they go out.
+NBIRTH or DDEATH), whether it is dead (a DDEATH went out and it has not answered since) and
+the value, quality and unit last reported of each metric. A device is born by its first
+cycle with an answer, once the unit registers its metrics need are read (or
+``birth_wait_s`` after its first answer, whichever comes first): one DBIRTH with its units.
+A device announced offline stays dead until it is announced online again: what its failed
+cycle brings after the DDEATH is not news of it. A poll cycle of a born device becomes a
+DDATA of the metrics that changed (report by exception): a Float by at least its deadband,
+anything else by any change, any metric whose quality changed.
+
+The ``Quality`` property has one meaning per code (the three codes Sparkplug 3.0 allows,
+``tck-id-payloads-propertyset-quality-value-value``):
+
+- 192 (good): the value the sensor holds now; null if it holds none (a date never set);
+- 0 (bad): the sensor answered with a fault instead of a value: null, and the property
+  ``fault`` names it (``overrange``, ``undecodable``, ...); never the fault float;
+- 500 (stale): no current reading: not read yet (in a birth), or its read failed (null).
+
+Payloads are built without ``seq``; the session adds it as they go out.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from gateway.line.samples import Quality
 from gateway.publish.message import Message
 from gateway.publish.sparkplug import payloads
-from gateway.publish.sparkplug.catalogue import BD_SEQ, REBIRTH, REBIRTH_ALIAS
+from gateway.publish.sparkplug.catalogue import BD_SEQ, REBIRTH
 from gateway.publish.sparkplug.payloads import (
     QUALITY_BAD,
     QUALITY_GOOD,
@@ -26,21 +39,28 @@ from gateway.publish.sparkplug.payloads import (
     Scalar,
     SpType,
 )
-from gateway.wire.codec import BitfieldValue
+from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Sequence
+    from collections.abc import Callable, Iterable, Sequence
 
     from gateway.line.samples import Sample
     from gateway.publish.sparkplug.catalogue import Catalogue, DeviceMetrics, MetricSpec
     from gateway.publish.sparkplug.topics import SparkplugTopics
 
-_QUALITY_OF = {Quality.GOOD: QUALITY_GOOD, Quality.STALE: QUALITY_STALE}
+# The Sparkplug quality of each sample quality (see the module's docstring).
+_QUALITY_OF = {
+    Quality.GOOD: QUALITY_GOOD,
+    Quality.FAULT: QUALITY_BAD,
+    Quality.STALE: QUALITY_STALE,
+    Quality.COMMS_ERROR: QUALITY_STALE,
+}
+BIRTH_WAIT_S = 10.0  # sparkplug.birth_wait_s: the unit registers are read in the first cycle
 
 
 @dataclass(frozen=True, slots=True)
 class Reported:
-    """A metric's value as reported: ``None`` with a quality below good for a fault."""
+    """A metric's value as reported: ``None`` for no value; ``fault`` only with bad quality."""
 
     value: Scalar | None
     quality: int
@@ -62,11 +82,28 @@ def ndeath_payload(bd_seq: int, now_ms: int) -> bytes:
 class Reporter:
     """Builds the node's messages and remembers what each device last reported."""
 
-    def __init__(self, catalogue: Catalogue, topics: SparkplugTopics) -> None:
-        """Report the metrics of ``catalogue`` on ``topics``."""
+    def __init__(
+        self,
+        catalogue: Catalogue,
+        topics: SparkplugTopics,
+        *,
+        birth_wait_s: float = BIRTH_WAIT_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        """Report the metrics of ``catalogue`` on ``topics``.
+
+        A birth waits for its units at most ``birth_wait_s`` after the device's first
+        answer, on ``clock`` (monotonic seconds).
+        """
         self.catalogue = catalogue
         self.topics = topics
+        self.birth_wait_s = birth_wait_s
+        self._clock = clock
         self.born: set[str] = set()
+        # Announced offline, and not online again since: nothing of them is reported.
+        self.dead: set[str] = set()
+        # When a device not born first answered: its birth waits for its units from then.
+        self._waiting_since: dict[str, float] = {}
         self._last: dict[str, dict[int, Reported]] = {d: {} for d in catalogue.devices}
         # The engineering unit each metric's last DBIRTH announced, where it had one.
         self._units: dict[str, dict[int, str | None]] = {d: {} for d in catalogue.devices}
@@ -85,7 +122,12 @@ class Reporter:
         return [d for d in self.catalogue.devices if d in self.born]
 
     def nbirth(self, bd_seq: int, now_ms: int) -> Message:
-        """The node's birth: ``bdSeq`` (as in the will) and ``Node Control/Rebirth``."""
+        """The node's birth: ``bdSeq`` (as in the will) and ``Node Control/Rebirth``.
+
+        Neither has an alias: the rebirth metric must not have one
+        (``tck-id-operational-behavior-data-commands-rebirth-name-aliases``), so a host
+        commands it by name.
+        """
         payload = payloads.new_payload(now_ms)
         metric = payload.metrics.add()
         metric.name = BD_SEQ
@@ -94,7 +136,6 @@ class Reporter:
         metric.long_value = bd_seq
         rebirth = payload.metrics.add()
         rebirth.name = REBIRTH
-        rebirth.alias = REBIRTH_ALIAS
         rebirth.timestamp = now_ms
         rebirth.datatype = SpType.BOOLEAN
         rebirth.boolean_value = False
@@ -129,41 +170,90 @@ class Reporter:
                 payloads.set_property(metric, payloads.DESCRIPTION, SpType.STRING, spec.description)
             payloads.set_property(metric, payloads.READ_ONLY, SpType.BOOLEAN, not spec.writable)
         self.born.add(device)
+        self._waiting_since.pop(device, None)
         return self._message(self.topics.device("DBIRTH", device), payload)
 
     def ddeath(self, device: str, now_ms: int) -> Message | None:
-        """A device's death, if it was born; what it reported is forgotten."""
+        """A device's death: dead until it is online again; a DDEATH if it was born.
+
+        What it reported is forgotten: its next birth carries only what it answers then.
+        """
         self._last[device] = {}
+        self._waiting_since.pop(device, None)
+        if device in self.catalogue.devices:
+            self.dead.add(device)
         if device not in self.born:
             return None
         self.born.discard(device)
         return self._message(self.topics.device("DDEATH", device), payloads.new_payload(now_ms))
 
+    def alive(self, device: str) -> None:
+        """The device is online again: its next cycle with an answer may birth it."""
+        self.dead.discard(device)
+
     # --- data ----------------------------------------------------------------------------
 
     def cycle(self, samples: Sequence[Sample], *, live: bool, now_ms: int) -> list[Message]:
-        """One device's poll cycle: a DBIRTH if it is not born, else a DDATA of the changes.
+        """One device's poll cycle: its DBIRTH once it is ready, else a DDATA of the changes.
 
-        While not ``live`` (the host or the broker away) a device not born is only marked
-        born (the births sent when the host is back carry it), and a DDATA is historical.
+        A dead device's cycle is dropped (the failed cycle that took it offline reaches
+        the sinks after its DDEATH), and so is a cycle without any answer of a device not
+        born. A device not born is born once ready (:meth:`ready`); until then its values
+        are kept for the birth. While not ``live`` (the host or the broker away) a device
+        ready is only marked born (the births sent when the host is back carry it), and a
+        DDATA is historical.
         """
         device = samples[0].device
         metrics = self.catalogue.devices.get(device)
-        if metrics is None:
+        if metrics is None or device in self.dead:
             return []
-        changed = self._changes(metrics, samples)
         if device not in self.born:
-            if not live:
-                self.born.add(device)
-                return []
-            return [self.dbirth(device, now_ms)]
+            return self._unborn_cycle(metrics, samples, live=live, now_ms=now_ms)
+        changed = self._changes(metrics, samples)
         if live and self._unit_changed(device, changed):
-            # A unit is a property of the birth: a new one (a unit register read after the
-            # birth, or changed on the sensor) is told by a new DBIRTH.
+            # A unit is a property of the birth: a new one (a unit register changed on the
+            # sensor, or read only after the wait) is told by a new DBIRTH.
             return [self.dbirth(device, now_ms)]
         if not changed:
             return []
         return [self.ddata(device, changed, historical=not live, now_ms=now_ms)]
+
+    def _unborn_cycle(
+        self, metrics: DeviceMetrics, samples: Sequence[Sample], *, live: bool, now_ms: int
+    ) -> list[Message]:
+        """A cycle of a device not born: kept for its birth, which goes once it is ready."""
+        device = metrics.device
+        if all(s.quality is Quality.COMMS_ERROR for s in samples):
+            return []  # no answer: nothing to birth
+        self._changes(metrics, samples)
+        self._waiting_since.setdefault(device, self._clock())
+        if not self.ready(device):
+            return []
+        if not live:
+            self.born.add(device)
+            self._waiting_since.pop(device, None)
+            return []
+        return [self.dbirth(device, now_ms)]
+
+    def ready(self, device: str) -> bool:
+        """Whether a device not born may be: its units known, or waited for long enough.
+
+        A metric whose unit comes from a unit register (a tecLine's or a Reiss's
+        concentration) has it once that register is read; a birth without it would be
+        followed by another as soon as it is. The wait is bounded (``birth_wait_s`` from
+        the first answer): a unit register that cannot be read does not keep the device
+        from the host, and a unit that comes later still brings a new DBIRTH.
+        """
+        since = self._waiting_since.get(device)
+        if since is not None and self._clock() - since >= self.birth_wait_s:
+            return True
+        last = self._last[device]
+        for spec in self.catalogue.devices[device].metrics:
+            if spec.needs_unit:
+                reported = last.get(spec.alias)
+                if reported is None or reported.unit is None:
+                    return False
+        return True
 
     def _unit_changed(
         self, device: str, changed: Iterable[tuple[MetricSpec, Reported, int | None]]
@@ -232,19 +322,26 @@ class Reporter:
     def _readings(
         metrics: DeviceMetrics, spec: MetricSpec, sample: Sample
     ) -> list[tuple[MetricSpec, Reported]]:
-        """A sample as the reading of its metric (and of its bits' metrics)."""
+        """A sample as the reading of its metric (and of its bits' and label's metrics).
+
+        One quality per meaning (see the module's docstring): a good sample is good even
+        without a value (a date never set); a fault is bad with its name; a read that
+        failed is stale, without a fault.
+        """
         time_ms = payloads.epoch_ms(sample.time)
-        value = sample.value if sample.quality in _QUALITY_OF else None
+        quality = _QUALITY_OF.get(sample.quality, QUALITY_STALE)
+        value = sample.value if sample.quality in {Quality.GOOD, Quality.STALE} else None
         scalar = payloads.scalar_of(value, spec.datatype)
-        quality = _QUALITY_OF.get(sample.quality, QUALITY_BAD) if scalar is not None else 0
-        fault = sample.fault or (None if scalar is not None else sample.quality.value)
+        fault = (sample.fault or sample.quality.value) if quality == QUALITY_BAD else None
         result = [(spec, Reported(scalar, quality, time_ms, fault, sample.unit))]
         flags = dict(value.flags) if isinstance(value, BitfieldValue) else {}
         for bit in metrics.bits_of.get(spec.name, ()):
             state = flags.get(bit.bit or "")
-            result.append(
-                (bit, Reported(state, quality if state is not None else 0, time_ms, fault))
-            )
+            result.append((bit, Reported(state, quality, time_ms, fault)))
+        label = metrics.label_of.get(spec.name)
+        if label is not None:
+            text = value.label if isinstance(value, EnumValue) else None
+            result.append((label, Reported(text, quality, time_ms, fault)))
         return result
 
     def _message(self, topic: str, payload: Payload) -> Message:

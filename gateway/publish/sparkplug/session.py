@@ -10,6 +10,11 @@ away (historical DDATA), then live messages; every message after the NBIRTH take
 its NDEATH itself): messages are stored until it is back, and the new session births anew.
 A rebirth (NCMD ``Node Control/Rebirth``) sends the births again in the same session.
 
+The host's STATE is judged by its timestamp (Sparkplug 3.0,
+``tck-id-operational-behavior-edge-node-termination-host-offline-timestamp``): one older
+than the STATE acted on last is ignored, so a stale retained will of the host (after its
+restart, or of the other host of a redundant pair) does not end a session the host is in.
+
 Messages are published with QoS 0 and never retained (Sparkplug 3.0, 7.1); the will and
 the NDEATH with QoS 1.
 """
@@ -30,7 +35,7 @@ import aiomqtt
 from gateway.errors import CommandRejectedError
 from gateway.publish.mqtt.connection import broker_client
 from gateway.publish.sparkplug import payloads
-from gateway.publish.sparkplug.catalogue import REBIRTH, REBIRTH_ALIAS
+from gateway.publish.sparkplug.catalogue import REBIRTH
 from gateway.publish.sparkplug.reports import ndeath_payload
 from gateway.publish.state import SparkplugStatus
 
@@ -110,6 +115,8 @@ class SparkplugSession:
         self.seq = 0
         self.connected = False
         self.host_online = topics.host is None
+        # The timestamp of the host's STATE acted on last (kept across sessions).
+        self.host_timestamp: int | None = None
         self._live: deque[Message] = deque()
         self._wake = asyncio.Event()
         self._rebirth = False
@@ -293,6 +300,7 @@ class SparkplugSession:
         self.seq = (self.seq + 1) % payloads.SEQ_MODULUS
         await client.publish(message.topic, payload, qos=0, retain=False)
         self.status.published += 1
+        _cancelled_meanwhile()
 
     # --- receiving -------------------------------------------------------------------
 
@@ -309,13 +317,35 @@ class SparkplugSession:
                 self._device_command(device, data)
 
     def _host_state(self, payload: bytes) -> None:
-        """``{"online": true|false, "timestamp": …}`` (3.0), or ``ONLINE``/``OFFLINE`` (2.2)."""
+        """``{"online": true|false, "timestamp": …}`` (3.0), or ``ONLINE``/``OFFLINE`` (2.2).
+
+        A 3.0 STATE older than the one acted on last is ignored; an equal one is not (a
+        host's will carries the timestamp of the birth it ends).
+        """
         text = payload.decode("utf-8", "replace").strip()
+        timestamp = None
         try:
             data = json.loads(text)
-            online = bool(data.get("online")) if isinstance(data, dict) else False
         except ValueError:
             online = text.upper() == "ONLINE"
+        else:
+            online = bool(data.get("online")) if isinstance(data, dict) else False
+            stamp = data.get("timestamp") if isinstance(data, dict) else None
+            if isinstance(stamp, int) and not isinstance(stamp, bool):
+                timestamp = stamp
+        if timestamp is not None:
+            last = self.host_timestamp
+            if last is not None and timestamp < last:
+                _LOGGER.info(
+                    "Sparkplug: ignored a STATE of %s (online %s) of %d, older than the one "
+                    "of %d acted on",
+                    self.topics.host,
+                    online,
+                    timestamp,
+                    last,
+                )
+                return
+            self.host_timestamp = timestamp
         if online and not self.host_online:
             _LOGGER.info("Sparkplug: primary host %s is online", self.topics.host)
             self.host_online = True
@@ -368,7 +398,7 @@ def _node_command_metrics(payload: bytes) -> list[bool]:
     """The values of an NCMD's metrics: ``Node Control/Rebirth`` (Boolean) is the one known."""
     values = []
     for metric in payloads.decode_command(payload):
-        if metric.name != REBIRTH and metric.alias != REBIRTH_ALIAS:
+        if metric.name != REBIRTH:  # by name: the rebirth metric has no alias
             raise CommandRejectedError(f"the node has no metric {metric.label} to command")
         values.append(bool(payloads.command_value(metric, payloads.SpType.BOOLEAN)))
     return values
@@ -384,3 +414,16 @@ def _read_bd_seq(path: Path) -> int:
 
 def _now_ms() -> int:
     return payloads.epoch_ms(datetime.now(UTC))
+
+
+def _cancelled_meanwhile() -> None:
+    """Re-raise a cancellation that a publish swallowed.
+
+    aiomqtt waits for a publish with ``asyncio.wait_for``, which on Python 3.11 returns the
+    result, not the cancellation, when both arrive together: the sender would then wait for
+    the next message with its cancellation lost, and a stop would hang on it (seen while a
+    device was reborn). The task still counts the request (``cancelling()``).
+    """
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError

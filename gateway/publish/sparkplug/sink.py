@@ -4,7 +4,8 @@
 metrics (:mod:`~gateway.publish.sparkplug.catalogue`), the reporter that remembers what the
 host was told (:mod:`~gateway.publish.sparkplug.reports`) and the session with the broker
 (:mod:`~gateway.publish.sparkplug.session`), and joins them: a cycle is handed to the
-session without waiting, a device going offline is a DDEATH, its return a DBIRTH.
+session without waiting, a device going offline is a DDEATH (and dead until it is online
+again), its first cycle with an answer after that a DBIRTH.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from gateway.publish.sparkplug.reports import Reported, Reporter
 from gateway.publish.sparkplug.session import SparkplugSession
 from gateway.publish.sparkplug.topics import SparkplugTopics
 from gateway.publish.store import MessageStore
+from gateway.wire.codec import EnumValue
 
 if TYPE_CHECKING:
     from collections.abc import Collection, Iterable, Sequence
@@ -56,9 +58,13 @@ class SparkplugSink:
         edge = settings.edge_node_id or socket.gethostname().split(".")[0]
         self.topics = SparkplugTopics(settings.group_id, edge, settings.primary_host_id)
         self.catalogue = Catalogue.build(
-            devices, deadband=settings.deadband, deadbands=settings.deadbands
+            devices,
+            deadband=settings.deadband,
+            deadbands=settings.deadbands,
+            groups=settings.groups,
+            device_groups=settings.device_groups,
         )
-        self.reporter = Reporter(self.catalogue, self.topics)
+        self.reporter = Reporter(self.catalogue, self.topics, birth_wait_s=settings.birth_wait_s)
         store = MessageStore(state_dir / QUEUE_FILE, max_messages=settings.queue_max)
         self.session = SparkplugSession(
             broker,
@@ -82,8 +88,9 @@ class SparkplugSink:
         self.session.enqueue(self.reporter.cycle(samples, live=live, now_ms=_now_ms()))
 
     async def device_event(self, event: DeviceEvent) -> None:
-        """Offline: the device's DDEATH (its next cycle is a DBIRTH)."""
+        """Offline: the device's DDEATH; online: its next cycle with an answer births it."""
         if event.online:
+            self.reporter.alive(event.device)
             return
         message = self.reporter.ddeath(event.device, _now_ms())
         if message is not None:
@@ -130,8 +137,14 @@ class SparkplugSink:
             point_spec = metrics.of_point[spec.point.name]
             scalar = payloads.scalar_of(value, point_spec.datatype)  # type: ignore[arg-type]
             if scalar is not None:
-                reported = Reported(scalar, payloads.QUALITY_GOOD, now, None, point_spec.unit)
+                before = self.reporter.last(device).get(point_spec.alias)
+                unit = before.unit if before is not None else point_spec.unit
+                reported = Reported(scalar, payloads.QUALITY_GOOD, now, None, unit)
                 changed.append(self.reporter.record(device, point_spec, reported))
+            label = metrics.label_of.get(spec.point.name)
+            if label is not None and isinstance(value, EnumValue):
+                reported = Reported(value.label, payloads.QUALITY_GOOD, now)
+                changed.append(self.reporter.record(device, label, reported))
         if metrics.result is not None and device in self.reporter.born:
             text = json.dumps(result, ensure_ascii=False, default=str)
             reported = Reported(text, payloads.QUALITY_GOOD, now)
