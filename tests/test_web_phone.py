@@ -9,6 +9,7 @@ run against the simulator, whose write log shows what reached the sensor.
 from __future__ import annotations
 
 import asyncio
+import logging
 from typing import TYPE_CHECKING, Any
 
 import pytest
@@ -86,10 +87,134 @@ async def test_on_a_phone_every_value_is_one_line_and_every_control_on_screen(
             button = page.locator("form[data-write='compensation_pressure'] button")
             box = await button.bounding_box()
             assert box is not None
-            assert 0 <= box["x"]
+            assert box["x"] >= 0
             assert box["x"] + box["width"] <= PHONE["width"]
         if address == CHLORINE:  # a flash point not in flash_writes: why, and no form
             refused = page.locator("tr[data-write-row='x_span']")
             assert "not in this device's flash_writes" in await refused.inner_text()
             assert await page.locator("form[data-write='x_span']").count() == 0
         await page.screenshot(path=screenshots / f"device-{address}-360.png", full_page=True)
+
+
+async def _question(page: Page, url: str) -> None:
+    """Start a slope calibration of the tecLine and wait for its question."""
+    await page.goto(f"{url}#/calibrate/{NAMES[CHLORINE]}/slope")
+    await page.locator("#settle [data-watch='cell_current'] .big").filter(has_text="nA").wait_for()
+    await page.fill("#f-reference", "0.5")
+    await page.fill("#f-samples", "1")
+    await page.click("#start")
+    await page.locator("#question").wait_for(timeout=30_000)
+
+
+async def _api(page: Page, method: str, path: str) -> dict[str, Any]:
+    """A request as the page's script makes it, with its session's CSRF token."""
+    result = await page.evaluate(
+        """async ([method, path]) => {
+            const s = await (await fetch("/api/session")).json();
+            const headers = {"Content-Type": "application/json"};
+            if (s.csrf) headers["X-CSRF-Token"] = s.csrf;
+            const body = method === "POST" ? JSON.stringify({confirm: true}) : undefined;
+            const r = await fetch(path, {method, headers, body});
+            return {status: r.status, body: await r.json()};
+        }""",
+        [method, path],
+    )
+    assert isinstance(result, dict)
+    return result
+
+
+async def test_a_calibration_left_at_its_question_ends_and_frees_the_device(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Sessions end 3 s after their last write, questions 6 s after they are asked.
+    web = ", session_minutes: 0.05, confirm_minutes: 0.1"
+    async with plant(tmp_path, web=web) as gateway, browser() as chromium:
+        sensor = gateway.device(CHLORINE)
+        sensor.hold("cell_current", CELL_CURRENT_NA)
+        phone = await chromium.new_context(viewport=PHONE)
+        page = await phone.new_page()
+        await sign_in(page, gateway.url)
+        await _question(page, gateway.url)
+        cookies = await phone.cookies()
+        await phone.close()  # the phone locked at the basin: nobody answers
+        # While its calibration is under way, the session outlives session_minutes.
+        await asyncio.sleep(4)
+        later = await chromium.new_context()
+        await later.add_cookies(cookies)  # type: ignore[arg-type]
+        same = await later.new_page()
+        await same.goto(gateway.url)
+        session = await same.evaluate("fetch('/api/session').then(r => r.json())")
+        assert session["signed_in"] is True
+        runs = await same.evaluate(
+            f"fetch('/api/calibrations?device={NAMES[CHLORINE]}').then(r => r.json())"
+        )
+        assert [r["phase"] for r in runs["runs"]] == ["confirm"]
+        run_id = runs["runs"][0]["id"]
+        # The question ends by itself, nothing written; then the session goes too.
+        async with asyncio.timeout(15):
+            while True:
+                run = await same.evaluate(
+                    f"fetch('/api/calibrations/{run_id}').then(r => r.json())"
+                )
+                if run["phase"] != "confirm":
+                    break
+                await asyncio.sleep(0.2)
+        assert run["phase"] == "abandoned"
+        assert run["verdict"] == "Ended: no answer in time. Nothing was written."
+        await asyncio.sleep(3.5)
+        session = await same.evaluate("fetch('/api/session').then(r => r.json())")
+        assert session["signed_in"] is False
+        # The device is free: another operator sees nothing under way and calibrates.
+        other = await chromium.new_page(viewport=PHONE)
+        await sign_in(other, gateway.url, name="ben")
+        await other.goto(f"{gateway.url}#/device/{NAMES[CHLORINE]}")
+        await other.locator("#procedures").wait_for()
+        assert await other.locator("#under-way [data-run]").count() == 0
+        await _question(other, gateway.url)
+    assert sensor.write_log == []
+    assert "ended: no answer in time; nothing was written" in caplog.text
+
+
+@pytest.mark.parametrize("action", ["take-over", "cancel"])
+async def test_another_session_cannot_answer_but_can_take_over_or_cancel(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, action: str
+) -> None:
+    caplog.set_level(logging.INFO, logger="gateway.web")
+    async with plant(tmp_path) as gateway, browser() as chromium:
+        sensor = gateway.device(CHLORINE)
+        sensor.hold("cell_current", CELL_CURRENT_NA)
+        ana = await (await chromium.new_context(viewport=PHONE)).new_page()
+        await sign_in(ana, gateway.url)
+        await _question(ana, gateway.url)
+        run_id = (await _api(ana, "GET", f"/api/calibrations?device={NAMES[CHLORINE]}"))["body"][
+            "runs"
+        ][0]["id"]
+        ben = await (await chromium.new_context(viewport=PHONE)).new_page()
+        await sign_in(ben, gateway.url, name="ben")
+        # A confirmation is bound to the session that started the run.
+        refused = await _api(ben, "POST", f"/api/calibrations/{run_id}/answer")
+        assert refused["status"] == 403
+        assert "take it over" in refused["body"]["error"]
+        assert sensor.write_log == []
+        # The device's page shows the run to any signed-in user, with what can be done.
+        await ben.goto(f"{gateway.url}#/device/{NAMES[CHLORINE]}")
+        banner = ben.locator(f"#under-way [data-run='{run_id}']")
+        await banner.wait_for()
+        assert "started by ana@127.0.0.1 is waiting for its confirmation" in (
+            await banner.inner_text()
+        )
+        if action == "cancel":
+            await ben.click("#cancel-other")
+            await banner.locator("[role=status]", has_text="cancelled").wait_for()
+            assert "ben@127.0.0.1 cancelled the slope calibration" in caplog.text
+            assert sensor.write_log == []
+            return
+        await ben.click("#take-over")
+        await ben.locator("#question #summary").wait_for()  # now ben's question
+        assert "ben@127.0.0.1 took over the slope calibration of pool_chlorine" in caplog.text
+        # ana's page no longer offers the writes, and her answer is refused.
+        await ana.locator(".warning", has_text="ben@127.0.0.1 has taken").wait_for()
+        assert (await _api(ana, "POST", f"/api/calibrations/{run_id}/answer"))["status"] == 403
+        await ben.click("#confirm-write")
+        await ben.locator("#phase[data-phase='done']").wait_for(timeout=30_000)
+    assert [w.address for w in sensor.write_log] == [0x0206, 0x0208, 0x020A]

@@ -228,6 +228,11 @@ class SignInThrottle:
         now = self._clock()
         return sum(1 for a in self._addresses.values() if a.locked_until > now)
 
+    def locked_until(self, remote: str) -> float:
+        """Until when (monotonic) ``remote`` is or was last locked out (0: never)."""
+        entry = self._addresses.get(remote)
+        return entry.locked_until if entry else 0.0
+
     def retry_after_s(self, remote: str) -> float:
         """How long ``remote`` is still locked out (0: it is not)."""
         entry = self._addresses.get(remote)

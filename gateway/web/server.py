@@ -352,9 +352,7 @@ class WebServer:
             return session is not None
 
         verdict = await self.throttle.attempt(remote, check)
-        self.state.count_sign_in(
-            verdict.value, remote, time.monotonic() + self.throttle.retry_after_s(remote)
-        )
+        self.state.count_sign_in(verdict.value, remote, self.throttle.locked_until(remote))
         if verdict is Verdict.LOCKED_OUT:
             wait = max(1, round(self.throttle.retry_after_s(remote)))
             response = _error(429, f"too many wrong passwords from {remote}: try again in {wait} s")
