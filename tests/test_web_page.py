@@ -381,6 +381,10 @@ async def test_every_calibration_runs_from_the_page(
         await _start(page, gateway.url, procedure, inputs, address=address, watch=watch)
         await page.locator("#question").wait_for(timeout=30_000)
         assert gateway.writes(address) == []
+        summary = await page.locator("#summary").inner_text()
+        assert summary.startswith("New ")
+        assert "0x" not in summary
+        assert "register" not in summary
         await page.click("#confirm-write")
         await page.locator("#phase[data-phase='done']").wait_for(timeout=30_000)
         assert "calibrated" in await page.locator("#result h2").inner_text()

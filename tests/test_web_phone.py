@@ -9,7 +9,9 @@ run against the simulator, whose write log shows what reached the sensor.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
+import socket
 from typing import TYPE_CHECKING, Any
 
 import pytest
@@ -218,3 +220,59 @@ async def test_another_session_cannot_answer_but_can_take_over_or_cancel(
         await ben.click("#confirm-write")
         await ben.locator("#phase[data-phase='done']").wait_for(timeout=30_000)
     assert [w.address for w in sensor.write_log] == [0x0206, 0x0208, 0x020A]
+
+
+def _own_address() -> str | None:
+    """This machine's address on its network (no packet is sent), or ``None``."""
+    with contextlib.suppress(OSError), socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect(("192.0.2.1", 9))  # TEST-NET-1: only the route is looked up
+        address = str(probe.getsockname()[0])
+        return None if address.startswith("127.") else address
+    return None
+
+
+async def test_from_another_machine_the_sign_in_page_says_reading_needs_it_too(
+    tmp_path: Path,
+) -> None:
+    address = _own_address()
+    if address is None:
+        pytest.skip("this machine has no address but loopback")
+    async with plant(tmp_path, web=", host: 0.0.0.0") as gateway, browser() as chromium:
+        page = await chromium.new_page(viewport=PHONE)
+        remote = f"http://{address}:{gateway.port}/"
+        await page.goto(remote)
+        intro = page.locator("main p").first
+        await intro.filter(has_text="reading").wait_for()
+        assert "From another machine, reading this page needs you to sign in too" in (
+            await intro.inner_text()
+        )
+        await sign_in(page, remote)
+        await page.locator("section[data-device] td[data-value]").first.wait_for()
+        # On this machine the page reads without a session, and says only writes need one.
+        local = await chromium.new_page(viewport=PHONE)
+        await local.goto(f"{gateway.url}#/login")
+        assert await local.locator("main p").first.inner_text() == (
+            "Writes and calibrations need you to sign in."
+        )
+
+
+async def test_signing_out_at_the_question_ends_the_calibration_unwritten(tmp_path: Path) -> None:
+    async with plant(tmp_path) as gateway, browser() as chromium:
+        sensor = gateway.device(CHLORINE)
+        sensor.hold("cell_current", CELL_CURRENT_NA)
+        page = await chromium.new_page(viewport=PHONE)
+        await sign_in(page, gateway.url)
+        await _question(page, gateway.url)
+        run_id = (await _api(page, "GET", f"/api/calibrations?device={NAMES[CHLORINE]}"))["body"][
+            "runs"
+        ][0]["id"]
+        await page.click("#sign-out")
+        await page.locator("#sign-in-link").wait_for()
+        async with asyncio.timeout(10):
+            while (run := (await _api(page, "GET", f"/api/calibrations/{run_id}"))["body"])[
+                "phase"
+            ] == "confirm":
+                await asyncio.sleep(0.1)
+        assert run["phase"] == "abandoned"
+        assert run["verdict"] == "Ended: ana signed out. Nothing was written."
+    assert sensor.write_log == []

@@ -204,16 +204,16 @@ _JSON_READY: Final = (
 
 
 # What the operator calls the registers a calibration writes (the question's plain words).
-PLAIN_NAMES: Final = {
+PLAIN_NAMES: Final = {  # in the order the question names them
     "x_span": "slope",
     "x_zero": "zero point",
+    "end_value_oxygen": "end value",
+    "end_value_oxygen_unit": "unit",
+    "calibration_mode": "calibration mode",
     "calibration_stamp": "calibration date",
     "calibration_date": "calibration date",
-    "calibration_mode": "calibration mode",
-    "zero_point_calibration_trigger": "zero-point calibration started",
-    "end_value_calibration_trigger": "end-value calibration started at",
-    "end_value_oxygen": "end value",
-    "end_value_oxygen_unit": "unit of the end value",
+    "zero_point_calibration_trigger": "then the sensor's zero-point calibration",
+    "end_value_calibration_trigger": "then the sensor's end-value calibration",
 }
 
 
@@ -370,6 +370,9 @@ class Flow:
             plans, key=lambda p: order.index(p.point) if p.point in order else len(order)
         ):
             name = PLAIN_NAMES.get(planned.point, planned.point.replace("_", " "))
+            if planned.point.endswith("_trigger"):  # its value only starts it
+                parts.append(name)
+                continue
             text = f"{name} {_plain(planned.value, planned.target, unit)}"
             before = self.seen.get(planned.point)
             if before is not None and not isinstance(before, codec.Fault):
@@ -378,6 +381,7 @@ class Flow:
                 text += " (unchanged)" if same else f" (was {was})"
             parts.append(text)
         line = "New " + "; ".join(parts) if parts else "Nothing to write"
+        line = line.replace("New then", "Then")
         flash = [p for p in plans if p.flash]
         if flash:
             today = utc_today()
