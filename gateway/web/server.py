@@ -68,6 +68,7 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 EVENT_INTERVAL_S: Final = 1.0
+MAX_REFUSED: Final = 256  # Host names remembered as refused, to warn once per name
 SHUTDOWN_S: Final = 3.0
 STATIC_FILES: Final = {
     "index.html": "text/html",
@@ -119,6 +120,7 @@ class WebServer:
             writers, sessions=self.sessions, confirm_timeout_s=config.confirm_minutes * 60
         )
         self._allowed_hosts = frozenset(config.allowed_hosts)
+        self._refused_hosts: set[str] = set()
         state.web.enabled = True
         self.event_interval_s = event_interval_s
         self.port: int | None = None  # the port bound, once started
@@ -231,8 +233,12 @@ class WebServer:
             remote=request.remote,
         ):
             return await handler(request)
-        _LOGGER.warning(
-            "web: %s %s from %s refused: Host %r is not a name of this gateway",
+        # The first request of a refused name is a warning; a page polling it, quiet.
+        first = header not in self._refused_hosts and len(self._refused_hosts) < MAX_REFUSED
+        self._refused_hosts.add(header or "")
+        _LOGGER.log(
+            logging.WARNING if first else logging.DEBUG,
+            "web: %s %s from %s refused: Host %r is not a name of this gateway (web.allowed_hosts)",
             request.method,
             request.path,
             request.remote,

@@ -74,6 +74,10 @@ function ago(seconds) {
   return `${(seconds / 3600).toFixed(1)} h ago`;
 }
 
+function within(seconds) {
+  return seconds < 120 ? `${Math.round(seconds)} s` : `${Math.ceil(seconds / 60)} min`;
+}
+
 function errorText(errors) {
   const parts = Object.entries(errors || {}).filter(([, n]) => n > 0).map(([k, n]) => `${k} ${n}`);
   return parts.length ? parts.join(", ") : "none";
@@ -177,13 +181,17 @@ function breakable(text) {
 }
 
 // A value of the register map: a number or a date is never broken inside itself; a date is
-// shown to the minute (the full text in its title); names of states may wrap at "_".
+// shown without its "T" and zone (the full text in its title), its seconds where not :00;
+// text may wrap between its words.
 const ISO_DATE = /^(\d{4}-\d\d-\d\d)T(\d\d:\d\d)(:\d\d)?([+-]\d\d:\d\d|Z)?$/;
 function valueText(value) {
   if (!value) return el("span", { class: "v" });
   const text = value.text;
   const date = ISO_DATE.exec(text);
-  if (date) return el("span", { class: "v nowrap", title: text, "data-text": text, text: `${date[1]} ${date[2]}` });
+  if (date) {
+    const seconds = date[3] && date[3] !== ":00" ? date[3] : "";
+    return el("span", { class: "v nowrap", title: text, "data-text": text, text: `${date[1]} ${date[2]}${seconds}` });
+  }
   if (numeric(text)) return el("span", { class: "v nowrap", "data-text": text, text });
   // Text may wrap between its words (at spaces, and after "_"), never inside one.
   const words = String(text).split(/(?<=[_\s])/).flatMap((word, i) => [i ? el("wbr") : null, el("span", { class: "w nowrap", text: word })]);
@@ -510,7 +518,7 @@ async function underWay(device, onMine) {
   for (const run of data.runs) {
     if (run.mine && onMine) { onMine(run); continue; }
     const waiting = run.phase === "confirm"
-      ? `is waiting for its confirmation${run.answer_within_s !== null ? ` (ends by itself in ${Math.ceil(run.answer_within_s / 60)} min)` : ""}`
+      ? `is waiting for its confirmation${run.answer_within_s !== null ? ` (ends by itself in ${within(run.answer_within_s)})` : ""}`
       : `is ${run.phase}`;
     const status = el("span", { role: "status" });
     const buttons = [];
@@ -629,12 +637,12 @@ function follow(id, status, form) {
       const no = el("button", { class: "danger", type: "button", id: "decline", text: "Do not write (ends the calibration)" });
       yes.addEventListener("click", () => answer(id, true, errors));
       no.addEventListener("click", () => answer(id, false, errors));
-      const within = run.answer_within_s === null ? "" : ` Without an answer it ends by itself in ${Math.ceil(run.answer_within_s / 60)} min, nothing written.`;
+      const deadline = run.answer_within_s === null ? "" : ` Without an answer it ends by itself in ${within(run.answer_within_s)}, nothing written.`;
       parts.push(el(
         "section",
         { class: "warning", id: "question", role: "alertdialog", "aria-label": "Confirm the writes" },
         el("p", { id: "summary", class: "summary", text: run.summary }),
-        el("p", { class: "meta", text: `Nothing is written until you say so.${within}` }),
+        el("p", { class: "meta", text: `Nothing is written until you say so.${deadline}` }),
         el("div", { class: "actions" }, yes, no),
         el("details", { id: "question-detail" }, el("summary", { text: "Register detail" }), el("pre", { text: [run.detail, ...run.steps.filter((s) => s.kind === "plan").map((s) => s.text)].join("\n") })),
       ));
