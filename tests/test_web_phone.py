@@ -93,7 +93,7 @@ async def test_on_a_phone_every_value_is_one_line_and_every_control_on_screen(
             assert box["x"] + box["width"] <= PHONE["width"]
         if address == CHLORINE:  # a flash point not in flash_writes: why, and no form
             refused = page.locator("tr[data-write-row='x_span']")
-            assert "not in this device's flash_writes" in await refused.inner_text()
+            assert "Not writable: flash, not in flash_writes" in await refused.inner_text()
             assert await page.locator("form[data-write='x_span']").count() == 0
         await page.screenshot(path=screenshots / f"device-{address}-360.png", full_page=True)
 

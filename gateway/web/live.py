@@ -184,7 +184,7 @@ def register_map(
         view = sample_view(sample, stale=state.is_stale(sample, now), now=now) if sample else None
         writable = point.writable and not point.view
         refused = (
-            "flash memory: not in this device's flash_writes"
+            "flash, not in flash_writes"
             if point.storage is Storage.FLASH and point.name not in flash_allowed
             else None
         )

@@ -400,7 +400,7 @@ async function devicePage(name) {
     // beside the value it squeezed the value's column on a phone.
     let below = null;
     if (p.writable && session.signed_in) below = writeForm(name, p);
-    else if (p.refused && p.access === "rw" && session.signed_in) below = el("span", { class: "meta refused", text: `Not writable here: ${p.refused}` });
+    else if (p.refused && p.access === "rw" && session.signed_in) below = el("span", { class: "meta refused", text: `Not writable: ${p.refused}` });
     if (!below) return [row];
     row.classList.add("has-write");
     return [row, el("tr", { class: "write-row", "data-write-row": p.name }, el("td", { class: "wide-only" }), el("td", { colspan: 4 }, below))];
