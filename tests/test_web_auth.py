@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
+import time
 from typing import Any
 
+import aiohttp
 import pytest
 from aiohttp import web
 from aiohttp.test_utils import make_mocked_request
+from prometheus_client import CollectorRegistry, generate_latest
 
 from gateway.config import ConfigProblems, WebConfig, parse_config
 from gateway.errors import ConfigError
+from gateway.publish.prometheus import GatewayCollector
 from gateway.publish.state import GatewayState
 from gateway.web import Sessions, WebServer
-from gateway.web.auth import is_loopback
+from gateway.web.auth import MAX_FAILURES, WRONG_DELAY_S, host_allowed, is_loopback
 from tests.mqtt_broker import free_port
 
 CONFIG = "buses: [{name: basin, port: /dev/null}]\n"
@@ -153,3 +158,126 @@ async def test_a_port_that_is_taken_is_a_config_error_naming_web_port() -> None:
         assert info.value.key == "web.port"
     finally:
         await first.stop()
+
+
+def test_a_session_slides_with_its_writes_and_is_held_while_its_calibration_runs() -> None:
+    clock = Clock()
+    keeper = sessions(clock)  # ten minutes
+    session = keeper.sign_in("ana", PASSWORD, "127.0.0.1")
+    assert session is not None
+    keeper.hold(session.token)  # a calibration started
+    clock.now += 60 * 60
+    assert keeper.find(session.token) is session  # an hour later: still held
+    keeper.release(session.token)  # it ended: ten minutes from now
+    clock.now += 9 * 60
+    assert keeper.find(session.token) is session
+    clock.now += 61
+    assert keeper.find(session.token) is None
+
+
+async def _server(config: dict[str, Any], state: GatewayState | None = None) -> WebServer:
+    server = WebServer(
+        WebConfig.model_validate({"enabled": True, "port": free_port(), **config}),
+        state or GatewayState(),
+        {},
+    )
+    await server.start()
+    return server
+
+
+@pytest.mark.parametrize(
+    ("host", "status"),
+    [
+        ("127.0.0.1:{port}", 200),
+        ("127.0.0.1", 200),
+        ("localhost:{port}", 200),
+        ("LOCALHOST.:{port}", 200),
+        ("gateway.plant.example:{port}", 200),
+        ("a.basin.example", 200),
+        ("basin.example", 421),
+        ("evil.example", 421),
+        ("evil.example:{port}", 421),
+        ("10.0.0.5:{port}", 421),
+        ("gateway.plant.example.evil.example", 421),
+    ],
+)
+async def test_the_page_answers_only_to_its_own_host_names(host: str, status: int) -> None:
+    server = await _server({"allowed_hosts": ["gateway.plant.example", "*.basin.example"]})
+    try:
+        async with aiohttp.ClientSession() as client:
+            headers = {"Host": host.format(port=server.port)}
+            for path in ("/api/state", "/"):
+                async with client.get(f"{server.url}{path[1:]}", headers=headers) as response:
+                    assert response.status == status, path
+                    if status == 421:
+                        text = await response.text()
+                        assert "does not answer to the host name" in text
+                        assert "web.allowed_hosts" in text
+    finally:
+        await server.stop()
+
+
+def test_localhost_names_are_accepted_only_from_this_machine() -> None:
+    def allowed(header: str | None, remote: str, listen: str = "0.0.0.0") -> bool:  # noqa: S104
+        return host_allowed(header, allowed=(), listen=listen, local="192.0.2.1", remote=remote)
+
+    assert allowed("localhost:8080", "127.0.0.1")
+    assert not allowed("localhost:8080", "192.0.2.7")
+    assert allowed("192.0.2.1:8080", "192.0.2.7")  # the address the client connected to
+    assert allowed("[::ffff:192.0.2.1]:8080", "192.0.2.7")
+    assert not allowed("192.0.2.9:8080", "192.0.2.7")
+    assert allowed("gateway.local", "192.0.2.7", listen="gateway.local")
+    assert allowed(None, "192.0.2.7")  # HTTP/1.0, no browser
+
+
+async def test_parallel_guesses_take_the_throttles_time_and_lock_the_address_out(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    state = GatewayState()
+    server = await _server({"password": PASSWORD}, state)
+    wrong = {"name": "eve", "password": "guess"}
+    try:
+        async with aiohttp.ClientSession() as client:
+
+            async def guess() -> int:
+                async with client.post(f"{server.url}api/login", json=wrong) as response:
+                    return response.status
+
+            started = time.monotonic()
+            statuses = await asyncio.gather(*(guess() for _ in range(20)))
+            elapsed = time.monotonic() - started
+            # Checked one at a time, each wrong one costing its delay: five, then locked out.
+            assert statuses.count(403) == MAX_FAILURES
+            assert statuses.count(429) == 20 - MAX_FAILURES
+            assert elapsed >= MAX_FAILURES * WRONG_DELAY_S
+            # Locked out: even the right password from that address is turned away ...
+            right = {"name": "ana", "password": PASSWORD}
+            async with client.post(f"{server.url}api/login", json=right) as response:
+                assert response.status == 429
+                assert int(response.headers["Retry-After"]) > 0
+                assert "too many wrong passwords" in (await response.json())["error"]
+        # ... while another address signs in at once.
+        other = aiohttp.TCPConnector(local_addr=("127.0.0.2", 0))
+        async with (
+            aiohttp.ClientSession(connector=other) as client,
+            client.post(f"{server.url}api/login", json=right) as response,
+        ):
+            assert response.status == 200
+            assert "max-age" not in response.headers["Set-Cookie"].lower()  # it slides
+    finally:
+        await server.stop()
+    assert "web: 127.0.0.1 locked out for 300 s after 5 wrong passwords" in caplog.text
+    web = state.snapshot().web
+    assert web.sign_ins["wrong"] == MAX_FAILURES
+    assert web.sign_ins["ok"] == 1
+    assert web.lockouts == 1
+    exposition = generate_latest(_registry(state)).decode()
+    assert "gateway_web_lockouts_total 1.0" in exposition
+    assert "gateway_web_locked_out_addresses 1.0" in exposition
+    assert 'gateway_web_sign_ins_total{outcome="wrong"} 5.0' in exposition
+
+
+def _registry(state: GatewayState) -> CollectorRegistry:
+    registry = CollectorRegistry()
+    registry.register(GatewayCollector(state))
+    return registry

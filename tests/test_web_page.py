@@ -211,15 +211,27 @@ async def test_a_slope_calibration_runs_from_the_page_and_the_new_slope_is_read_
         )
         question = page.locator("#question")
         await question.wait_for(timeout=30_000)
-        assert "Write 3 register block(s)" in await question.inner_text()
-        steps = await page.locator("#steps").inner_text()
-        assert "x_span = 153" in steps  # the planned write, shown before it is confirmed
+        # The question in plain words first; the registers folded away beneath it.
+        summary = await page.locator("#summary").inner_text()
+        assert summary.startswith("New slope 153 nA/ppm (was 22 nA/ppm); zero point 0 nA")
+        assert "written to the sensor's memory (flash write 1 of 4 allowed today)" in summary
+        assert "0x" not in summary
+        detail = page.locator("#question-detail pre")
+        assert not await detail.is_visible()
+        await page.click("#question-detail summary")
+        assert "Write 3 register block(s)" in await detail.inner_text()
+        assert "x_span = 153" in await detail.inner_text()  # the planned write, before it
+        assert not await page.locator("#steps").is_visible()  # every step, folded too
         assert gateway.writes(CHLORINE) == []  # nothing written before the confirmation
         await page.screenshot(path=screenshots / "calibrate-confirm-360.png", full_page=True)
-        await page.keyboard.press("Enter")  # the focus is on "Write to the sensor"
+        await page.focus("#confirm-write")
+        await page.keyboard.press("Enter")
         await page.locator("#phase[data-phase='done']").wait_for(timeout=30_000)
         result = await page.locator("#result").inner_text()
         assert "calibrated" in result
+        verdict = await page.locator("#verdict").inner_text()
+        assert verdict == "Calibrated: 3 write(s), every check as expected."
+        assert len(result.splitlines()) < 20  # a verdict, not the JSON of every value
         await page.set_viewport_size(DESKTOP)
         await page.screenshot(path=screenshots / "calibrate-done-1280.png", full_page=True)
     assert sensor.get("x_span") == pytest.approx(153.0)
@@ -227,7 +239,7 @@ async def test_a_slope_calibration_runs_from_the_page_and_the_new_slope_is_read_
     assert [w.address for w in sensor.write_log] == [0x0206, 0x0208, 0x020A]
 
 
-async def test_cancelling_at_the_confirmation_leaves_the_sensor_as_it_was(
+async def test_not_writing_at_the_confirmation_leaves_the_sensor_as_it_was(
     tmp_path: Path,
 ) -> None:
     async with plant(tmp_path) as gateway, browser() as chromium:
@@ -238,9 +250,12 @@ async def test_cancelling_at_the_confirmation_leaves_the_sensor_as_it_was(
         await sign_in(page, gateway.url)
         await _start(page, gateway.url, "slope", {"reference": "0.5", "samples": "1"})
         await page.locator("#question").wait_for(timeout=30_000)
-        await page.click("#cancel")
-        await page.locator("#phase[data-phase='cancelled']").wait_for(timeout=10_000)
-        assert "nothing was written" in await page.locator("#result").inner_text()
+        # One way to say no at the question: "Do not write" (no second "Cancel" beside it).
+        assert await page.locator("#question button").count() == 2
+        assert await page.locator("#cancel").count() == 0
+        await page.click("#decline")
+        await page.locator("#phase[data-phase='done']").wait_for(timeout=10_000)
+        assert "nothing was written" in await page.locator("#verdict").inner_text()
     assert sensor.write_log == []
     assert sensor.get("x_span") == before
 
@@ -255,7 +270,7 @@ async def test_cancelling_while_the_cell_current_is_read_stops_before_any_write(
         await sign_in(page, gateway.url)
         inputs = {"reference": "0.5", "samples": "20", "every": "0.5"}
         await _start(page, gateway.url, "slope", inputs)
-        await page.locator("#steps li", has_text="cell_current sample 1/20").wait_for()
+        await page.locator("#progress", has_text="cell_current sample").wait_for()
         await page.focus("#cancel")
         await page.keyboard.press("Enter")
         await page.locator("#phase[data-phase='cancelled']").wait_for(timeout=10_000)
@@ -366,6 +381,10 @@ async def test_every_calibration_runs_from_the_page(
         await _start(page, gateway.url, procedure, inputs, address=address, watch=watch)
         await page.locator("#question").wait_for(timeout=30_000)
         assert gateway.writes(address) == []
+        summary = await page.locator("#summary").inner_text()
+        assert summary.startswith("New ")
+        assert "0x" not in summary
+        assert "register" not in summary
         await page.click("#confirm-write")
         await page.locator("#phase[data-phase='done']").wait_for(timeout=30_000)
         assert "calibrated" in await page.locator("#result h2").inner_text()

@@ -90,7 +90,9 @@ class Plant:
 ABSENT = 7  # configured, but no sensor answers there
 
 
-def _config(tty: Path, port: int, state_dir: Path, *, password: str | None, absent: bool) -> str:
+def _config(
+    tty: Path, port: int, state_dir: Path, *, password: str | None, absent: bool, web: str
+) -> str:
     devices = "".join(
         f"  - {{name: {name}, bus: basin, address: {address}, "
         f"profile: {next(d['profile'] for d in PLANT if d['address'] == address)}, "
@@ -108,24 +110,25 @@ def _config(tty: Path, port: int, state_dir: Path, *, password: str | None, abse
         f"devices:\n{devices}"
         "mqtt: {enabled: false}\n"
         "prometheus: {enabled: false}\n"
-        f"web: {{enabled: true, port: {port}{secret}}}\n"
+        f"web: {{enabled: true, port: {port}{secret}{web}}}\n"
         f"state_dir: {json.dumps(str(state_dir))}\n"
     )
 
 
 @contextlib.asynccontextmanager
 async def plant(
-    tmp_path: Path, *, password: str | None = PASSWORD, absent: bool = False
+    tmp_path: Path, *, password: str | None = PASSWORD, absent: bool = False, web: str = ""
 ) -> AsyncIterator[Plant]:
     """The gateway with its page polling the simulated plant; stopped at the end.
 
-    With ``absent``, one more device is configured where no sensor answers.
+    With ``absent``, one more device is configured where no sensor answers; ``web`` adds
+    keys to the ``web`` section (``", confirm_minutes: 0.1"``).
     """
     server = SimulatorServer(build_bus(parse_settings({"devices": PLANT, "line": LINE})))
     tty = tmp_path / "ttyRS485"
     server.open_pty(tty)
     port = free_port()
-    text = _config(tty, port, tmp_path / "state", password=password, absent=absent)
+    text = _config(tty, port, tmp_path / "state", password=password, absent=absent, web=web)
     config = parse_config(text, environ={})
     state = GatewayState()
     stop = asyncio.Event()

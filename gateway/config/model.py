@@ -533,6 +533,26 @@ def _sha256_hex(value: str | None) -> str | None:
     return value.lower() if value is not None else None
 
 
+_HOST_LABEL = r"(?!-)[a-z0-9-]{1,63}(?<!-)"
+_HOST_NAME = re.compile(rf"(?:\*\.)?{_HOST_LABEL}(?:\.{_HOST_LABEL})*\.?")
+
+
+def _host_name(value: str) -> str:
+    """A host name (or ``*.`` and a domain) as the page's ``Host`` header may carry it."""
+    name = value.strip().lower()
+    if "://" in name or "/" in name:
+        raise ValueError(f"{value!r}: a host name only, without scheme or path")
+    if name.count(":") == 1 or (name.startswith("[") and "]:" in name):
+        raise ValueError(f"{value!r}: a host name only, without a port")
+    if name.startswith("[") and name.endswith("]"):
+        name = name[1:-1]
+    if ":" in name or re.fullmatch(r"[0-9.]+", name):
+        return name  # an address: checked as one by the page
+    if not _HOST_NAME.fullmatch(name):
+        raise ValueError(f"{value!r} is not a host name (letters, digits, '-' and '.')")
+    return name.rstrip(".")
+
+
 class WebConfig(_Model):
     """The commissioning and calibration page in the browser (off unless enabled).
 
@@ -542,6 +562,7 @@ class WebConfig(_Model):
     either, the page is read-only. Example::
 
         web: {enabled: true, port: 8080}  # http://127.0.0.1:8080/
+        web: {enabled: true, host: 0.0.0.0, allowed_hosts: [gateway.plant.example]}
     """
 
     enabled: bool = False
@@ -550,6 +571,11 @@ class WebConfig(_Model):
     password: SecretStr | None = None
     password_sha256: Annotated[str | None, AfterValidator(_sha256_hex)] = None
     session_minutes: Annotated[float, Field(gt=0, le=24 * 60)] = 30.0
+    # The names the page answers to in ``Host`` (besides the listen address, and localhost
+    # from this machine): a name not listed is a DNS-rebinding attempt, refused with 421.
+    allowed_hosts: list[Annotated[str, AfterValidator(_host_name)]] = []
+    # A calibration waiting for the operator's "write" ends after this, nothing written.
+    confirm_minutes: Annotated[float, Field(gt=0, le=60)] = 10.0
 
 
 class LoggingConfig(_Model):

@@ -156,6 +156,20 @@ class SparkplugStatus:
 
 
 @dataclass(slots=True)
+class WebStatus:
+    """The web page's sign-ins, as the metrics read them (the page counts them here)."""
+
+    enabled: bool = False
+    sign_ins: Counter[str] = field(default_factory=Counter)  # by outcome
+    lockouts: int = 0  # addresses locked out for guessing, ever
+    locked_until: dict[str, float] = field(default_factory=dict)  # address -> monotonic
+
+    def locked_out(self, now: float) -> int:
+        """How many addresses are locked out at ``now``."""
+        return sum(1 for until in self.locked_until.values() if until > now)
+
+
+@dataclass(slots=True)
 class GatewayState:
     """Latest samples, device availability, line statistics and the MQTT status."""
 
@@ -169,6 +183,7 @@ class GatewayState:
     # Shared, not copied by a snapshot: counters of the event loop's, read as the lines'.
     shared_bus: SharedBusStatus = field(default_factory=SharedBusStatus)
     sparkplug: SparkplugStatus = field(default_factory=SparkplugStatus)
+    web: WebStatus = field(default_factory=WebStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
@@ -215,6 +230,19 @@ class GatewayState:
         with self._lock:
             self.writes.outcomes[device, kind, outcome] += 1
 
+    def count_sign_in(self, outcome: str, remote: str, locked_until: float = 0.0) -> None:
+        """Count one sign-in to the page by its outcome; a new lock-out of ``remote``."""
+        with self._lock:
+            web = self.web
+            web.sign_ins[outcome] += 1
+            if locked_until > web.locked_until.get(remote, 0.0):
+                web.lockouts += 1
+                now = time.monotonic()
+                web.locked_until = {
+                    a: t for a, t in web.locked_until.items() if t > now
+                }  # the lapsed ones go
+                web.locked_until[remote] = locked_until
+
     def device_samples(self, bus: str, device: str) -> dict[str, Sample]:
         """The latest sample of each point of one device (cheap: no full snapshot)."""
         with self._lock:
@@ -238,6 +266,12 @@ class GatewayState:
                 ),
                 shared_bus=self.shared_bus,
                 sparkplug=replace(self.sparkplug),
+                web=WebStatus(
+                    enabled=self.web.enabled,
+                    sign_ins=Counter(self.web.sign_ins),
+                    lockouts=self.web.lockouts,
+                    locked_until=dict(self.web.locked_until),
+                ),
                 started=self.started,
             )
 

@@ -10,6 +10,13 @@ Cancelling is honoured at every step before the confirmation: while waiting for 
 it is a "no" (the flow ends declined, nothing written); while reading, the next step the
 flow shows stops it with :class:`CommandRejectedError`. Once the operator has confirmed,
 the writes run to their end: a half-written calibration is what cancelling must not leave.
+
+A run belongs to the session that started it: only that session's answer is taken, so a
+confirmation cannot come from another phone with values computed long ago. A question left
+unanswered (phone locked, page reloaded) ends after ``confirm_timeout_s`` as abandoned,
+nothing written, so the device is free again; until then any signed-in user can see the
+run on the device's page, take it over (it becomes theirs) or cancel it, and both are
+logged. While a run is under way its session does not expire (:meth:`Sessions.hold`).
 """
 
 from __future__ import annotations
@@ -31,12 +38,15 @@ if TYPE_CHECKING:
     from gateway.control.calibration import CalibrationOutcome, Step
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
+    from gateway.web.auth import Sessions
 
 _LOGGER = logging.getLogger(__name__)
 
 MAX_SAMPLES: Final = 100  # as `gateway calibrate --samples`
 MAX_EVERY_S: Final = 60.0
 KEEP_RUNS: Final = 20  # finished runs kept for the page to show
+CONFIRM_TIMEOUT_S: Final = 600.0  # as web.confirm_minutes' default
+ACTIVE: Final = frozenset({"running", "confirm", "writing"})
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -293,6 +303,7 @@ class Phase(StrEnum):
     DONE = "done"  # an outcome (calibrated, declined, verification failed, checked)
     REFUSED = "refused"  # stopped before writing (bad input, budget, a read failed)
     CANCELLED = "cancelled"  # stopped by the operator before writing
+    ABANDONED = "abandoned"  # the question went unanswered too long: nothing written
     FAILED = "failed"  # stopped part-way through the writes
 
 
@@ -318,9 +329,12 @@ class WebOperator:
             future: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
             future.set_result(False)
             return future
+        loop = asyncio.get_running_loop()
         run.question = question
         run.phase = Phase.CONFIRM
-        run.answer_future = asyncio.get_running_loop().create_future()
+        run.answer_future = loop.create_future()
+        run.asked_at = loop.time()
+        run.timer = loop.call_later(run.confirm_timeout_s, run.abandon, "no answer in time")
         return run.answer_future
 
 
@@ -332,7 +346,13 @@ class CalibrationRun:
     device: str
     procedure: Procedure
     who: str
+    session: str  # the token of the session it belongs to: only its answer is taken
     inputs: dict[str, object]
+    confirm_timeout_s: float = CONFIRM_TIMEOUT_S
+    asked_at: float | None = None  # the loop's time of the question
+    timer: asyncio.TimerHandle | None = None
+    abandoned: str | None = None  # why, once the question was left unanswered
+    on_end: Callable[[CalibrationRun], None] | None = None
     phase: Phase = Phase.RUNNING
     steps: list[dict[str, str]] = field(default_factory=list)
     question: str | None = None
@@ -344,7 +364,13 @@ class CalibrationRun:
     task: asyncio.Task[None] | None = None
 
     def as_dict(self) -> dict[str, object]:
-        """What the page shows of it."""
+        """What the page shows of it: the question in plain words, its detail apart."""
+        waiting = self.phase is Phase.CONFIRM and self.question is not None
+        summary, _, detail = (self.question or "").partition("\n")
+        left = None
+        if waiting and self.asked_at is not None:
+            elapsed = asyncio.get_running_loop().time() - self.asked_at
+            left = round(max(0.0, self.confirm_timeout_s - elapsed))
         return {
             "id": self.id,
             "device": self.device,
@@ -352,13 +378,84 @@ class CalibrationRun:
             "who": self.who,
             "phase": self.phase.value,
             "steps": list(self.steps),
-            "question": self.question if self.phase is Phase.CONFIRM else None,
+            "question": self.question if waiting else None,
+            "summary": summary if waiting else None,
+            "detail": detail if waiting else None,
+            "answer_within_s": left,
             "outcome": self.outcome,
+            "verdict": self.verdict(),
             "error": self.error,
             "can_cancel": self.phase in {Phase.RUNNING, Phase.CONFIRM}
             and not self.cancel_requested
             and not (self.answer_future is not None and self.answer_future.done()),
         }
+
+    def verdict(self) -> str | None:
+        """How it ended, in a sentence for the operator (``None`` while under way)."""
+        ended = {
+            Phase.ABANDONED: f"Ended: {self.abandoned}. Nothing was written.",
+            Phase.CANCELLED: "Cancelled. Nothing was written.",
+            Phase.REFUSED: f"Not calibrated: {self.error}",
+            Phase.FAILED: f"Stopped part-way through the writes: {self.error}",
+        }
+        if self.phase in ended:
+            return ended[self.phase]
+        if self.phase is not Phase.DONE:
+            return None
+        outcome = self.outcome or {}
+        writes = outcome.get("writes")
+        checks = outcome.get("checks")
+        failed = [
+            str(c["name"])
+            for c in (checks if isinstance(checks, list) else [])
+            if isinstance(c, dict) and not c["ok"]
+        ]
+        count = len(writes) if isinstance(writes, list) else 0
+        by_status = {
+            "calibrated": f"Calibrated: {count} write(s), every check as expected.",
+            "verification_failed": "Written, but the sensor does not read back as expected: "
+            + ", ".join(failed)
+            + ".",
+            "declined": "Not written, as you chose: nothing was written, the sensor is as it was.",
+            "checked": "Checked: "
+            + ("outside limits: " + ", ".join(failed) if failed else "within limits")
+            + ". Nothing was written.",
+        }
+        status = str(outcome.get("status"))
+        return by_status.get(status, status)
+
+    def take_over(self, session: str, who: str) -> str:
+        """Make the run ``session``'s (its answer is taken from now on); the former owner."""
+        if self.phase not in {Phase.RUNNING, Phase.CONFIRM} or self.cancel_requested:
+            raise CommandRejectedError(
+                f"the calibration is {self.phase.value}: it can no longer be taken over"
+            )
+        before = self.who
+        _LOGGER.info(
+            "web: %s took over the %s calibration of %s from %s",
+            who,
+            self.procedure.id,
+            self.device,
+            before,
+        )
+        self.session, self.who = session, who
+        return before
+
+    def abandon(self, reason: str) -> None:
+        """End an unanswered question as abandoned: a "no", nothing written."""
+        future = self.answer_future
+        if self.phase is not Phase.CONFIRM or future is None or future.done():
+            return
+        _LOGGER.warning(
+            "web: the %s calibration of %s by %s ended: %s; nothing was written",
+            self.procedure.id,
+            self.device,
+            self.who,
+            reason,
+        )
+        self.abandoned = reason
+        self.phase = Phase.RUNNING
+        future.set_result(False)
 
     def answer(self, yes: bool, who: str) -> None:  # noqa: FBT001 - the answer is the point
         """The operator's answer to the pending question."""
@@ -405,7 +502,10 @@ class CalibrationRun:
             _LOGGER.warning("web: %s calibration of %s: %s", self.procedure.id, self.device, exc)
         else:
             self.outcome = outcome.as_dict()
-            self.phase = Phase.CANCELLED if self.cancel_requested else Phase.DONE
+            if self.abandoned:
+                self.phase = Phase.ABANDONED
+            else:
+                self.phase = Phase.CANCELLED if self.cancel_requested else Phase.DONE
             _LOGGER.info(
                 "web: %s calibration of %s by %s: %s, %d write(s): %s",
                 self.procedure.id,
@@ -417,18 +517,66 @@ class CalibrationRun:
             )
         finally:
             self.question = None
+            if self.timer is not None:
+                self.timer.cancel()
+            if self.on_end is not None:
+                self.on_end(self)
 
 
 class Calibrations:
     """The runs of this gateway: one at a time per device, the last few kept."""
 
-    def __init__(self, writers: Mapping[str, SafeWriter]) -> None:
-        """Calibrate through ``writers`` (device name -> its write path)."""
+    def __init__(
+        self,
+        writers: Mapping[str, SafeWriter],
+        *,
+        sessions: Sessions | None = None,
+        confirm_timeout_s: float = CONFIRM_TIMEOUT_S,
+    ) -> None:
+        """Calibrate through ``writers`` (device name -> its write path).
+
+        ``sessions`` are held while their runs are under way; a question is left
+        unanswered at most ``confirm_timeout_s``.
+        """
         self.writers = writers
+        self.sessions = sessions
+        self.confirm_timeout_s = confirm_timeout_s
         self.runs: dict[str, CalibrationRun] = {}
         self._ids = itertools.count(1)
 
-    def start(self, device: str, procedure_id: str, inputs: object, who: str) -> CalibrationRun:
+    def active(self, device: str | None = None) -> list[CalibrationRun]:
+        """The runs under way (of ``device``, or of every device)."""
+        return [
+            r
+            for r in self.runs.values()
+            if r.phase.value in ACTIVE and (device is None or r.device == device)
+        ]
+
+    def take_over(self, run: CalibrationRun, session: str, who: str) -> None:
+        """``session`` takes ``run`` over: it holds that session now, not the former."""
+        former = run.session
+        run.take_over(session, who)
+        if self.sessions is not None:
+            self.sessions.hold(session)
+            self.sessions.release(former)
+
+    def session_ended(self, session: str, who: str) -> None:
+        """A session was signed out: its runs that have not begun writing stop."""
+        for run in self.runs.values():
+            if run.session != session:
+                continue
+            if run.phase is Phase.CONFIRM:
+                run.abandon(f"{who} signed out")
+            elif run.phase is Phase.RUNNING and not run.cancel_requested:
+                run.cancel(f"{who} (signing out)")
+
+    def _ended(self, run: CalibrationRun) -> None:
+        if self.sessions is not None:
+            self.sessions.release(run.session)
+
+    def start(
+        self, device: str, procedure_id: str, inputs: object, who: str, session: str = ""
+    ) -> CalibrationRun:
         """Start a run in a task of its own; refused if the device is busy with one."""
         if not isinstance(inputs, dict):
             raise CommandRejectedError("inputs must be a JSON object")
@@ -438,20 +586,24 @@ class Calibrations:
         procedure = BY_ID.get(procedure_id)
         if procedure is None or not procedure.applies_to(writer.link.profile):
             raise CommandRejectedError(f"{device} has no calibration {procedure_id!r}")
-        busy = [
-            r
-            for r in self.runs.values()
-            if r.device == device and r.phase in {Phase.RUNNING, Phase.CONFIRM, Phase.WRITING}
-        ]
+        busy = self.active(device)
         if busy:
-            raise CommandRejectedError(f"{device} is being calibrated by {busy[0].who}")
+            raise CommandRejectedError(
+                f"{device} is being calibrated by {busy[0].who} ({busy[0].phase.value}): "
+                "take it over or cancel it on the device's page"
+            )
         run = CalibrationRun(
             id=f"c{next(self._ids)}",
             device=device,
             procedure=procedure,
             who=who,
+            session=session,
             inputs=dict(inputs),
+            confirm_timeout_s=self.confirm_timeout_s,
+            on_end=self._ended,
         )
+        if self.sessions is not None:
+            self.sessions.hold(session)
         _LOGGER.info(
             "web: %s started the %s calibration of %s with %s", who, procedure.id, device, inputs
         )

@@ -11,12 +11,12 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.line.samples import Quality, json_value
-from gateway.profiles.model import PollGroup
+from gateway.profiles.model import PollGroup, Storage
 from gateway.publish.prometheus.health import ERROR_KINDS
 from gateway.wire.codec import BitfieldValue
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
+    from collections.abc import Collection, Mapping
 
     from gateway.line.health import DeviceHealth
     from gateway.line.port import LineStats
@@ -163,9 +163,18 @@ def overview(state: GatewayState, paused: Mapping[str, str] | None = None) -> di
 
 
 def register_map(
-    info: DeviceInfo, profile: Profile, state: GatewayState, *, writable_by_page: bool
+    info: DeviceInfo,
+    profile: Profile,
+    state: GatewayState,
+    *,
+    writable_by_page: bool,
+    flash_allowed: Collection[str] = (),
 ) -> dict[str, object]:
-    """One device: identity and every point of its register map with its latest value."""
+    """One device: identity and every point of its register map with its latest value.
+
+    A flash-backed point not in ``flash_allowed`` (the device's ``flash_writes``) is not
+    offered for writing: the write path would refuse it, so the page says why instead.
+    """
     now = time.monotonic()
     samples = state.device_samples(info.bus, info.name)
     points = []
@@ -173,6 +182,12 @@ def register_map(
     for point in profile.points:
         sample = samples.get(point.name)
         view = sample_view(sample, stale=state.is_stale(sample, now), now=now) if sample else None
+        writable = point.writable and not point.view
+        refused = (
+            "flash, not in flash_writes"
+            if point.storage is Storage.FLASH and point.name not in flash_allowed
+            else None
+        )
         if point.group is PollGroup.IDENTITY and view is not None:
             identity[point.name] = view["text"]
         points.append(
@@ -186,7 +201,8 @@ def register_map(
                 "storage": point.storage.value if point.storage else "",
                 "group": point.group.value,
                 "description": point.description,
-                "writable": point.writable and not point.view and writable_by_page,
+                "writable": writable and writable_by_page and not refused,
+                "refused": refused if writable else None,
                 "value": view,
             }
         )

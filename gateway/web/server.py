@@ -13,14 +13,18 @@ its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser 
     POST /api/devices/{device}/points/{point}  W  {value}: a write through SafeWriter
     POST /api/devices/{device}/read      W  every point read now (queued ahead of polls)
     POST /api/calibrations               W  {device, procedure, inputs}: a guided run
+    GET  /api/calibrations?device=NAME   R  the runs under way (of a device)
     GET  /api/calibrations/{id}          R  its steps, question, outcome
-    POST /api/calibrations/{id}/answer   W  {confirm: bool}
+    POST /api/calibrations/{id}/answer   W  {confirm: bool}: only from the run's session
+    POST /api/calibrations/{id}/take-over W  the run becomes this session's
     POST /api/calibrations/{id}/cancel   W
     POST /api/lines/{bus}/scan           W  a scan of the line, its polling paused
     GET  /api/lines/{bus}/scan           R  the scan's progress and report
 
 Every write and calibration is logged with who did it (the name given at sign-in) and from
-where.
+where. Every request first passes the ``Host`` check (:func:`host_allowed`): a name the
+page does not answer to gets 421, so a DNS-rebinding page cannot read it through a browser
+on this machine. Sign-ins pass the :class:`SignInThrottle`.
 """
 
 from __future__ import annotations
@@ -38,8 +42,17 @@ from aiohttp import web
 
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
 from gateway.line.samples import json_value
-from gateway.web.auth import CSRF_HEADER, SESSION_COOKIE, Session, Sessions, is_loopback
-from gateway.web.calibration import Calibrations, procedures_for
+from gateway.web.auth import (
+    CSRF_HEADER,
+    SESSION_COOKIE,
+    Session,
+    Sessions,
+    SignInThrottle,
+    Verdict,
+    host_allowed,
+    is_loopback,
+)
+from gateway.web.calibration import CalibrationRun, Calibrations, procedures_for
 from gateway.web.live import overview, register_map, sample_view
 
 if TYPE_CHECKING:
@@ -55,6 +68,7 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 EVENT_INTERVAL_S: Final = 1.0
+MAX_REFUSED: Final = 256  # Host names remembered as refused, to warn once per name
 SHUTDOWN_S: Final = 3.0
 STATIC_FILES: Final = {
     "index.html": "text/html",
@@ -92,6 +106,7 @@ class WebServer:
         *,
         scans: LineScans | None = None,
         sessions: Sessions | None = None,
+        throttle: SignInThrottle | None = None,
         event_interval_s: float = EVENT_INTERVAL_S,
     ) -> None:
         """Serve ``state``; writes and calibrations through ``writers`` (by device name)."""
@@ -100,7 +115,13 @@ class WebServer:
         self.writers = writers
         self.scans = scans
         self.sessions = sessions or Sessions.from_config(config)
-        self.calibrations = Calibrations(writers)
+        self.throttle = throttle or SignInThrottle()
+        self.calibrations = Calibrations(
+            writers, sessions=self.sessions, confirm_timeout_s=config.confirm_minutes * 60
+        )
+        self._allowed_hosts = frozenset(config.allowed_hosts)
+        self._refused_hosts: set[str] = set()
+        state.web.enabled = True
         self.event_interval_s = event_interval_s
         self.port: int | None = None  # the port bound, once started
         self._closing = asyncio.Event()
@@ -111,7 +132,7 @@ class WebServer:
 
     def app(self) -> web.Application:
         """The aiohttp application with every route."""
-        app = web.Application(middlewares=[self._headers])
+        app = web.Application(middlewares=[self._headers, self._host_check])
         get, post = web.get, web.post
         app.add_routes(
             [
@@ -126,8 +147,10 @@ class WebServer:
                 post("/api/devices/{device}/points/{point}", self._writer(self._write)),
                 post("/api/devices/{device}/read", self._writer(self._read_all)),
                 post("/api/calibrations", self._writer(self._start_calibration)),
+                get("/api/calibrations", self._reader(self._calibrations_under_way)),
                 get("/api/calibrations/{id}", self._reader(self._calibration)),
                 post("/api/calibrations/{id}/answer", self._writer(self._answer)),
+                post("/api/calibrations/{id}/take-over", self._writer(self._take_over)),
                 post("/api/calibrations/{id}/cancel", self._writer(self._cancel)),
                 post("/api/lines/{bus}/scan", self._writer(self._start_scan)),
                 get("/api/lines/{bus}/scan", self._reader(self._scan)),
@@ -195,6 +218,37 @@ class WebServer:
             for name, value in _SECURITY_HEADERS.items():
                 response.headers.setdefault(name, value)
         return response
+
+    @web.middleware
+    async def _host_check(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Answer only to the configured names, the listen address and localhost here."""
+        sockname = request.transport.get_extra_info("sockname") if request.transport else None
+        local = str(sockname[0]) if isinstance(sockname, tuple) and sockname else None
+        header = request.headers.get("Host")
+        if host_allowed(
+            header,
+            allowed=self._allowed_hosts,
+            listen=self.config.host,
+            local=local,
+            remote=request.remote,
+        ):
+            return await handler(request)
+        # The first request of a refused name is a warning; a page polling it, quiet.
+        first = header not in self._refused_hosts and len(self._refused_hosts) < MAX_REFUSED
+        self._refused_hosts.add(header or "")
+        _LOGGER.log(
+            logging.WARNING if first else logging.DEBUG,
+            "web: %s %s from %s refused: Host %r is not a name of this gateway (web.allowed_hosts)",
+            request.method,
+            request.path,
+            request.remote,
+            header,
+        )
+        return web.Response(
+            status=421,
+            text=f"This gateway does not answer to the host name {header!r}. If that is "
+            "its name, add it to web.allowed_hosts in the gateway's config.\n",
+        )
 
     def _session(self, request: web.Request, *, touch: bool = False) -> Session | None:
         return self.sessions.find(request.cookies.get(SESSION_COOKIE), touch=touch)
@@ -282,6 +336,7 @@ class WebServer:
                 "can_sign_in": self.sessions.enabled,
                 "can_read": session is not None or is_loopback(request.remote),
                 "session_minutes": self.config.session_minutes,
+                "local": is_loopback(request.remote),
             }
         )
 
@@ -292,25 +347,40 @@ class WebServer:
             body = await self._body(request)
         except CommandRejectedError as exc:
             return _error(400, str(exc))
-        session = self.sessions.sign_in(
-            str(body.get("name") or ""), str(body.get("password") or ""), str(request.remote)
-        )
-        if session is None:
-            await asyncio.sleep(0.5)  # a guess costs time
+        remote = str(request.remote)
+        name, password = str(body.get("name") or ""), str(body.get("password") or "")
+        opened: list[Session] = []
+
+        def check() -> bool:
+            session = self.sessions.sign_in(name, password, remote)
+            if session is not None:
+                opened.append(session)
+            return session is not None
+
+        verdict = await self.throttle.attempt(remote, check)
+        self.state.count_sign_in(verdict.value, remote, self.throttle.locked_until(remote))
+        if verdict is Verdict.LOCKED_OUT:
+            wait = max(1, round(self.throttle.retry_after_s(remote)))
+            response = _error(429, f"too many wrong passwords from {remote}: try again in {wait} s")
+            response.headers["Retry-After"] = str(wait)
+            return response
+        if verdict is Verdict.BUSY:
+            return _error(429, "too many sign-ins at once: try again in a moment")
+        if not opened:
             return _error(403, "wrong password" if self.sessions.enabled else "no password set")
+        session = opened[0]
         response = web.json_response({"who": session.who, "csrf": session.csrf})
+        # No Max-Age: the browser keeps the cookie while it runs, and the gateway ends the
+        # session after web.session_minutes without a write (sliding, not fixed at sign-in).
         response.set_cookie(
-            SESSION_COOKIE,
-            session.token,
-            httponly=True,
-            samesite="Strict",
-            path="/",
-            max_age=int(self.sessions.lifetime_s),
+            SESSION_COOKIE, session.token, httponly=True, samesite="Strict", path="/"
         )
         return response
 
     async def _logout(self, request: web.Request) -> web.StreamResponse:
-        self.sessions.sign_out(request.cookies.get(SESSION_COOKIE))
+        ended = self.sessions.sign_out(request.cookies.get(SESSION_COOKIE))
+        if ended is not None:
+            self.calibrations.session_ended(ended.token, ended.who)
         response = web.json_response({"signed_in": False})
         response.del_cookie(SESSION_COOKIE, path="/")
         return response
@@ -357,7 +427,13 @@ class WebServer:
         if info is None or writer is None:
             return _error(404, f"no device {name!r}")
         profile = writer.link.profile
-        data = register_map(info, profile, self.state, writable_by_page=self.sessions.enabled)
+        data = register_map(
+            info,
+            profile,
+            self.state,
+            writable_by_page=self.sessions.enabled,
+            flash_allowed=writer.policy.allowed,
+        )
         data["procedures"] = [p.as_dict() for p in procedures_for(profile)]
         return web.json_response(data)
 
@@ -431,29 +507,66 @@ class WebServer:
             body = await self._body(request)
             inputs = body.get("inputs") or {}
             run = self.calibrations.start(
-                str(body.get("device")), str(body.get("procedure")), inputs, self._who(request)
+                str(body.get("device")),
+                str(body.get("procedure")),
+                inputs,
+                self._who(request),
+                request[_SESSION].token,
             )
         except CommandRejectedError as exc:
             return _error(400, str(exc))
-        return web.json_response(run.as_dict(), status=201)
+        return web.json_response(self._run_view(request, run), status=201)
+
+    def _run_view(self, request: web.Request, run: CalibrationRun) -> dict[str, object]:
+        """A run as the page shows it, with whether it is the asking session's own."""
+        session = request.get(_SESSION) or self._session(request)
+        return {**run.as_dict(), "mine": session is not None and session.token == run.session}
+
+    async def _calibrations_under_way(self, request: web.Request) -> web.StreamResponse:
+        device = request.query.get("device")
+        return web.json_response(
+            {"runs": [self._run_view(request, r) for r in self.calibrations.active(device)]}
+        )
 
     async def _calibration(self, request: web.Request) -> web.StreamResponse:
         run = self.calibrations.runs.get(request.match_info["id"])
         if run is None:
             return _error(404, "no such calibration")
-        return web.json_response(run.as_dict())
+        return web.json_response(self._run_view(request, run))
+
+    async def _take_over(self, request: web.Request) -> web.StreamResponse:
+        run = self.calibrations.runs.get(request.match_info["id"])
+        if run is None:
+            return _error(404, "no such calibration")
+        try:
+            self.calibrations.take_over(run, request[_SESSION].token, self._who(request))
+        except CommandRejectedError as exc:
+            return _error(409, str(exc))
+        return web.json_response(self._run_view(request, run))
 
     async def _answer(self, request: web.Request) -> web.StreamResponse:
         run = self.calibrations.runs.get(request.match_info["id"])
         if run is None:
             return _error(404, "no such calibration")
+        if run.session != request[_SESSION].token:
+            _LOGGER.warning(
+                "web: %s's answer to the %s calibration of %s refused: it is %s's",
+                self._who(request),
+                run.procedure.id,
+                run.device,
+                run.who,
+            )
+            return _error(
+                403,
+                f"this calibration belongs to {run.who}'s session: take it over to answer it",
+            )
         try:
             body = await self._body(request)
             run.answer(body.get("confirm") is True, self._who(request))
         except CommandRejectedError as exc:
             return _error(409, str(exc))
         await asyncio.sleep(0)  # let the flow take the answer before the page asks again
-        return web.json_response(run.as_dict())
+        return web.json_response(self._run_view(request, run))
 
     async def _cancel(self, request: web.Request) -> web.StreamResponse:
         run = self.calibrations.runs.get(request.match_info["id"])
@@ -463,7 +576,7 @@ class WebServer:
             run.cancel(self._who(request))
         except CommandRejectedError as exc:
             return _error(409, str(exc))
-        return web.json_response(run.as_dict())
+        return web.json_response(self._run_view(request, run))
 
     # --- scanning ---------------------------------------------------------------------
 

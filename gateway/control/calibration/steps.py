@@ -68,7 +68,11 @@ class Operator(Protocol):
         """Show one step as it happens."""
 
     def confirm(self, question: str) -> bool | Awaitable[bool]:
-        """Ask before writing; ``False`` stops the flow with nothing written."""
+        """Ask before writing; ``False`` stops the flow with nothing written.
+
+        The question's first line says in plain words what changes (for an operator at
+        the basin); the lines after it are the register detail.
+        """
 
 
 class Status(StrEnum):
@@ -199,6 +203,33 @@ _JSON_READY: Final = (
 )
 
 
+# What the operator calls the registers a calibration writes (the question's plain words).
+PLAIN_NAMES: Final = {  # in the order the question names them
+    "x_span": "slope",
+    "x_zero": "zero point",
+    "end_value_oxygen": "end value",
+    "end_value_oxygen_unit": "unit",
+    "calibration_mode": "calibration mode",
+    "calibration_stamp": "calibration date",
+    "calibration_date": "calibration date",
+    "zero_point_calibration_trigger": "then the sensor's zero-point calibration",
+    "end_value_calibration_trigger": "then the sensor's end-value calibration",
+}
+
+
+def _plain(value: object, point: Point, unit: object) -> str:
+    """A value with its unit as an operator reads it ("6.3 nA/ppm", "2026-11-25 17:10")."""
+    if isinstance(value, datetime):
+        return f"{value:%Y-%m-%d %H:%M}"
+    if isinstance(value, codec.EnumValue):
+        return value.label
+    text = f"{value:.4g}" if isinstance(value, float) else str(value)
+    point_unit = point.unit or ""
+    if isinstance(unit, str) and unit:
+        point_unit = point_unit.replace("/unit", f"/{unit}")
+    return f"{text} {point_unit}".strip()
+
+
 def show(value: object) -> str:
     """A value as a step shows it."""
     if isinstance(value, float):
@@ -224,6 +255,7 @@ class Flow:
         self.operator = operator
         self.procedure = procedure
         self.values: dict[str, object] = {}
+        self.seen: dict[str, codec.Decoded] = {}  # every point read, as last read: "was"
         self.warnings: list[str] = []
         self.checks: list[Check] = []
 
@@ -246,8 +278,10 @@ class Flow:
             )
 
     async def read(self, *points: str) -> dict[str, codec.Decoded]:
-        """Read points of the device now."""
-        return await self.link.read(*points)
+        """Read points of the device now (kept in :attr:`seen`, for the question's "was")."""
+        values = await self.link.read(*points)
+        self.seen.update(values)
+        return values
 
     def number(self, values: Mapping[str, codec.Decoded], point: str) -> float:
         """A read value that must be a number to go on; a fault refuses the calibration."""
@@ -322,10 +356,52 @@ class Flow:
                     point=planned.point,
                 )
 
+    def summary(self, plans: Sequence[PlannedWrite]) -> str:
+        """What the planned writes change, in plain words, on one line.
+
+        For the operator who must say yes: "New slope 6.3 nA/ppm (was 7.5 nA/ppm); zero
+        point 0 nA (unchanged); ... written to the sensor's memory (flash write 1 of 4
+        allowed today)." The register words stay in the steps and the second line.
+        """
+        unit = self.values.get("unit")
+        parts = []
+        order = list(PLAIN_NAMES)
+        for planned in sorted(
+            plans, key=lambda p: order.index(p.point) if p.point in order else len(order)
+        ):
+            name = PLAIN_NAMES.get(planned.point, planned.point.replace("_", " "))
+            if planned.point.endswith("_trigger"):  # its value only starts it
+                parts.append(name)
+                continue
+            text = f"{name} {_plain(planned.value, planned.target, unit)}"
+            before = self.seen.get(planned.point)
+            if before is not None and not isinstance(before, codec.Fault):
+                was = _plain(before, planned.target, unit)
+                same = was == _plain(planned.value, planned.target, unit)
+                text += " (unchanged)" if same else f" (was {was})"
+            parts.append(text)
+        line = "New " + "; ".join(parts) if parts else "Nothing to write"
+        line = line.replace("New then", "Then")
+        flash = [p for p in plans if p.flash]
+        if flash:
+            today = utc_today()
+            done = max(
+                self.writer.ledger.count_today(self.link.device, p.point, today) for p in flash
+            )
+            budget = self.writer.policy.daily_budget
+            line += (
+                f"; written to the sensor's memory (flash write {done + 1} of {budget} "
+                "allowed today)"
+            )
+        else:
+            line += "; nothing goes to the sensor's flash memory"
+        return line + "."
+
     async def confirm(self, plans: Sequence[PlannedWrite]) -> bool:
         """Ask the operator to confirm the planned writes; whether they did."""
         flash = sum(p.flash for p in plans)
         question = (
+            f"{self.summary(plans)}\n"
             f"Write {len(plans)} register block(s) to {self.link.device} "
             f"({flash} to flash/EEPROM, counted against the daily budget)?"
         )

@@ -12,7 +12,12 @@ from gateway.publish.prometheus.health import device_families, line_families
 from gateway.publish.prometheus.identity import identity_families
 from gateway.publish.prometheus.shared_bus import shared_bus_families
 from gateway.publish.prometheus.values import value_families
-from gateway.publish.prometheus.writes import mqtt_families, sparkplug_families, write_families
+from gateway.publish.prometheus.writes import (
+    mqtt_families,
+    sparkplug_families,
+    web_families,
+    write_families,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -60,4 +65,5 @@ class GatewayCollector(Collector):
         yield from mqtt_families(snapshot)
         yield from sparkplug_families(snapshot)
         yield from write_families(snapshot, now)
+        yield from web_families(snapshot, now)
         yield from shared_bus_families(snapshot)

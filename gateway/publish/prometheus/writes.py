@@ -1,4 +1,7 @@
-"""The families of what goes out: the MQTT and Sparkplug sessions and queues, writes, feeds."""
+"""The families of what goes out: the MQTT and Sparkplug sessions and queues, writes, feeds.
+
+And the web page's sign-ins, the way in for writes from a browser.
+"""
 
 from __future__ import annotations
 
@@ -139,3 +142,28 @@ def write_families(snapshot: GatewayState, now: float) -> Iterator[Metric]:
         stale.add_metric(labels_of, float(feed.stale))
         fallback.add_metric(labels_of, float(feed.fallback))
     yield from (feed_writes, feed_errors, age, stale, fallback)
+
+
+def web_families(snapshot: GatewayState, now: float) -> Iterator[Metric]:
+    """The web page's sign-ins by outcome and its lock-outs, when the page is enabled."""
+    web = snapshot.web
+    if not web.enabled:
+        return
+    sign_ins = CounterMetricFamily(
+        "gateway_web_sign_ins",
+        "Sign-ins to the web page by outcome (ok, wrong, locked_out, busy)",
+        labels=["outcome"],
+    )
+    for outcome in ("ok", "wrong", "locked_out", "busy"):
+        sign_ins.add_metric([outcome], web.sign_ins.get(outcome, 0))
+    yield sign_ins
+    yield CounterMetricFamily(
+        "gateway_web_lockouts",
+        "Client addresses locked out of the web page's sign-in for guessing",
+        value=web.lockouts,
+    )
+    yield GaugeMetricFamily(
+        "gateway_web_locked_out_addresses",
+        "Client addresses locked out of the web page's sign-in now",
+        value=web.locked_out(now),
+    )

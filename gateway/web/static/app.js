@@ -74,6 +74,10 @@ function ago(seconds) {
   return `${(seconds / 3600).toFixed(1)} h ago`;
 }
 
+function within(seconds) {
+  return seconds < 120 ? `${Math.round(seconds)} s` : `${Math.ceil(seconds / 60)} min`;
+}
+
 function errorText(errors) {
   const parts = Object.entries(errors || {}).filter(([, n]) => n > 0).map(([k, n]) => `${k} ${n}`);
   return parts.length ? parts.join(", ") : "none";
@@ -130,9 +134,16 @@ function loginPage() {
       status.textContent = error.message;
     }
   });
-  const intro = session.can_sign_in
-    ? "Writes and calibrations need you to sign in."
-    : "No password is configured (GATEWAY_WEB__PASSWORD): this page is read-only.";
+  let intro;
+  if (!session.can_sign_in) {
+    intro = session.local
+      ? "No password is configured (GATEWAY_WEB__PASSWORD): this page is read-only."
+      : "No password is configured (GATEWAY_WEB__PASSWORD): from another machine this page cannot be read at all.";
+  } else {
+    intro = session.local
+      ? "Writes and calibrations need you to sign in."
+      : "From another machine, reading this page needs you to sign in too, as do writes and calibrations.";
+  }
   show(el("h1", { text: "Sign in" }), el("p", { text: intro }), session.can_sign_in ? form : "");
   const first = document.getElementById("login-name");
   if (first) first.focus();
@@ -167,6 +178,24 @@ function connect() {
 function breakable(text) {
   const parts = String(text).split("_");
   return parts.flatMap((part, i) => (i < parts.length - 1 ? [`${part}_`, el("wbr")] : [part]));
+}
+
+// A value of the register map: a number or a date is never broken inside itself; a date is
+// shown without its "T" and zone (the full text in its title), its seconds where not :00;
+// text may wrap between its words.
+const ISO_DATE = /^(\d{4}-\d\d-\d\d)T(\d\d:\d\d)(:\d\d)?([+-]\d\d:\d\d|Z)?$/;
+function valueText(value) {
+  if (!value) return el("span", { class: "v" });
+  const text = value.text;
+  const date = ISO_DATE.exec(text);
+  if (date) {
+    const seconds = date[3] && date[3] !== ":00" ? date[3] : "";
+    return el("span", { class: "v nowrap", title: text, "data-text": text, text: `${date[1]} ${date[2]}${seconds}` });
+  }
+  if (numeric(text)) return el("span", { class: "v nowrap", "data-text": text, text });
+  // Text may wrap between its words (at spaces, and after "_"), never inside one.
+  const words = String(text).split(/(?<=[_\s])/).flatMap((word, i) => [i ? el("wbr") : null, el("span", { class: "w nowrap", text: word })]);
+  return el("span", { class: "v", "data-text": text }, words);
 }
 
 function valuesTable(device, values) {
@@ -326,7 +355,7 @@ function readAllButton(device) {
       const result = await api("POST", `/api/devices/${encodeURIComponent(device)}/read`);
       for (const v of result.values) {
         const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(v.point)}"]`);
-        if (cell) cell.replaceChildren(...breakable(v.text));
+        if (cell) cell.replaceChildren(valueText(v));
       }
       status.className = "ok";
       status.textContent = `${result.values.length} values read`;
@@ -351,23 +380,31 @@ async function devicePage(name) {
   const identity = el(
     "table",
     { id: "identity" },
-    el("tbody", {}, Object.entries(data.identity).map(([k, v]) => el("tr", {}, el("th", { scope: "row", text: k }), el("td", { text: v })))),
+    el("tbody", {}, Object.entries(data.identity).map(([k, v]) => el("tr", {}, el("th", { scope: "row" }, breakable(k)), el("td", { class: "map-value" }, valueText({ text: v }))))),
   );
   const procedures = data.procedures.length
     ? el("ul", { id: "procedures" }, data.procedures.map((p) => el("li", {}, el("a", { href: `#/calibrate/${encodeURIComponent(name)}/${p.id}`, text: p.title }))))
     : el("p", { class: "meta", text: "No guided calibration for this family." });
-  const rows = data.points.map((p) =>
-    el(
+  const rows = data.points.flatMap((p) => {
+    const row = el(
       "tr",
       { "data-point": p.name },
-      el("td", { class: "num", text: p.address }),
-      el("th", { scope: "row", title: p.description, text: p.name }),
-      el("td", { class: "map-value", "data-value": p.name }, p.value ? breakable(p.value.text) : ""),
-      el("td", { text: p.unit }),
+      el("td", { class: "num wide-only", text: p.address }),
+      // On a phone the address goes under the name: its own column left no room for values.
+      el("th", { scope: "row", title: p.description }, breakable(p.name), el("span", { class: "addr phone-only", text: p.address })),
+      el("td", { class: "map-value", "data-value": p.name }, valueText(p.value)),
+      el("td", { class: "unit", text: p.unit }),
       el("td", { class: "wide-only", text: `${p.type} ${p.access}${p.storage ? " " + p.storage : ""}` }),
-      el("td", {}, p.writable && session.signed_in ? writeForm(name, p) : ""),
-    ),
-  );
+    );
+    // The write form (or why there is none) on a row of its own, the width of the table:
+    // beside the value it squeezed the value's column on a phone.
+    let below = null;
+    if (p.writable && session.signed_in) below = writeForm(name, p);
+    else if (p.refused && p.access === "rw" && session.signed_in) below = el("span", { class: "meta refused", text: `Not writable: ${p.refused}` });
+    if (!below) return [row];
+    row.classList.add("has-write");
+    return [row, el("tr", { class: "write-row", "data-write-row": p.name }, el("td", { class: "wide-only" }), el("td", { colspan: 4 }, below))];
+  });
   show(
     el("p", {}, el("a", { href: "#/", text: "← Live values" })),
     el("h1", {}, `${data.name} `, onlineBadge(data.online)),
@@ -376,6 +413,7 @@ async function devicePage(name) {
     identity,
     el("h2", { text: "Calibration" }),
     needSession("Calibrating"),
+    await underWay(name, null),
     procedures,
     el("h2", { text: "Register map" }),
     session.signed_in ? readAllButton(name) : null,
@@ -385,7 +423,7 @@ async function devicePage(name) {
       el(
         "table",
         { id: "register-map" },
-        el("thead", {}, el("tr", {}, el("th", { text: "Addr" }), el("th", { text: "Point" }), el("th", { text: "Value" }), el("th", { text: "Unit" }), el("th", { class: "wide-only", text: "Type" }), el("th", { text: "" }))),
+        el("thead", {}, el("tr", {}, el("th", { class: "wide-only", text: "Addr" }), el("th", { text: "Point" }), el("th", { text: "Value" }), el("th", { text: "Unit" }), el("th", { class: "wide-only", text: "Type" }))),
         el("tbody", {}, rows),
       ),
     ),
@@ -395,7 +433,8 @@ async function devicePage(name) {
       const fresh = await api("GET", `/api/devices/${encodeURIComponent(name)}`);
       for (const p of fresh.points) {
         const cell = view.querySelector(`#register-map td[data-value="${CSS.escape(p.name)}"]`);
-        if (cell && p.value && cell.textContent !== p.value.text) cell.replaceChildren(...breakable(p.value.text));
+        const shown = cell && cell.querySelector(".v");
+        if (cell && p.value && (!shown || shown.dataset.text !== p.value.text)) cell.replaceChildren(valueText(p.value));
       }
     } catch { /* the next one */ }
   }, 3000);
@@ -449,18 +488,62 @@ function watchPanel(device, points) {
   return { panel, render };
 }
 
+// How a run ended: a short verdict first; the checks, then the values in a fold.
 function outcomeView(run) {
   const o = run.outcome;
-  if (!o) return el("p", { class: "error", id: "result", role: "alert", text: `${run.phase}: ${run.error}` });
-  const good = o.ok;
+  const good = o ? o.ok && run.phase === "done" : false;
+  const heading = o ? (run.phase === "done" ? o.status.replace("_", " ") : run.phase) : run.phase;
   return el(
     "section",
     { id: "result", role: "alert" },
-    el("h2", { class: good ? "ok" : "error", text: run.phase === "cancelled" ? "cancelled: nothing was written" : o.status.replace("_", " ") }),
-    el("table", {}, el("tbody", {}, o.checks.map((c) => el("tr", {}, el("th", { scope: "row", text: c.name }), el("td", { class: c.ok ? "ok" : "error", text: c.ok ? "ok" : "MISMATCH" }))))),
-    o.warnings.length ? el("ul", {}, o.warnings.map((w) => el("li", { class: "error", text: w }))) : null,
-    el("pre", { text: JSON.stringify(o.values, null, 1) }),
+    el("h2", { class: good ? "ok" : "error", text: heading }),
+    el("p", { id: "verdict", text: run.verdict || "" }),
+    run.error && !(run.verdict || "").includes(run.error) ? el("p", { class: "error", text: run.error }) : null,
+    o && o.checks.length ? el("table", {}, el("tbody", {}, o.checks.map((c) => el("tr", {}, el("th", { scope: "row", text: c.name }), el("td", { class: c.ok ? "ok" : "error", text: c.ok ? "ok" : "MISMATCH" }))))) : null,
+    o && o.warnings.length ? el("ul", {}, o.warnings.map((w) => el("li", { class: "error", text: w }))) : null,
+    o ? el("details", { id: "result-detail" }, el("summary", { text: "Values read and computed" }), el("pre", { text: JSON.stringify(o.values, null, 1) })) : null,
   );
+}
+
+// The calibrations under way on a device, for any signed-in user to open, take over or
+// cancel (a run left at its question on a locked phone blocks the device until then).
+async function underWay(device, onMine) {
+  const box = el("div", { id: "under-way" });
+  let data;
+  try {
+    data = await api("GET", `/api/calibrations?device=${encodeURIComponent(device)}`);
+  } catch {
+    return box;
+  }
+  for (const run of data.runs) {
+    if (run.mine && onMine) { onMine(run); continue; }
+    const waiting = run.phase === "confirm"
+      ? `is waiting for its confirmation${run.answer_within_s !== null ? ` (ends by itself in ${within(run.answer_within_s)})` : ""}`
+      : `is ${run.phase}`;
+    const status = el("span", { role: "status" });
+    const buttons = [];
+    if (session.signed_in && !run.mine && run.can_cancel) {
+      const take = el("button", { type: "button", id: "take-over", text: "Take over" });
+      take.addEventListener("click", async () => {
+        try {
+          await api("POST", `/api/calibrations/${run.id}/take-over`);
+          const target = `#/calibrate/${encodeURIComponent(device)}/${run.procedure.id}`;
+          if (location.hash === target) route(); else location.hash = target;
+        } catch (error) { status.className = "error"; status.textContent = error.message; }
+      });
+      const stop = el("button", { class: "danger", type: "button", id: "cancel-other", text: "Cancel it (nothing is written)" });
+      stop.addEventListener("click", async () => {
+        try {
+          await api("POST", `/api/calibrations/${run.id}/cancel`);
+          status.className = "ok"; status.textContent = "cancelled";
+          stop.disabled = true; take.disabled = true;
+        } catch (error) { status.className = "error"; status.textContent = error.message; }
+      });
+      buttons.push(take, stop);
+    }
+    box.append(el("div", { class: "warning", "data-run": run.id }, el("p", {}, `A ${run.procedure.title} calibration started by ${run.who} ${waiting}.`), buttons.length ? el("div", { class: "actions" }, buttons, status) : null));
+  }
+  return box;
 }
 
 async function calibratePage(device, procedureId) {
@@ -496,11 +579,14 @@ async function calibratePage(device, procedureId) {
       status.replaceChildren(el("p", { class: "error", role: "alert", text: error.message }));
     }
   });
+  let resumed = null;
+  const others = await underWay(device, (run) => { if (run.procedure.id === procedureId) resumed = run; });
   show(
     el("p", {}, el("a", { href: `#/device/${encodeURIComponent(device)}`, text: `← ${device}` })),
     el("h1", { text: `${procedure.title}: ${device}` }),
     el("p", { text: procedure.hint }),
     needSession("Calibrating"),
+    others,
     watch.panel,
     el("h2", { text: "Calibration" }),
     form,
@@ -508,16 +594,22 @@ async function calibratePage(device, procedureId) {
   );
   onState = watch.render;
   if (latest) watch.render(latest);
+  if (resumed) { // a run of this session (a reloaded page, or one taken over): follow it
+    form.querySelector("button").disabled = true;
+    follow(resumed.id, status, form);
+  }
 }
 
 // The run as it goes: steps are appended, and the controls are rebuilt only when the phase
 // or what may be done changes, so the keyboard focus stays where the operator left it.
 function follow(id, status, form) {
   const phase = el("p", { id: "phase" });
+  const progress = el("p", { id: "progress", class: "meta" });
   const steps = el("ol", { class: "steps", id: "steps" });
+  const fold = el("details", { id: "steps-fold" }, el("summary", { id: "steps-summary", text: "Steps" }), steps);
   const controls = el("div");
   const errors = el("div", { "aria-live": "assertive" });
-  status.replaceChildren(phase, steps, controls, errors);
+  status.replaceChildren(phase, progress, controls, fold, errors);
   let shownControls = null;
   const tick = async () => {
     let run;
@@ -532,20 +624,30 @@ function follow(id, status, form) {
     for (const step of run.steps.slice(steps.children.length)) {
       steps.append(el("li", { class: `s-${step.kind}` }, `${step.kind}: ${step.text}`));
     }
-    const state = `${run.phase}/${run.can_cancel}`;
+    const last = run.steps[run.steps.length - 1];
+    progress.textContent = run.phase === "confirm" ? "" : last ? last.text : "starting…";
+    fold.querySelector("summary").textContent = `Every step, with the registers (${run.steps.length})`;
+    const state = `${run.phase}/${run.can_cancel}/${run.mine}`;
     if (state === shownControls) return;
     shownControls = state;
     const parts = [];
     let focus = null;
-    if (run.phase === "confirm") {
+    if (run.phase === "confirm" && run.mine) {
       const yes = el("button", { class: "primary", type: "button", id: "confirm-write", text: "Write to the sensor" });
-      const no = el("button", { type: "button", id: "decline", text: "Do not write" });
+      const no = el("button", { class: "danger", type: "button", id: "decline", text: "Do not write (ends the calibration)" });
       yes.addEventListener("click", () => answer(id, true, errors));
       no.addEventListener("click", () => answer(id, false, errors));
-      parts.push(el("section", { class: "warning", id: "question", role: "alertdialog", "aria-label": "Confirm the writes" }, el("p", { text: run.question }), el("div", { class: "actions" }, yes, no)));
+      const deadline = run.answer_within_s === null ? "" : ` Without an answer it ends by itself in ${within(run.answer_within_s)}, nothing written.`;
+      parts.push(el(
+        "section",
+        { class: "warning", id: "question", role: "alertdialog", "aria-label": "Confirm the writes" },
+        el("p", { id: "summary", class: "summary", text: run.summary }),
+        el("p", { class: "meta", text: `Nothing is written until you say so.${deadline}` }),
+        el("div", { class: "actions" }, yes, no),
+        el("details", { id: "question-detail" }, el("summary", { text: "Register detail" }), el("pre", { text: [run.detail, ...run.steps.filter((s) => s.kind === "plan").map((s) => s.text)].join("\n") })),
+      ));
       focus = yes;
-    }
-    if (run.can_cancel) {
+    } else if (run.can_cancel && run.mine) {
       const cancel = el("button", { class: "danger", type: "button", id: "cancel", text: "Cancel (nothing is written)" });
       cancel.addEventListener("click", async () => {
         try {
@@ -556,6 +658,8 @@ function follow(id, status, form) {
       });
       parts.push(el("div", { class: "actions" }, cancel));
       if (!focus && controls.contains(document.activeElement)) focus = cancel;
+    } else if (!run.mine && ["running", "confirm"].includes(run.phase)) {
+      parts.push(el("p", { class: "warning", text: `${run.who} has taken this calibration over.` }));
     }
     if (run.phase === "writing") parts.push(el("p", { class: "warning", text: "Writing: this cannot be cancelled now." }));
     const finished = !["running", "confirm", "writing"].includes(run.phase);
