@@ -18,6 +18,7 @@ from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.shim import LineShim
 from gateway.wire import frames
 from gateway.wire.timing import LineFormat
+from tests.rigs import ListSink
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
@@ -36,6 +37,7 @@ class Shimmed:
     shim: LineShim
     worker: BusWorker
     line: Line
+    sink: ListSink
 
     def state(self, device: str) -> DeviceState:
         return self.worker.devices[device]
@@ -92,10 +94,11 @@ async def shimmed(
     bus_line = Line(
         port=str(tmp_path / "ttyUSB0"), line=LineFormat(**line), bus="line1", echo=echo_mode
     )
-    worker = BusWorker(name="line1", line=bus_line, devices=targets)
-    await bus_line.open()
+    sink = ListSink()
+    worker = BusWorker(name="line1", line=bus_line, devices=targets, sinks=[sink])
+    await worker.claim_port()  # opened as `gateway run` opens it, the schedule started
     try:
-        yield Shimmed(server=server, shim=shim, worker=worker, line=bus_line)
+        yield Shimmed(server=server, shim=shim, worker=worker, line=bus_line, sink=sink)
     finally:
         await bus_line.close()
         shim.close()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 from typing import TYPE_CHECKING
 
 import pytest
@@ -21,9 +22,9 @@ from gateway.line.echo import AUTO_DECISION_READS, EchoMode
 from gateway.line.port import ErrorKind
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.simulator.shim import LineShim
+from gateway.simulator.shim import FTDI_LATENCY_S, LineShim
 from gateway.wire import frames
-from tests.rigs import link_target
+from tests.rigs import link_target, target
 from tests.shimmed import LINE, shimmed
 
 if TYPE_CHECKING:
@@ -183,3 +184,37 @@ async def test_the_shared_bus_never_hands_an_echo_to_another_master(tmp_path: Pa
         await task
         shim.close()
         await server.close()
+
+
+async def test_an_echoing_adapter_with_a_16_ms_latency_timer_unplugged_and_back(
+    tmp_path: Path,
+) -> None:
+    """The USB adapter of a cabinet: it echoes, holds bytes to 16 ms ticks, and is replugged.
+
+    The echo comes late (held with the answer's first bytes to the next tick), so only
+    ``auto``'s reads can tell it; once decided, it is read back before every answer, and
+    the decision outlives the replug (the same adapter comes back).
+    """
+    targets = [target("s10", "jumo-digiline-odo-s10", 1, interval=0.3)]
+    async with shimmed(tmp_path, [S10_VALUES], targets, echo=True, latency_s=FTDI_LATENCY_S) as rig:
+        task = asyncio.create_task(rig.worker.run())
+        await asyncio.sleep(1.5)
+        assert rig.line.echo.echoes is True
+        rig.shim.drop_carrier()
+        unplugged = time.monotonic()
+        await asyncio.sleep(1.5)
+        rig.shim.restore_carrier()
+        back = time.monotonic()
+        await asyncio.sleep(2.5)
+        rig.worker.request_stop()
+        await asyncio.wait_for(task, timeout=5)
+        assert rig.line.stats.port_failures >= 1
+        assert rig.server.bus.violations == []
+        errors = rig.errors()
+    assert ErrorKind.ECHO not in errors
+    assert ErrorKind.ECHO_MISMATCH not in errors
+    assert len(rig.shim.counters.deliveries) > 10  # bytes really were held to ticks
+    temperatures = [s for s in rig.sink.samples if s.point == "temperature" and s.good]
+    assert any(s.monotonic < unplugged for s in temperatures)
+    assert any(s.monotonic > back for s in temperatures), "polling resumed after the replug"
+    assert {s.value for s in temperatures} == {21.5}
