@@ -298,15 +298,17 @@ async def test_another_serial_publishes_nothing_until_the_pinned_one_answers(
 
 
 async def test_an_unread_identity_publishes_nothing_until_it_is_confirmed(tmp_path: Path) -> None:
-    # Both sensors silent for the first second and a half: no identity can be read.
+    # Both sensors silent for the first second and a half: no identity can be read. (A
+    # timeout of 0.1 s: without one, the first read of a digiLine waits the longest
+    # minimum response time it may have, 500 ms, and fewer retries fit in the silence.)
     silent = {"animate": False, "faults": {"silences": [(0.0, 1.5)]}}
     devices = [
         {"profile": S10, "address": 1, **silent},
         {"profile": H10, "address": 2, **silent},
     ]
     targets = [
-        pinned("s10", S10, 1, S10_SERIAL, interval=0.2, probe_max_s=0.5),
-        target("h10", H10, 2, interval=0.2, probe_max_s=0.5),  # unpinned: as today
+        pinned("s10", S10, 1, S10_SERIAL, interval=0.2, probe_max_s=0.5, timeout_s=0.1),
+        target("h10", H10, 2, interval=0.2, probe_max_s=0.5, timeout_s=0.1),  # unpinned
     ]
     async with rig(tmp_path, devices, targets, late_answer_window_s=0.1) as r:
         await r.run_for(5.0)
@@ -319,7 +321,9 @@ async def test_an_unread_identity_publishes_nothing_until_it_is_confirmed(tmp_pa
     assert all(s.quality is not Quality.COMMS_ERROR for s in s10)
     first_serial = next(i for i, s in enumerate(s10) if s.point == "serial_number")
     assert s10[first_serial].value == S10_SERIAL
-    assert {s.group for s in s10[:first_serial]} <= {"identity"}  # its own read's block
+    # Its own read's block, and the sensor's minimum response time read first of all.
+    before = s10[:first_serial]
+    assert {s.point for s in before if s.group != "identity"} <= {"min_response_time"}
     s10_events = [e.online for e in r.sink.events if e.device == "s10"]
     assert s10_events[-1] is True
     assert r.worker.health()[0].identity == "confirmed"

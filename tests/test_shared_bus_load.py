@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 
+from gateway.config.shared_bus import DEFAULT_RATE_LIMIT
 from gateway.control.shared_bus import server as server_module
 from gateway.publish.prometheus.shared_bus import shared_bus_families
 from gateway.wire import frames
@@ -90,7 +91,10 @@ async def test_a_client_pipelining_unknown_unit_ids_does_not_stop_the_polling(
     assert set(result["answers"]) == {"830a"}
     assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
     assert missed_after == missed_before
-    assert other.refused["unknown_unit"] == result["answers"]["830a"]
+    # Every answer the client read was counted; the gateway may have answered a few more
+    # that were on their way when the client stopped reading (a second's worth at most).
+    read = result["answers"]["830a"]
+    assert read <= other.refused["unknown_unit"] <= read + int(DEFAULT_RATE_LIMIT)
 
 
 async def test_a_client_pipelining_unknown_unit_ids_is_answered_in_turn_with_the_polls(
@@ -132,7 +136,7 @@ async def test_a_client_pipelining_cache_hits_does_not_stop_the_polling(tmp_path
     assert set(result["answers"]) == {"03"}  # every one the device's registers, from the cache
     # The default limit: a second's worth at once, then 50 a second (the last may be cut off).
     assert 50 + 50 * 4.0 - 5 <= answered <= 50 + 50 * 4.0 + 5
-    assert scada.cache_answers == answered
+    assert answered <= scada.cache_answers <= answered + int(DEFAULT_RATE_LIMIT)  # as above
     assert scada.throttled_s > 3.0  # the rest of the time it waited, reading nothing
     assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
     assert missed_after == missed_before
