@@ -21,8 +21,8 @@ from gateway.control.shared_bus import SharedBusServer, units
 from gateway.control.sparkplug_commands import SparkplugCommands
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
+from gateway.line.factory import build_line
 from gateway.line.foreign import SharePolicy
-from gateway.line.port import Line
 from gateway.line.worker import BusWorker
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import MetricsServer
@@ -80,7 +80,7 @@ def build_workers(
         targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
         worker = BusWorker(
             name=bus.name,
-            line=Line(port=bus.port, line=bus.line),
+            line=build_line(port=bus.port, line=bus.line, tcp=bus.tcp),
             devices=targets,
             sinks=[StateSink(state), *sinks] if state is not None else sinks,
             reconnect_max_s=bus.reconnect_max_s,

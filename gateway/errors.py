@@ -15,6 +15,9 @@
     ├── DeviceExceptionError        the device answered with a Modbus exception code
     ├── BusError                    the line itself
     │   ├── BusTimeoutError         no (complete) answer in time
+    │   │   └── ConverterError      a Modbus TCP converter answered for the device
+    │   │       ├── ConverterPathError      0A: it has no path to the line
+    │   │       └── ConverterNoAnswerError  0B: the device did not answer it
     │   ├── BusClosedError          the port is closed or went away
     │   └── BusBusyError            no bus time for another master's request now
     ├── PublishError                a sink could not deliver
@@ -110,6 +113,36 @@ class BusError(GatewayError):
 
 class BusTimeoutError(BusError):
     """No complete answer arrived within the response timeout."""
+
+
+class ConverterError(BusTimeoutError):
+    """A serial device server in Modbus TCP mode answered for the device: it could not.
+
+    The converter's exceptions 0A and 0B say nothing of the device's registers, only that
+    no answer came from it on the serial side: a failure like a timeout (counted towards
+    offline, retried, the late-answer window kept), never a device exception that would
+    split a read. ``code`` is the exception code, ``kind`` its name in the error counts.
+    """
+
+    kind = "converter"
+
+    def __init__(self, message: str, *, device: int, code: int) -> None:
+        """Keep the device address and the converter's exception code."""
+        self.device = device
+        self.code = code
+        super().__init__(message)
+
+
+class ConverterPathError(ConverterError):
+    """Exception 0A, gateway path unavailable: the converter has no way to the line."""
+
+    kind = "gateway_path_unavailable"
+
+
+class ConverterNoAnswerError(ConverterError):
+    """Exception 0B, gateway target device failed to respond (within the converter's timeout)."""
+
+    kind = "gateway_target_failed"
 
 
 class BusClosedError(BusError):

@@ -327,7 +327,9 @@ async def _read(port: str, line_format: LineFormat, target: DeviceTarget) -> lis
 
 @app.command()
 def read(
-    port: Annotated[str, typer.Option(help="Serial device or socket://HOST:PORT.")],
+    port: Annotated[
+        str, typer.Option(help="Serial device, socket://HOST:PORT (RTU) or tcp://HOST:PORT (MBAP).")
+    ],
     address: Annotated[int, typer.Option(help="Device address 1..247.", min=1, max=247)],
     profile: Annotated[str, typer.Option(help="Profile id, see 'gateway profiles'.")],
     points: Annotated[
@@ -480,7 +482,9 @@ def run(
 
 @app.command("scan")
 def scan_command(
-    port: Annotated[str, typer.Option(help="Serial device or socket://HOST:PORT.")],
+    port: Annotated[
+        str, typer.Option(help="Serial device, socket://HOST:PORT (RTU) or tcp://HOST:PORT (MBAP).")
+    ],
     baudrate: Annotated[int, typer.Option(help="Line speed.")] = 9600,
     parity: Annotated[str, typer.Option(help="N, E or O.")] = "N",
     stopbits: Annotated[int, typer.Option(help="1 or 2.")] = 1,

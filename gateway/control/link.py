@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 from gateway.control.commands import require_writable, validate_write
 from gateway.errors import BusError
-from gateway.line.port import Line
+from gateway.line.factory import build_line
 from gateway.line.samples import Quality
 from gateway.line.worker import BusWorker
 from gateway.wire.codec import DataType
@@ -130,7 +130,7 @@ async def open_link(
     port: str, line_format: LineFormat, target: DeviceTarget
 ) -> AsyncIterator[DeviceLink]:
     """Open the port for one device (the command line: no polling) and close it after."""
-    line = Line(port=port, line=line_format)
+    line = build_line(port=port, line=line_format)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)

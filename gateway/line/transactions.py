@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.errors import (
     BusTimeoutError,
+    ConverterNoAnswerError,
+    ConverterPathError,
     CrcError,
     DeviceExceptionError,
     FrameError,
@@ -50,6 +52,8 @@ _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     CrcError: "crc_error",
     UnexpectedDeviceError: "wrong_address",
     MalformedFrameError: "malformed_answer",
+    ConverterPathError: ConverterPathError.kind,  # Modbus TCP converters' 0A and 0B
+    ConverterNoAnswerError: ConverterNoAnswerError.kind,
 }
 
 
