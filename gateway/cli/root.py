@@ -221,7 +221,13 @@ def _simulation_settings(
 
 
 async def _simulate(
-    settings: SimulationSettings, pty: Path | None, tcp: tuple[str, int] | None, stats: Path | None
+    settings: SimulationSettings,
+    pty: Path | None,
+    tcp: tuple[str, int] | None,
+    stats: Path | None,
+    *,
+    framing: str = "rtu",
+    converter_timeout_s: float = 0.05,
 ) -> None:
     from gateway.simulator import SimulatorServer, build_bus  # noqa: PLC0415
 
@@ -237,8 +243,11 @@ async def _simulate(
             slave = server.open_pty(pty)
             where.append(f"{pty} (-> {slave})")
         if tcp is not None:
-            port = await server.open_tcp(*tcp)
-            where.append(f"socket://{tcp[0]}:{port}")
+            port = await server.open_tcp(
+                *tcp, framing=framing, converter_timeout_s=converter_timeout_s
+            )
+            scheme = "tcp" if framing == "tcp" else "socket"
+            where.append(f"{scheme}://{tcp[0]}:{port}")
         server.start_stats()
         devices = ", ".join(f"{d.profile.id}@{a}" for a, d in sorted(bus.devices.items()))
         _out.print(
@@ -275,6 +284,20 @@ def simulate(
     tcp: Annotated[
         str | None, typer.Option("--tcp", help="Serve RTU over TCP on HOST:PORT (port 0: any).")
     ] = None,
+    framing: Annotated[
+        str,
+        typer.Option(
+            help="On --tcp: rtu (RTU over TCP, a transparent converter) or tcp (Modbus TCP: "
+            "MBAP frames, unit id = address, 0B for a device that does not answer)."
+        ),
+    ] = "rtu",
+    converter_timeout: Annotated[
+        float,
+        typer.Option(
+            help="With --framing tcp: seconds the converter waits for an answer after its "
+            "wire time before it answers 0B."
+        ),
+    ] = 0.05,
     baudrate: Annotated[
         int | None, typer.Option(help="Line speed for timing rules and pacing.")
     ] = None,
@@ -295,6 +318,14 @@ def simulate(
     try:
         if pty is None and tcp is None:
             raise ConfigError("give --pty PATH and/or --tcp HOST:PORT")
+        if framing not in {"rtu", "tcp"}:
+            raise ConfigError(
+                f"--framing {framing!r}: expected rtu (RTU over TCP) or tcp (Modbus TCP)"
+            )
+        if not 0 < converter_timeout <= 10:  # noqa: PLR2004 - seconds, as the help says
+            raise ConfigError(
+                f"--converter-timeout {converter_timeout:g}: expected more than 0 and at most 10 s"
+            )
         settings = _simulation_settings(
             device or [],
             config,
@@ -307,7 +338,16 @@ def simulate(
                 "static": static,
             },
         )
-        asyncio.run(_simulate(settings, pty, _host_port(tcp) if tcp else None, stats))
+        asyncio.run(
+            _simulate(
+                settings,
+                pty,
+                _host_port(tcp) if tcp else None,
+                stats,
+                framing=framing,
+                converter_timeout_s=converter_timeout,
+            )
+        )
     except GatewayError as exc:
         raise fail(exc) from exc
 

@@ -25,8 +25,10 @@ format and deadline timer, and replaces the serial I/O with an asyncio TCP conne
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 import math
+import os
 import time
 from typing import TYPE_CHECKING, Final
 from urllib.parse import urlsplit
@@ -168,7 +170,7 @@ class MbapLine(Line):
             ) from exc
         except OSError as exc:
             self.stats.port_open = False
-            raise BusClosedError(f"cannot connect to {self.port}: {exc.strerror or exc}") from exc
+            raise BusClosedError(f"cannot connect to {self.port}: {_reason(exc)}") from exc
         configure_socket(link.get_extra_info("socket"), self.tcp)
         self._link, self._session = link, session
         self.stats.port_open = True
@@ -390,6 +392,18 @@ class MbapLine(Line):
             exceptions=exceptions,
             byte_count_16bit=byte_count_16bit,
         )
+
+
+def _reason(exc: OSError) -> str:
+    """Why a connection failed, in the words a user can act on."""
+    if exc.errno == errno.ECONNREFUSED:
+        return (
+            "connection refused (nothing listens there: check the converter's address, "
+            "its port and that it is in Modbus TCP mode)"
+        )
+    if exc.errno is not None and exc.errno > 0:
+        return os.strerror(exc.errno)
+    return exc.strerror or str(exc)  # a name that does not resolve: the resolver's words
 
 
 def _what(request: frames.Request) -> str:
