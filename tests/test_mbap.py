@@ -402,3 +402,24 @@ async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_device
     names = [(e.device, e.online) for e in sink.events]
     assert names.index(("s10", False)) < len(names) - 1 - names[::-1].index(("s10", True))
     assert [s for s in sink.samples if s.device == "s10" and s.point == "temperature" and s.good]
+
+
+async def test_a_scan_through_the_converter_finds_the_devices_behind_it() -> None:
+    from gateway.line.scan import scan  # noqa: PLC0415 - the scan is only this test's
+
+    server = SimulatorServer(build_bus(parse_settings({"devices": PLANT, "line": LINE})))
+    port = await server.open_tcp("127.0.0.1", 0, framing="tcp")
+    try:
+        report = await scan(
+            f"tcp://127.0.0.1:{port}", formats=[LineFormat(**LINE)], addresses=[1, 2, 9, 10, 20]
+        )
+    finally:
+        await server.close()
+    found = {(d.address, d.profile) for d in report.devices}
+    assert found == {
+        (1, "jumo-digiline-odo-s10"),
+        (2, "jumo-digiline-odo-h10"),
+        (10, "reiss-m0c"),
+        (20, "jumo-tecline-cl2"),
+    }
+    assert not report.garbled

@@ -28,11 +28,14 @@ TCP_SCHEMES: Final = frozenset({MBAP_URL_SCHEME, RTU_OVER_TCP_SCHEME})
 class TcpSettings(BaseModel):
     """Session settings of a ``socket://`` or ``tcp://`` bus; every one has a default.
 
-    A dead peer ends the session within ``user_timeout_s`` while requests are sent (the
-    kernel's TCP_USER_TIMEOUT: data unacknowledged for that long), or
-    ``keepalive_s + keepalive_interval_s * keepalive_count`` while the line is idle; a peer
-    that acknowledges but never answers, after ``silent_requests`` requests in a row
-    without a byte back. The bus is then reopened on its backoff.
+    A vanished peer ends the session after ``user_timeout_s`` while requests are sent (the
+    kernel's TCP_USER_TIMEOUT: data unacknowledged for that long), and at the first
+    keepalive probe (after ``keepalive_s`` idle, then every ``keepalive_interval_s``) past
+    ``user_timeout_s`` while the line is idle: Linux lets the user timeout stand for the
+    probe count (tcp(7)), which counts only with ``user_timeout_s: 0`` (the kernel's
+    default, some 15 minutes of retransmissions while busy). A peer that acknowledges but
+    never answers ends it after ``silent_requests`` requests in a row without a byte back.
+    The bus is then reopened on its backoff.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -43,7 +46,7 @@ class TcpSettings(BaseModel):
     keepalive_s: Annotated[int, Field(ge=1, le=3600)] = 10  # TCP_KEEPIDLE
     keepalive_interval_s: Annotated[int, Field(ge=1, le=600)] = 5  # TCP_KEEPINTVL
     keepalive_count: Annotated[int, Field(ge=1, le=20)] = 3  # TCP_KEEPCNT
-    user_timeout_s: Annotated[float, Field(ge=1, le=3600)] = 20.0  # TCP_USER_TIMEOUT
+    user_timeout_s: Annotated[float, Field(ge=0, le=3600)] = 20.0  # TCP_USER_TIMEOUT; 0: off
     # Requests in a row that get no byte back before the session is closed and reopened;
     # 0: never. A converter in Modbus TCP mode answers 0B for a silent device, so silence
     # there is the session's; over RTU over TCP it may also be every device being away.
@@ -52,11 +55,6 @@ class TcpSettings(BaseModel):
     # on a tcp:// socket (the converter keeps it on its serial side), so a converter that
     # needs a breath between requests gets it here.
     request_pause_ms: Annotated[float, Field(ge=0, le=1000)] = 0.0
-
-    @property
-    def dead_idle_s(self) -> float:
-        """How long an idle session to a vanished peer lasts at most (keepalive probes)."""
-        return self.keepalive_s + self.keepalive_interval_s * self.keepalive_count
 
 
 DEFAULT_TCP: Final = TcpSettings()

@@ -41,10 +41,12 @@ MS_PER_S: Final = 1000  # TCP_USER_TIMEOUT is in milliseconds (tcp(7))
 def configure_socket(sock: socket.socket | TransportSocket, settings: TcpSettings) -> None:
     """Keepalive and the user timeout on a connected socket (tcp(7), Linux 2.6.37+).
 
-    Idle, a vanished peer is found after ``keepalive_s`` plus ``keepalive_count`` probes
-    ``keepalive_interval_s`` apart; with requests in flight, their data unacknowledged for
-    ``user_timeout_s`` ends the session (the user timeout also bounds the keepalive probes).
-    The kernel then reports ETIMEDOUT, and the bus reopens on its backoff.
+    With requests in flight, their data unacknowledged for ``user_timeout_s`` ends the
+    session; idle, the first unanswered keepalive probe past ``user_timeout_s`` does (the
+    probes start after ``keepalive_s`` and follow every ``keepalive_interval_s``; Linux
+    counts ``keepalive_count`` of them only without a user timeout). Measured on loopback
+    with the peer's packets dropped: 3 s of user timeout ended a busy session after 3.6 s
+    and an idle one after 3.1 s. The kernel reports ETIMEDOUT; the bus reopens on its backoff.
     """
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, settings.keepalive_s)
