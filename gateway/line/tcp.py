@@ -89,8 +89,9 @@ class SilenceWatch:
             return False
         log = _LOGGER.warning if not self.reopened else _LOGGER.debug
         log(
-            "%s: no byte from the peer for %d requests in a row: it is connected but does "
-            "not answer; reopening the session (tcp.silent_requests: %d)",
+            "%s: no byte back for %d requests in a row: the converter keeps the session "
+            "but answers nothing (or every device behind it is away); reopening the "
+            "session (tcp.silent_requests: %d)",
             self.port,
             self.silent,
             self.limit,
