@@ -362,15 +362,19 @@ async def running(worker: BusWorker) -> AsyncIterator[None]:
         await worker.line.close()
 
 
-async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_devices_back() -> None:
+@pytest.mark.parametrize("framing", ["tcp", "rtu"])
+async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_devices_back(
+    framing: str,
+) -> None:
     """Connected but mute: the session ends after ``silent_requests``, devices go offline;
     a converter on the same port later, and they are back online."""
     peer = SilentPeer()
     silent = await asyncio.start_server(peer.serve, "127.0.0.1", 0)
     port = int(silent.sockets[0].getsockname()[1])
     settings = TcpSettings(silent_requests=3)
-    line = build_line(port=f"tcp://127.0.0.1:{port}", line=LineFormat(**LINE), tcp=settings)
-    assert isinstance(line, MbapLine)
+    scheme = "tcp" if framing == "tcp" else "socket"
+    line = build_line(port=f"{scheme}://127.0.0.1:{port}", line=LineFormat(**LINE), tcp=settings)
+    assert isinstance(line, MbapLine | SocketLine)
     sink = ListSink()
     targets = [
         target(name, profile, address, interval=0.2, probe_max_s=0.5)
@@ -387,6 +391,7 @@ async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_device
         await until(lambda: bool(peer.ended), 10, "the silent session was never ended")
         # Three silent requests, each its timeout (and a device's late-answer window).
         assert peer.ended[0] - peer.accepted[0] < 3 * (0.2 + 1.0)
+        assert line.watch.ended_at  # ended by its silence, not by the peer
         await until(lambda: all(s.online is False for s in devices), 15, "still online")
         assert len(peer.accepted) >= 2  # reopened at once, still silent
         # The silent peer goes; a converter with the devices behind it takes its port.
@@ -395,7 +400,7 @@ async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_device
             writer.close()
         await silent.wait_closed()
         try:
-            await server.open_tcp("127.0.0.1", port, framing="tcp")
+            await server.open_tcp("127.0.0.1", port, framing=framing)
             await until(lambda: all(s.online for s in devices), 10, "the devices did not return")
         finally:
             await server.close()

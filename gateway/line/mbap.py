@@ -273,7 +273,7 @@ class MbapLine(Line):
             return None
         heard_before = self._live().last_byte_at
         try:
-            response = await self._await_answer(
+            response, received_at = await self._await_answer(
                 request,
                 transaction,
                 deadline=request_end + timeout_s,
@@ -301,7 +301,6 @@ class MbapLine(Line):
                 await self.close()
                 await self.open()  # fails as a closed port does: the worker's backoff
             raise
-        received_at = self._live().last_byte_at
         self._finish(sent_at, line_quiet_at=received_at)
         self.watch.heard()
         self.stats.responses[request.device] += 1
@@ -326,8 +325,8 @@ class MbapLine(Line):
         deadline: float,
         exceptions: Mapping[int, str],
         byte_count_16bit: bool,
-    ) -> frames.Response:
-        """Read frames until the one with ``transaction``; older ones are stale."""
+    ) -> tuple[frames.Response, float]:
+        """Read frames until the one with ``transaction`` (and when it came); older are stale."""
         noise = False
         while True:
             session = self._live()
@@ -344,7 +343,8 @@ class MbapLine(Line):
                 if frame.transaction != transaction:
                     self._stale(frame)
                     continue
-                return self._answer(request, frame, exceptions, byte_count_16bit)
+                answer = self._answer(request, frame, exceptions, byte_count_16bit)
+                return answer, session.last_byte_at
             now = time.monotonic()
             if now >= deadline:
                 session.buffer.clear()
