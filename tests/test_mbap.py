@@ -93,7 +93,7 @@ def test_the_port_picks_the_line(port: str, kind: type[Line]) -> None:
 
 async def test_a_plant_polled_over_modbus_tcp_reads_the_simulated_registers() -> None:
     async with mbap_rig(static(PLANT), plant_targets(interval=0.3)) as r:
-        await r.run_for(2.0)
+        await r.run_for(3.0)  # identity first: long strings at 9600 baud
         stats = r.line.stats
         bus = r.server.bus
         assert bus.stats()["timing_violations"] == 0
@@ -113,9 +113,10 @@ async def test_a_plant_polled_over_modbus_tcp_reads_the_simulated_registers() ->
         assert compared > 30
         assert all(state.online for state in r.worker.devices.values())
     # Every request answered, but the one in flight when the worker was stopped.
-    assert sum(stats.requests.values()) - sum(stats.responses.values()) <= 1
+    assert sum(stats.requests.values()) - sum(stats.responses.values()) <= 1, stats.errors
     assert not stats.errors
-    assert bus.counters["mbap_requests"] == sum(stats.requests.values())
+    # The converter saw every request (the last one perhaps not yet, when the worker stopped).
+    assert 0 <= sum(stats.requests.values()) - bus.counters["mbap_requests"] <= 1
 
 
 async def test_no_inter_frame_gap_on_the_socket_but_the_converter_keeps_it() -> None:

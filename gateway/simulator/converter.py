@@ -69,6 +69,7 @@ class ModbusTcpConverter:
         self.timeout_s = timeout_s
         self._queue: asyncio.Queue[tuple[mbap.MbapFrame, asyncio.StreamWriter]] = asyncio.Queue()
         self._task = server.loop.create_task(self._serve_line(), name="simulator.converter")
+        self._task.add_done_callback(_report_end)
         self._connections: set[asyncio.Task[None]] = set()
 
     def connected(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -126,8 +127,13 @@ class ModbusTcpConverter:
         deadline = start + self._wire_s(len(rtu)) + self._wire_s(_answer_length(rtu))
         try:
             async with asyncio.timeout_at(deadline + self.timeout_s):
-                data = await answered
+                # Shielded: heard in the same turn of the loop as the timeout fires, the
+                # answer is still taken (a cancelled wait would have cancelled it).
+                data = await asyncio.shield(answered)
         except TimeoutError:
+            if answered.done():
+                return answered.result()[1:-2]
+            answered.cancel()
             counters["mbap_0b"] += 1
             return bytes((frame.pdu[0] | frames.EXCEPTION_FLAG, mbap.GATEWAY_TARGET_FAILED))
         return data[1:-2]
@@ -157,6 +163,12 @@ class ModbusTcpConverter:
         for task in tasks:
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+
+
+def _report_end(task: asyncio.Task[None]) -> None:
+    """A converter that stops answering is a simulator bug: said loudly, not left silent."""
+    if not task.cancelled() and (exc := task.exception()) is not None:
+        _LOGGER.error("the simulated converter stopped: %r", exc, exc_info=exc)
 
 
 def _answer_length(rtu: bytes) -> int:
