@@ -429,3 +429,32 @@ async def test_a_scan_through_the_converter_finds_the_devices_behind_it() -> Non
         (20, "jumo-tecline-cl2"),
     }
     assert not report.garbled
+
+
+async def test_a_broadcast_goes_through_unanswered_then_the_turnaround() -> None:
+    devices = static([{"profile": "jumo-digiline-odo-h10", "address": 2}, PLANT[0]])
+    targets = [
+        target("h10", "jumo-digiline-odo-h10", 2, interval=0.05),
+        target("s10", "jumo-digiline-odo-s10", 1, interval=0.05),
+    ]
+    async with mbap_rig(devices, targets) as r:
+        poller = asyncio.create_task(r.worker.run())
+        await asyncio.sleep(1.0)
+        await asyncio.wait_for(r.worker.submit_broadcast(0x0305, [0]), timeout=2)
+        await asyncio.sleep(1.0)
+        poller.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await poller
+        records = r.frames()
+        stats = r.server.bus.stats()
+        errors = r.line.stats.errors
+    assert stats["timing_violations"] == 0
+    assert not errors  # no answer was awaited, none came late
+    index = next(i for i, rec in enumerate(records) if rec.device == 0)
+    broadcast = records[index]
+    assert (broadcast.outcome, broadcast.answer_at) == ("broadcast", None)
+    after = records[index + 1 :]
+    first_h10 = next(rec for rec in after if rec.device == 2)
+    first_s10 = next(rec for rec in after if rec.device == 1)
+    assert first_h10.start - broadcast.start >= 0.25  # H10/H20 6.1.5 after every write
+    assert first_s10.start - broadcast.start >= 0.1  # the broadcast turnaround delay

@@ -268,6 +268,11 @@ class MbapLine(Line):
         # On the serial side: the converter's gap, then the request on the wire.
         request_end = sent_at + self._converter_gap_s + self.format.wire_s(len(request.frame))
         if request.is_broadcast:
+            # No answer says when the converter put it on its serial side: the broadcast
+            # is taken to be there until its gap and wire time have passed, so that the
+            # turnaround and post-write waits that follow count from its end, not from
+            # the moment it left here (the converter may still be waiting for its gap).
+            await self._timer.sleep_until(request_end)
             self.last_frame_end = request_end
             self.stats.busy_s += request_end - sent_at
             return None
