@@ -162,3 +162,30 @@ def test_check_config_accepts_tcp_settings_on_network_ports(tmp_path: Path) -> N
     result = gateway("check-config", str(config), cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     assert "OK" in result.stdout
+
+
+def test_write_with_a_config_whose_bus_is_a_modbus_tcp_converter(
+    converter: tuple[str, Path], tmp_path: Path
+) -> None:
+    url, stats = converter
+    config = tmp_path / "hall.yaml"
+    config.write_text(
+        "buses:\n"
+        f"  - {{name: hall, port: '{url}', baudrate: 19200, parity: E,\n"
+        "     tcp: {connect_pause_s: 0.2, request_pause_ms: 5}}\n"
+        "devices:\n"
+        "  - {name: tank1, bus: hall, address: 1, profile: jumo-digiline-odo-s10}\n"
+        "mqtt: {enabled: false}\n"
+        f"state_dir: {tmp_path / 'state'}\n",
+        encoding="utf-8",
+    )
+    result = gateway(
+        "write", "compensation_temperature", "21.5", "--config", str(config),
+        "--device", "tank1", "--json", cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    data = json.loads(result.stdout)
+    assert data["value"] == 21.5, data
+    writes = stats_of(stats)["devices"]["1"]["writes"]
+    assert [w["points"] for w in writes] == [["compensation_temperature"]]
+    assert stats_of(stats)["timing_violations"] == 0

@@ -34,6 +34,8 @@ from gateway.wire.timing import LineFormat
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable
 
+    from gateway.config.network import TcpSettings
+
 _R = TypeVar("_R")
 
 
@@ -86,6 +88,7 @@ class DeviceSpec:
     target: DeviceTarget
     policy: FlashPolicy  # the configured allow-list, or none without --config
     state_dir: Path  # where the flash-write ledger is kept
+    tcp: TcpSettings | None = None  # the bus's tcp: settings (socket:// and tcp:// ports)
 
     def ledger(self) -> FlashLedger:
         """The persistent flash-write ledger, shared with the running gateway."""
@@ -196,6 +199,7 @@ def device_spec(options: DeviceOptions) -> DeviceSpec:
             target=target,
             policy=chosen.flash_policy(),
             state_dir=state_directory(settings),
+            tcp=bus.tcp,
         )
     if options.port is None or options.address is None or options.profile is None:
         raise ConfigError("give --port, --address and --profile (or --config with --device)")
@@ -234,5 +238,5 @@ def _word_order(text: str | None) -> codec.WordOrder | None:
 @contextlib.asynccontextmanager
 async def device_link(spec: DeviceSpec) -> AsyncIterator[DeviceLink]:
     """Open the device's port and yield a link to it; the port is closed afterwards."""
-    async with open_link(spec.port, spec.line, spec.target) as link:
+    async with open_link(spec.port, spec.line, spec.target, tcp=spec.tcp) as link:
         yield link

@@ -31,6 +31,7 @@ from gateway.wire.codec import DataType
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
+    from gateway.config.network import TcpSettings
     from gateway.line.devices import DeviceTarget
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
@@ -127,10 +128,10 @@ class DeviceLink:
 
 @contextlib.asynccontextmanager
 async def open_link(
-    port: str, line_format: LineFormat, target: DeviceTarget
+    port: str, line_format: LineFormat, target: DeviceTarget, *, tcp: TcpSettings | None = None
 ) -> AsyncIterator[DeviceLink]:
     """Open the port for one device (the command line: no polling) and close it after."""
-    line = build_line(port=port, line=line_format)
+    line = build_line(port=port, line=line_format, tcp=tcp)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)
