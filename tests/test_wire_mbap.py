@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.errors import MalformedFrameError
+from gateway.errors import (
+    ConverterNoAnswerError,
+    ConverterPathError,
+    DeviceExceptionError,
+    MalformedFrameError,
+    UnexpectedDeviceError,
+)
 from gateway.wire import frames, mbap
 
 # The S10 manual's example (2, "Data request"): temperature at 0x2620, and its answer 20.25;
@@ -49,3 +55,32 @@ def test_transaction_ids_wrap_at_16_bits() -> None:
 def test_a_header_that_cannot_start_a_modbus_frame(header: str, message: str) -> None:
     with pytest.raises(MalformedFrameError, match=message):
         mbap.decode(bytes.fromhex(header))
+
+
+REQUEST = frames.read_request(1, 0x2620, 2)
+
+
+@pytest.mark.parametrize(
+    ("pdu", "error", "message"),
+    [
+        ("83 0b", ConverterNoAnswerError, "exception 0B for device 1 function 0x03 at 0x2620"),
+        ("83 0a", ConverterPathError, "exception 0A .*: gateway path unavailable"),
+        ("83 02", DeviceExceptionError, "exception 02 \\(illegal_address\\)"),
+        ("03 04 00 00 41", MalformedFrameError, "cannot decode response 01 03 04 00 00 41"),
+    ],
+)
+def test_answers_that_are_not_values(pdu: str, error: type[Exception], message: str) -> None:
+    frame = mbap.MbapFrame(transaction=1, unit=1, pdu=bytes.fromhex(pdu))
+    with pytest.raises(error, match=message):
+        mbap.parse_answer(REQUEST, frame, where="tcp://converter:502")
+
+
+def test_an_answer_of_another_unit() -> None:
+    frame = mbap.MbapFrame(transaction=1, unit=2, pdu=ANSWER_RTU[1:-2])
+    with pytest.raises(UnexpectedDeviceError, match="unit 2 answered a request for device 1"):
+        mbap.parse_answer(REQUEST, frame, where="tcp://converter:502")
+
+
+def test_an_answer_is_read_as_the_serial_one_is() -> None:
+    frame = mbap.MbapFrame(transaction=1, unit=1, pdu=ANSWER_RTU[1:-2])
+    assert mbap.parse_answer(REQUEST, frame, where="").registers == (0x0000, 0x41A2)

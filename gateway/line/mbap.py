@@ -38,8 +38,6 @@ from gateway.errors import (
     BusClosedError,
     BusTimeoutError,
     ConverterError,
-    ConverterNoAnswerError,
-    ConverterPathError,
     CrcError,
     DeviceExceptionError,
     FrameError,
@@ -59,20 +57,6 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-_CONVERTER_ERRORS: Final[dict[int, type[ConverterError]]] = {
-    mbap.GATEWAY_PATH_UNAVAILABLE: ConverterPathError,
-    mbap.GATEWAY_TARGET_FAILED: ConverterNoAnswerError,
-}
-_CONVERTER_MEANINGS: Final[dict[int, str]] = {
-    mbap.GATEWAY_PATH_UNAVAILABLE: (
-        "gateway path unavailable: the converter has no path to its serial side "
-        "(check its serial port and Modbus settings)"
-    ),
-    mbap.GATEWAY_TARGET_FAILED: (
-        "gateway target device failed to respond: the device did not answer the "
-        "converter within the converter's response timeout"
-    ),
-}
 _FRAME_KINDS: Final[dict[type[FrameError], str]] = {
     CrcError: ErrorKind.CRC,
     UnexpectedDeviceError: ErrorKind.WRONG_ADDRESS,
@@ -348,7 +332,13 @@ class MbapLine(Line):
                 if frame.transaction != transaction:
                     self._stale(frame)
                     continue
-                answer = self._answer(request, frame, exceptions, byte_count_16bit)
+                answer = mbap.parse_answer(
+                    request,
+                    frame,
+                    where=self.port,
+                    exceptions=exceptions,
+                    byte_count_16bit=byte_count_16bit,
+                )
                 return answer, session.last_byte_at
             now = time.monotonic()
             if now >= deadline:
@@ -358,45 +348,6 @@ class MbapLine(Line):
                     raise MalformedFrameError(f"{self.port}: no valid answer of {what}, only noise")
                 raise BusTimeoutError(f"{self.port}: no answer of {what}")
             await session.wait(deadline - now)
-
-    def _answer(
-        self,
-        request: frames.Request,
-        frame: mbap.MbapFrame,
-        exceptions: Mapping[int, str],
-        byte_count_16bit: bool,  # noqa: FBT001 - passed on as it came
-    ) -> frames.Response:
-        """The answer in ``frame``, checked as an RTU answer is (its unit id as the address).
-
-        Framed again as RTU (unit, PDU, CRC) so that one parser, with every check of the
-        serial path (function, byte count, length, the exception's meaning in the family's
-        words, the digiLine string quirk), judges answers on both kinds of bus.
-        """
-        pdu = frame.pdu
-        if (
-            len(pdu) == 2  # noqa: PLR2004 - function | 0x80, exception code
-            and pdu[0] == request.function | frames.EXCEPTION_FLAG
-            and pdu[1] in _CONVERTER_ERRORS
-        ):
-            code = pdu[1]
-            raise _CONVERTER_ERRORS[code](
-                f"{self.port}: the converter answered exception {code:02X} for "
-                f"{_what(request)}: {_CONVERTER_MEANINGS[code]}",
-                device=request.device,
-                code=code,
-            )
-        if frame.unit != request.device:
-            raise UnexpectedDeviceError(
-                f"{self.port}: unit {frame.unit} answered a request for {_what(request)}",
-                expected=request.device,
-                received=frame.unit,
-            )
-        return frames.parse_response(
-            request,
-            mbap.to_rtu(frame.unit, pdu),
-            exceptions=exceptions,
-            byte_count_16bit=byte_count_16bit,
-        )
 
 
 def _reason(exc: OSError) -> str:

@@ -18,10 +18,19 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import Final
+from typing import TYPE_CHECKING, Final
 
-from gateway.errors import MalformedFrameError
+from gateway.errors import (
+    ConverterError,
+    ConverterNoAnswerError,
+    ConverterPathError,
+    MalformedFrameError,
+    UnexpectedDeviceError,
+)
 from gateway.wire import frames
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
 
 MBAP_HEADER_LENGTH: Final = 7  # Implementation Guide V1.0b 3.1.3
 MBAP_PROTOCOL_MODBUS: Final = 0  # Implementation Guide V1.0b 3.1.3: protocol identifier
@@ -31,6 +40,21 @@ DEFAULT_PORT: Final = 502  # Implementation Guide V1.0b 4.2.1: the registered Mo
 GATEWAY_PATH_UNAVAILABLE: Final = 0x0A  # Modbus application protocol V1.1b3 7: exception 0A
 GATEWAY_TARGET_FAILED: Final = 0x0B  # exception 0B: the target device failed to respond
 _HEADER: Final = struct.Struct(">HHHB")
+
+_CONVERTER_ERRORS: Final[dict[int, type[ConverterError]]] = {
+    GATEWAY_PATH_UNAVAILABLE: ConverterPathError,
+    GATEWAY_TARGET_FAILED: ConverterNoAnswerError,
+}
+_CONVERTER_MEANINGS: Final[dict[int, str]] = {
+    GATEWAY_PATH_UNAVAILABLE: (
+        "gateway path unavailable: the converter has no path to its serial side "
+        "(check its serial port and Modbus settings)"
+    ),
+    GATEWAY_TARGET_FAILED: (
+        "gateway target device failed to respond: the device did not answer the "
+        "converter within the converter's response timeout"
+    ),
+}
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -80,3 +104,45 @@ def decode(data: bytes | bytearray) -> tuple[MbapFrame, int] | None:
         return None
     pdu = bytes(data[MBAP_HEADER_LENGTH:end])
     return MbapFrame(transaction=transaction, unit=unit, pdu=pdu), end
+
+
+def parse_answer(
+    request: frames.Request,
+    frame: MbapFrame,
+    *,
+    where: str,
+    exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
+    byte_count_16bit: bool = False,
+) -> frames.Response:
+    """The answer to ``request`` in ``frame`` (its transaction id already matched).
+
+    The converter's own exceptions 0A and 0B raise a :class:`ConverterError`; an answer of
+    another unit :class:`UnexpectedDeviceError`; the rest is framed again as RTU (unit,
+    PDU, CRC) so that one parser, :func:`frames.parse_response` with every check of the
+    serial path (function, byte count, length, the exception's meaning in the family's
+    words, the digiLine string quirk), judges answers on both kinds of bus. ``where``
+    names the bus in the messages.
+    """
+    pdu = frame.pdu
+    what = f"device {request.device} function {request.function:#04x} at {request.address:#06x}"
+    if (
+        len(pdu) == 2  # noqa: PLR2004 - function | 0x80, exception code
+        and pdu[0] == request.function | frames.EXCEPTION_FLAG
+        and pdu[1] in _CONVERTER_ERRORS
+    ):
+        code = pdu[1]
+        raise _CONVERTER_ERRORS[code](
+            f"{where}: the converter answered exception {code:02X} for {what}: "
+            f"{_CONVERTER_MEANINGS[code]}",
+            device=request.device,
+            code=code,
+        )
+    if frame.unit != request.device:
+        raise UnexpectedDeviceError(
+            f"{where}: unit {frame.unit} answered a request for {what}",
+            expected=request.device,
+            received=frame.unit,
+        )
+    return frames.parse_response(
+        request, to_rtu(frame.unit, pdu), exceptions=exceptions, byte_count_16bit=byte_count_16bit
+    )
