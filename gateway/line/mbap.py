@@ -115,10 +115,12 @@ class MbapLine(Line):
         stats: LineStats | None = None,
         tcp: TcpSettings = DEFAULT_TCP,
         bus: str = "",
-        echo: EchoMode = EchoMode.AUTO,
     ) -> None:
-        """Describe the bus (``line`` is the converter's serial side); :meth:`open` connects."""
-        super().__init__(port=port, line=line, stats=stats, bus=bus, echo=echo)
+        """Describe the bus (``line`` is the converter's serial side); :meth:`open` connects.
+
+        No echo setting: a Modbus TCP session carries no echo of the serial side's.
+        """
+        super().__init__(port=port, line=line, stats=stats, bus=bus, echo=EchoMode.OFF)
         parts = urlsplit(port)
         self.host = parts.hostname or ""
         self.tcp_port = parts.port or mbap.DEFAULT_PORT
