@@ -22,8 +22,8 @@ from gateway.control.sparkplug_commands import SparkplugCommands
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
 from gateway.line.echo import EchoMode
+from gateway.line.factory import build_line
 from gateway.line.foreign import SharePolicy
-from gateway.line.port import Line
 from gateway.line.port_access import SystemRoots, port_name_advice, port_options
 from gateway.line.worker import BusWorker
 from gateway.profiles.identity import pinned_serial
@@ -86,9 +86,10 @@ def build_workers(
         targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
         worker = BusWorker(
             name=bus.name,
-            line=Line(
+            line=build_line(
                 port=bus.port,
                 line=bus.line,
+                tcp=bus.tcp,
                 bus=bus.name,
                 echo=EchoMode(bus.echo),
                 options=port_options(bus, config.shared_bus),

@@ -16,7 +16,10 @@
     ├── DeviceExceptionError        the device answered with a Modbus exception code
     ├── BusError                    the line itself
     │   ├── BusTimeoutError         no (complete) answer in time
-    │   │   └── LineNoiseError      the line never fell silent: the request was not sent
+    │   │   ├── LineNoiseError      the line never fell silent: the request was not sent
+    │   │   └── ConverterError      a Modbus TCP converter answered for the device
+    │   │       ├── ConverterPathError      0A: it has no path to the line
+    │   │       └── ConverterNoAnswerError  0B: the device did not answer it
     │   ├── BusClosedError          the port is closed or went away
     │   │   └── PortUnavailableError    the port cannot be opened: ``.reason`` says why
     │   └── BusBusyError            no bus time for another master's request now
@@ -128,6 +131,36 @@ class LineNoiseError(BusTimeoutError):
     A timeout as far as the device is concerned (no answer could come), and an error kind
     of its own on the line: termination, biasing, earthing or another master.
     """
+
+
+class ConverterError(BusTimeoutError):
+    """A serial device server in Modbus TCP mode answered for the device: it could not.
+
+    The converter's exceptions 0A and 0B say nothing of the device's registers, only that
+    no answer came from it on the serial side: a failure like a timeout (counted towards
+    offline, retried, the late-answer window kept), never a device exception that would
+    split a read. ``code`` is the exception code, ``kind`` its name in the error counts.
+    """
+
+    kind = "converter"
+
+    def __init__(self, message: str, *, device: int, code: int) -> None:
+        """Keep the device address and the converter's exception code."""
+        self.device = device
+        self.code = code
+        super().__init__(message)
+
+
+class ConverterPathError(ConverterError):
+    """Exception 0A, gateway path unavailable: the converter has no way to the line."""
+
+    kind = "gateway_path_unavailable"
+
+
+class ConverterNoAnswerError(ConverterError):
+    """Exception 0B, gateway target device failed to respond (within the converter's timeout)."""
+
+    kind = "gateway_target_failed"
 
 
 class BusClosedError(BusError):

@@ -35,6 +35,8 @@ from gateway.wire.timing import LineFormat
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable
 
+    from gateway.config.network import TcpSettings
+
 _R = TypeVar("_R")
 
 
@@ -89,6 +91,7 @@ class DeviceSpec:
     options: PortOptions = field(default_factory=PortOptions)  # the configured bus's
     state_dir: Path  # where the flash-write ledger is kept
     echo: str = "auto"  # the bus's echo setting (off, on, auto)
+    tcp: TcpSettings | None = None  # the bus's tcp: settings (socket:// and tcp:// ports)
 
     def ledger(self) -> FlashLedger:
         """The persistent flash-write ledger, shared with the running gateway."""
@@ -201,6 +204,7 @@ def device_spec(options: DeviceOptions) -> DeviceSpec:
             policy=chosen.flash_policy(),
             state_dir=state_directory(settings),
             echo=bus.echo,
+            tcp=bus.tcp,
         )
     if options.port is None or options.address is None or options.profile is None:
         raise ConfigError("give --port, --address and --profile (or --config with --device)")
@@ -240,6 +244,6 @@ def _word_order(text: str | None) -> codec.WordOrder | None:
 async def device_link(spec: DeviceSpec) -> AsyncIterator[DeviceLink]:
     """Open the device's port and yield a link to it; the port is closed afterwards."""
     async with open_link(
-        spec.port, spec.line, spec.target, echo=spec.echo, options=spec.options
+        spec.port, spec.line, spec.target, echo=spec.echo, options=spec.options, tcp=spec.tcp
     ) as link:
         yield link

@@ -222,7 +222,13 @@ def _simulation_settings(
 
 
 async def _simulate(
-    settings: SimulationSettings, pty: Path | None, tcp: tuple[str, int] | None, stats: Path | None
+    settings: SimulationSettings,
+    pty: Path | None,
+    tcp: tuple[str, int] | None,
+    stats: Path | None,
+    *,
+    framing: str = "rtu",
+    converter_timeout_s: float = 0.05,
 ) -> None:
     from gateway.simulator import SimulatorServer, build_bus  # noqa: PLC0415
 
@@ -238,8 +244,11 @@ async def _simulate(
             slave = server.open_pty(pty)
             where.append(f"{pty} (-> {slave})")
         if tcp is not None:
-            port = await server.open_tcp(*tcp)
-            where.append(f"socket://{tcp[0]}:{port}")
+            port = await server.open_tcp(
+                *tcp, framing=framing, converter_timeout_s=converter_timeout_s
+            )
+            scheme = "tcp" if framing == "tcp" else "socket"
+            where.append(f"{scheme}://{tcp[0]}:{port}")
         server.start_stats()
         devices = ", ".join(f"{d.profile.id}@{a}" for a, d in sorted(bus.devices.items()))
         _out.print(
@@ -276,6 +285,20 @@ def simulate(
     tcp: Annotated[
         str | None, typer.Option("--tcp", help="Serve RTU over TCP on HOST:PORT (port 0: any).")
     ] = None,
+    framing: Annotated[
+        str,
+        typer.Option(
+            help="On --tcp: rtu (RTU over TCP, a transparent converter) or tcp (Modbus TCP: "
+            "MBAP frames, unit id = address, 0B for a device that does not answer)."
+        ),
+    ] = "rtu",
+    converter_timeout: Annotated[
+        float,
+        typer.Option(
+            help="With --framing tcp: seconds the converter waits for an answer after its "
+            "wire time before it answers 0B."
+        ),
+    ] = 0.05,
     baudrate: Annotated[
         int | None, typer.Option(help="Line speed for timing rules and pacing.")
     ] = None,
@@ -296,6 +319,14 @@ def simulate(
     try:
         if pty is None and tcp is None:
             raise ConfigError("give --pty PATH and/or --tcp HOST:PORT")
+        if framing not in {"rtu", "tcp"}:
+            raise ConfigError(
+                f"--framing {framing!r}: expected rtu (RTU over TCP) or tcp (Modbus TCP)"
+            )
+        if not 0 < converter_timeout <= 10:  # noqa: PLR2004 - seconds, as the help says
+            raise ConfigError(
+                f"--converter-timeout {converter_timeout:g}: expected more than 0 and at most 10 s"
+            )
         settings = _simulation_settings(
             device or [],
             config,
@@ -308,7 +339,16 @@ def simulate(
                 "static": static,
             },
         )
-        asyncio.run(_simulate(settings, pty, _host_port(tcp) if tcp else None, stats))
+        asyncio.run(
+            _simulate(
+                settings,
+                pty,
+                _host_port(tcp) if tcp else None,
+                stats,
+                framing=framing,
+                converter_timeout_s=converter_timeout,
+            )
+        )
     except GatewayError as exc:
         raise fail(exc) from exc
 
@@ -328,7 +368,9 @@ async def _read(port: str, line_format: LineFormat, target: DeviceTarget) -> lis
 
 @app.command()
 def read(
-    port: Annotated[str, typer.Option(help="Serial device or socket://HOST:PORT.")],
+    port: Annotated[
+        str, typer.Option(help="Serial device, socket://HOST:PORT (RTU) or tcp://HOST:PORT (MBAP).")
+    ],
     address: Annotated[int, typer.Option(help="Device address 1..247.", min=1, max=247)],
     profile: Annotated[str, typer.Option(help="Profile id, see 'gateway profiles'.")],
     points: Annotated[
@@ -491,7 +533,9 @@ def run(
 
 @app.command("scan")
 def scan_command(
-    port: Annotated[str, typer.Option(help="Serial device or socket://HOST:PORT.")],
+    port: Annotated[
+        str, typer.Option(help="Serial device, socket://HOST:PORT (RTU) or tcp://HOST:PORT (MBAP).")
+    ],
     baudrate: Annotated[int, typer.Option(help="Line speed.")] = 9600,
     parity: Annotated[str, typer.Option(help="N, E or O.")] = "N",
     stopbits: Annotated[int, typer.Option(help="1 or 2.")] = 1,

@@ -45,6 +45,7 @@ from pydantic_settings import (
 )
 
 from gateway.config.flash_policy import FlashPolicy
+from gateway.config.network import MBAP_URL_SCHEME, TcpSettings, tcp_for_network_port
 from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
 from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
@@ -70,7 +71,9 @@ MAX_INTERVAL_S: Final = 86_400.0  # a day; longer is a typo, not a polling plan
 SERIAL_URL_SCHEMES: Final = frozenset(
     {"socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110"}
 )
-_NETWORK_SCHEMES: Final = frozenset({"socket", "rfc2217"})
+# Beside them, tcp://host:port: a converter in Modbus TCP mode (gateway.line.mbap).
+_URL_SCHEMES: Final = SERIAL_URL_SCHEMES | {MBAP_URL_SCHEME}
+_NETWORK_SCHEMES: Final = frozenset({"socket", "rfc2217", MBAP_URL_SCHEME})
 
 _BUS_NAME = re.compile(r"[a-z0-9_-]+")
 _DEVICE_NAME = re.compile(r"[a-z0-9_]+")
@@ -100,11 +103,11 @@ def _device_name(value: str) -> str:
 
 
 def _serial_port(value: str) -> str:
-    """A device path (``/dev/ttyUSB0``, ``COM3``) or a pyserial URL (``socket://host:4001``)."""
+    """A device path (``/dev/ttyUSB0``), a pyserial URL (``socket://h:4001``) or ``tcp://h:502``."""
     if "://" in value:
         parts = urlsplit(value)
-        if parts.scheme not in SERIAL_URL_SCHEMES:
-            known = ", ".join(f"{scheme}://" for scheme in sorted(SERIAL_URL_SCHEMES))
+        if parts.scheme not in _URL_SCHEMES:
+            known = ", ".join(f"{scheme}://" for scheme in sorted(_URL_SCHEMES))
             raise ValueError(f"{value!r}: unknown URL scheme {parts.scheme!r}; known: {known}")
         if parts.scheme in _NETWORK_SCHEMES:
             try:
@@ -112,16 +115,17 @@ def _serial_port(value: str) -> str:
             except ValueError:
                 port = None
             if not parts.hostname or port is None:
+                example = 502 if parts.scheme == MBAP_URL_SCHEME else 4001
                 raise ValueError(
                     f"{value!r}: a {parts.scheme}:// URL needs a host and a port, "
-                    f"e.g. {parts.scheme}://10.0.0.5:4001"
+                    f"e.g. {parts.scheme}://10.0.0.5:{example}"
                 )
         return value
     if value.startswith("/") or _WINDOWS_PORT.fullmatch(value):
         return value
     raise ValueError(
         f"{value!r} is not a port: give a device path such as /dev/ttyUSB0 "
-        "or a URL such as socket://10.0.0.5:4001"
+        "or a URL such as socket://10.0.0.5:4001 or tcp://10.0.0.5:502"
     )
 
 
@@ -218,6 +222,8 @@ class BusConfig(_Model):
     # from the first reads and logs the setting that fits (gateway.line.echo).
     echo: Annotated[Literal["off", "on", "auto"], BeforeValidator(_on_off)] = "auto"
     rs485: Rs485Config | None = None  # the kernel's RS485 mode (a UART or HAT switched by RTS)
+    # socket:// and tcp:// only: keepalive, user timeout, silence, pauses (config.network).
+    tcp: Annotated[TcpSettings | None, AfterValidator(tcp_for_network_port)] = None
 
     @property
     def line(self) -> LineFormat:

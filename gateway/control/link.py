@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 from gateway.control.commands import require_writable, validate_write
 from gateway.errors import BusError
 from gateway.line.echo import EchoMode
-from gateway.line.port import Line
+from gateway.line.factory import build_line
 from gateway.line.samples import Quality
 from gateway.line.worker import BusWorker
 from gateway.wire.codec import DataType
@@ -32,6 +32,7 @@ from gateway.wire.codec import DataType
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
+    from gateway.config.network import TcpSettings
     from gateway.line.devices import DeviceTarget
     from gateway.line.port_access import PortOptions
     from gateway.profiles import Profile
@@ -135,15 +136,16 @@ async def open_link(
     *,
     echo: str = "auto",
     options: PortOptions | None = None,
+    tcp: TcpSettings | None = None,
 ) -> AsyncIterator[DeviceLink]:
     """Open the port for one device (the command line: no polling) and close it after.
 
-    ``echo`` is the bus's setting (``off``, ``on``, ``auto``), from the config if the
-    device came from one. The port is opened exclusively: with the gateway polling it,
-    this fails at once with a :class:`~gateway.errors.PortUnavailableError` that says
-    what to stop.
+    ``echo`` is the bus's setting (``off``, ``on``, ``auto``) and ``tcp`` its session
+    settings, from the config if the device came from one. A serial port is opened
+    exclusively: with the gateway polling it, this fails at once with a
+    :class:`~gateway.errors.PortUnavailableError` that says what to stop.
     """
-    line = Line(port=port, line=line_format, echo=EchoMode(echo), options=options)
+    line = build_line(port=port, line=line_format, tcp=tcp, echo=EchoMode(echo), options=options)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)

@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.errors import (
     BusTimeoutError,
+    ConverterNoAnswerError,
+    ConverterPathError,
     CrcError,
     DeviceExceptionError,
     EchoMismatchError,
@@ -58,6 +60,8 @@ _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     MalformedFrameError: "malformed_answer",
     EchoMismatchError: "echo_mismatch",
     LineNoiseError: "no_silence",
+    ConverterPathError: ConverterPathError.kind,  # Modbus TCP converters' 0A and 0B
+    ConverterNoAnswerError: ConverterNoAnswerError.kind,
 }
 
 

@@ -1,4 +1,4 @@
-"""The simulator's wire: a pseudo-terminal or a TCP socket carrying Modbus RTU.
+"""The simulator's wire: a pseudo-terminal or a TCP socket carrying Modbus RTU, or Modbus TCP.
 
 Bytes are cut into frames the way a slave's UART does it: a silence of 3.5 character
 times ends a burst. A burst that holds more than one request means the master left no
@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import GatewayError
+from gateway.simulator.converter import DEFAULT_CONVERTER_TIMEOUT_S, ModbusTcpConverter
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -90,6 +91,7 @@ class SimulatorServer:
         self.stats_path = stats_path
         self._pty: _PtyEndpoint | None = None
         self._servers: list[asyncio.Server] = []
+        self._converter: ModbusTcpConverter | None = None
         self._stats_task: asyncio.Task[None] | None = None
         bus.start(self.loop.time())
         self._watch_due = self.loop.time() + WATCH_S
@@ -163,15 +165,33 @@ class SimulatorServer:
         if self._pty is not None:
             self._pty.open()
 
-    async def open_tcp(self, host: str, port: int) -> int:
-        """Serve RTU over TCP (what RTU-over-TCP converters speak); returns the port."""
+    async def open_tcp(
+        self,
+        host: str,
+        port: int,
+        *,
+        framing: str = "rtu",
+        converter_timeout_s: float = DEFAULT_CONVERTER_TIMEOUT_S,
+    ) -> int:
+        """Serve on TCP; returns the port.
+
+        ``framing="rtu"``: RTU over TCP, what converters in transparent mode pass on;
+        ``"tcp"``: Modbus TCP, as a converter in Modbus TCP mode (MBAP, unit id = address,
+        0B after ``converter_timeout_s`` without an answer; see ``simulator/converter``).
+        """
 
         def connected(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
             burst = _Burst(self, writer.write)
             self._servers[-1].get_loop().create_task(_pump(reader, writer, burst))
 
+        if framing == "tcp":
+            if self._converter is None:
+                self._converter = ModbusTcpConverter(self, timeout_s=converter_timeout_s)
+            handler = self._converter.connected
+        else:
+            handler = connected
         try:
-            server = await asyncio.start_server(connected, host, port)
+            server = await asyncio.start_server(handler, host, port)
         except OSError as exc:
             raise SimulatorError(f"cannot listen on {host}:{port}: {exc}") from exc
         self._servers.append(server)
@@ -204,6 +224,9 @@ class SimulatorServer:
                 await self._stats_task
         for server in self._servers:
             server.close()
+        if self._converter is not None:
+            await self._converter.close()
+        for server in self._servers:
             await server.wait_closed()
         if self._pty is not None:
             self._pty.close()

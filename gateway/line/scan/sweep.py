@@ -7,13 +7,14 @@ from typing import TYPE_CHECKING
 
 from gateway.config import MAX_RESPONSE_TIMEOUT_S
 from gateway.errors import ConfigError
-from gateway.line.port import Line
+from gateway.line.factory import build_line
 from gateway.line.scan.probe import Scanner
 from gateway.line.scan.report import FoundDevice, ScanReport
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
 
+    from gateway.line.port import Line
     from gateway.line.port_access import PortOptions
     from gateway.wire.timing import LineFormat
 
@@ -25,7 +26,7 @@ async def scan(
     addresses: Sequence[int],
     timeout_s: float | None = None,
     progress: Callable[[LineFormat, int, int], None] | None = None,
-    line_factory: Callable[..., Line] = Line,
+    line_factory: Callable[..., Line] = build_line,
     options: PortOptions | None = None,
 ) -> ScanReport:
     """Open ``port`` in each format in turn and probe every address.

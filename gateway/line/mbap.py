@@ -1,0 +1,378 @@
+"""A bus behind a serial device server in Modbus TCP mode (``tcp://host:502``).
+
+The converter takes Modbus TCP frames (MBAP header, unit id = device address), puts each
+on its RS485 side as an RTU frame with its own inter-frame gap, waits for the device, and
+sends the answer back with the request's transaction id. So on this side there is no gap
+to keep and no CRC to check; what still holds is above the line, in
+:mod:`gateway.line.transactions`: the device's post-write waits and, after no answer of its
+own, its late-answer window (both arrive here as ``not_before``). The response timeout
+allows for the converter: the request's RTU time on the wire, the converter's gap, then
+the timeout the transactions give (the answer's wire time, the device's t1, a margin that
+covers a LAN's round trip; a slower network needs the bus's ``timeout``).
+
+Stale-frame protection is the transaction id: an answer to an older request (a late
+answer of a device, a converter's 0B after the gateway gave up) is dropped and counted
+as a stale frame of its unit. The converter's own exceptions, 0A (no path to its serial
+side) and 0B (the device did not answer it), are failures like a timeout with their own
+names (:class:`~gateway.errors.ConverterError`), never device exceptions that would split
+a read.
+
+The interface is :class:`~gateway.line.port.Line`'s, which it extends so that the bus
+worker, the transactions and the scan take it unchanged; it shares the line's counters,
+format and deadline timer, and replaces the serial I/O with an asyncio TCP connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import math
+import os
+import time
+from typing import TYPE_CHECKING, Final
+from urllib.parse import urlsplit
+
+from gateway.config.network import DEFAULT_TCP
+from gateway.errors import (
+    BusClosedError,
+    BusTimeoutError,
+    ConverterError,
+    CrcError,
+    DeviceExceptionError,
+    FrameError,
+    MalformedFrameError,
+    UnexpectedDeviceError,
+)
+from gateway.line.echo import EchoMode
+from gateway.line.port import ErrorKind, Exchange, Line
+from gateway.line.tcp import MS_PER_S, SilenceWatch, configure_socket
+from gateway.wire import frames, mbap
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping
+
+    from gateway.config.network import TcpSettings
+    from gateway.line.port import LineStats
+    from gateway.wire.timing import LineFormat
+
+_LOGGER = logging.getLogger(__name__)
+
+_FRAME_KINDS: Final[dict[type[FrameError], str]] = {
+    CrcError: ErrorKind.CRC,
+    UnexpectedDeviceError: ErrorKind.WRONG_ADDRESS,
+    MalformedFrameError: ErrorKind.MALFORMED,
+}
+
+
+class _Session(asyncio.Protocol):
+    """The bytes of one TCP session, with the time the last ones arrived."""
+
+    def __init__(self) -> None:
+        self.buffer = bytearray()
+        self.last_byte_at = -math.inf
+        self.lost = False
+        self.lost_reason: Exception | None = None
+        self.waiter: asyncio.Future[None] | None = None
+
+    def data_received(self, data: bytes) -> None:
+        self.buffer.extend(data)
+        self.last_byte_at = time.monotonic()
+        self._wake()
+
+    def eof_received(self) -> bool:
+        return False  # the converter closed its side: close ours (connection_lost follows)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.lost, self.lost_reason = True, exc
+        self._wake()
+
+    def _wake(self) -> None:
+        waiter = self.waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    async def wait(self, timeout_s: float) -> None:
+        """Return when bytes arrive, the session ends, or after ``timeout_s``."""
+        loop = asyncio.get_running_loop()
+        waiter = self.waiter = loop.create_future()
+        timer = loop.call_later(timeout_s, self._wake)
+        try:
+            await waiter
+        finally:
+            timer.cancel()
+            self.waiter = None
+
+
+class MbapLine(Line):
+    """One ``tcp://`` bus: Modbus TCP to a serial device server, one transaction at a time."""
+
+    def __init__(
+        self,
+        *,
+        port: str,
+        line: LineFormat,
+        stats: LineStats | None = None,
+        tcp: TcpSettings = DEFAULT_TCP,
+        bus: str = "",
+    ) -> None:
+        """Describe the bus (``line`` is the converter's serial side); :meth:`open` connects.
+
+        No echo setting: a Modbus TCP session carries no echo of the serial side's.
+        """
+        super().__init__(port=port, line=line, stats=stats, bus=bus, echo=EchoMode.OFF)
+        parts = urlsplit(port)
+        self.host = parts.hostname or ""
+        self.tcp_port = parts.port or mbap.DEFAULT_PORT
+        self.tcp = tcp
+        self.watch = SilenceWatch(port=port, limit=tcp.silent_requests)
+        self._session: _Session | None = None
+        self._link: asyncio.Transport | None = None
+        self._transaction = 0
+        self._ready_at = -math.inf
+        # The converter's own gap before it puts a request on its serial side.
+        self._converter_gap_s = line.frame_gap_s()
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the session is up and the converter has not ended it."""
+        return self._session is not None and not self._session.lost
+
+    def tcp_socket(self) -> asyncio.trsock.TransportSocket | None:
+        """The session's socket (for its options), ``None`` while closed."""
+        link = self._link
+        return link.get_extra_info("socket") if link is not None else None
+
+    async def open(self) -> None:
+        """Connect, with keepalive and the user timeout; a failure is a :class:`BusClosedError`."""
+        loop = asyncio.get_running_loop()
+        session = _Session()
+        limit_s = self.tcp.connect_timeout_s
+        try:
+            async with asyncio.timeout(limit_s):
+                link, _ = await loop.create_connection(lambda: session, self.host, self.tcp_port)
+        except TimeoutError as exc:
+            self.stats.port_open = False
+            raise BusClosedError(
+                f"cannot connect to {self.port}: no answer within {limit_s:g} s "
+                "(tcp.connect_timeout_s)"
+            ) from exc
+        except OSError as exc:
+            self.stats.port_open = False
+            raise BusClosedError(f"cannot connect to {self.port}: {_reason(exc)}") from exc
+        configure_socket(link.get_extra_info("socket"), self.tcp)
+        self._link, self._session = link, session
+        self.stats.port_open = True
+        now = time.monotonic()
+        self.last_frame_end = now
+        self._ready_at = now + self.tcp.connect_pause_s
+
+    async def close(self) -> None:
+        """End the session (idempotent); nothing in flight matters after a stop."""
+        link, self._link, self._session = self._link, None, None
+        self.stats.port_open = False
+        self._timer.close()
+        if link is not None and not link.is_closing():
+            link.abort()
+            await asyncio.sleep(0)
+
+    def _live(self) -> _Session:
+        session = self._session
+        if session is None:
+            raise BusClosedError(f"{self.port} is not open")
+        if session.lost:
+            self.stats.port_open = False
+            reason = session.lost_reason
+            why = f"{reason}" if reason is not None else "the converter closed the session"
+            raise BusClosedError(f"{self.port} went away: {why}")
+        return session
+
+    def flush_input(self, device: int) -> None:
+        """Drop what arrived between transactions: late answers (stale) and anything else."""
+        session = self._live()
+        while session.buffer:
+            try:
+                cut = mbap.decode(session.buffer)
+            except MalformedFrameError:
+                cut = None
+            if cut is None:
+                self.stats.errors[device, ErrorKind.NOISE] += 1
+                _LOGGER.debug("%s: discarded %s", self.port, session.buffer.hex(" "))
+                session.buffer.clear()
+                return
+            frame, used = cut
+            del session.buffer[:used]
+            self._stale(frame)
+
+    def _stale(self, frame: mbap.MbapFrame) -> None:
+        """An answer to an older request: counted as a stale frame of its unit, dropped."""
+        self.stats.errors[frame.unit, ErrorKind.STALE] += 1
+        _LOGGER.debug(
+            "%s: dropped an answer of unit %d to transaction %d (now %d): %s",
+            self.port,
+            frame.unit,
+            frame.transaction,
+            self._transaction,
+            frame.pdu.hex(" "),
+        )
+
+    async def wait_gap(
+        self,
+        gap_s: float,  # noqa: ARG002 - no gap on the socket: the converter keeps it
+        *,
+        not_before: float = 0.0,
+        device: int = 0,  # noqa: ARG002 - no noise on a socket to name a device for
+    ) -> float:
+        """Wait for ``not_before``, the pause after connecting and ``tcp.request_pause_ms``.
+
+        No inter-frame gap (``gap_s``) on the socket: the converter keeps it on its serial
+        side. Returns when the request was due.
+        """
+        self._live()
+        pause_s = self.tcp.request_pause_ms / MS_PER_S
+        ready = max(not_before, self._ready_at, self.last_frame_end + pause_s)
+        await self._timer.sleep_until(ready)
+        self._live()
+        return ready
+
+    async def transact(
+        self,
+        request: frames.Request,
+        *,
+        timeout_s: float,
+        gap_s: float,
+        not_before: float = 0.0,
+        exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
+        byte_count_16bit: bool = False,
+        turnaround_s: float = 0.0,  # noqa: ARG002 - the converter times the serial side
+    ) -> Exchange | None:
+        """Send ``request`` in an MBAP frame and return its answer (``None`` for broadcasts).
+
+        Raises what :meth:`Line.transact` raises, and a :class:`ConverterError` for the
+        converter's exceptions 0A and 0B; every failure is counted by kind for the device.
+        """
+        due = await self.wait_gap(gap_s, not_before=not_before)
+        self.flush_input(request.device)
+        self._transaction = (self._transaction + 1) & mbap.MAX_TRANSACTION_ID
+        transaction = self._transaction
+        assert self._link is not None  # noqa: S101 - _live checked it
+        sent_at = time.monotonic()
+        if self.gap_lateness_s is not None:
+            self.gap_lateness_s.append(sent_at - due)
+        self._link.write(mbap.from_rtu(transaction, request.frame))
+        self.stats.requests[request.device] += 1
+        # On the serial side: the converter's gap, then the request on the wire.
+        request_end = sent_at + self._converter_gap_s + self.format.wire_s(len(request.frame))
+        if request.is_broadcast:
+            # No answer says when the converter put it on its serial side: the broadcast
+            # is taken to be there until its gap and wire time have passed, so that the
+            # turnaround and post-write waits that follow count from its end, not from
+            # the moment it left here (the converter may still be waiting for its gap).
+            await self._timer.sleep_until(request_end)
+            self.last_frame_end = request_end
+            self.stats.busy_s += request_end - sent_at
+            return None
+        heard_before = self._live().last_byte_at
+        try:
+            response, received_at = await self._await_answer(
+                request,
+                transaction,
+                deadline=request_end + timeout_s,
+                exceptions=exceptions,
+                byte_count_16bit=byte_count_16bit,
+            )
+        except ConverterError as exc:
+            self.stats.errors[request.device, exc.kind] += 1
+            self._failed(sent_at, heard=True)
+            raise
+        except DeviceExceptionError as exc:
+            self.stats.exception_codes[request.device, exc.code] += 1
+            self.stats.errors[request.device, ErrorKind.EXCEPTION] += 1
+            self._failed(sent_at, heard=True)
+            raise
+        except FrameError as exc:
+            self.stats.errors[request.device, _FRAME_KINDS.get(type(exc), ErrorKind.NOISE)] += 1
+            self._failed(sent_at, heard=True)
+            raise
+        except BusTimeoutError:
+            self.stats.errors[request.device, ErrorKind.TIMEOUT] += 1
+            session = self._session
+            heard = session is not None and session.last_byte_at > heard_before
+            if self._failed(sent_at, heard=heard):
+                await self.close()
+                await self.open()  # fails as a closed port does: the worker's backoff
+            raise
+        self._finish(sent_at, line_quiet_at=received_at)
+        self.watch.heard()
+        self.stats.responses[request.device] += 1
+        self.stats.observe_latency(request.device, received_at - sent_at)
+        if response.tolerated is not None:
+            self.stats.tolerated[request.device, response.tolerated] += 1
+        return Exchange(response=response, sent_at=sent_at, received_at=received_at)
+
+    def _failed(self, sent_at: float, *, heard: bool) -> bool:
+        """Book a failed transaction; ``True`` when the session is to be reopened (silence)."""
+        self._finish(sent_at)
+        if heard:
+            self.watch.heard()
+            return False
+        return self.watch.unheard()
+
+    async def _await_answer(
+        self,
+        request: frames.Request,
+        transaction: int,
+        *,
+        deadline: float,
+        exceptions: Mapping[int, str],
+        byte_count_16bit: bool,
+    ) -> tuple[frames.Response, float]:
+        """Read frames until the one with ``transaction`` (and when it came); older are stale."""
+        noise = False
+        while True:
+            session = self._live()
+            try:
+                cut = mbap.decode(session.buffer)
+            except MalformedFrameError:
+                # A byte stream has no silence to resynchronise on: what is held goes.
+                _LOGGER.debug("%s: not an MBAP frame: %s", self.port, session.buffer.hex(" "))
+                session.buffer.clear()
+                noise, cut = True, None
+            if cut is not None:
+                frame, used = cut
+                del session.buffer[:used]
+                if frame.transaction != transaction:
+                    self._stale(frame)
+                    continue
+                answer = mbap.parse_answer(
+                    request,
+                    frame,
+                    where=self.port,
+                    exceptions=exceptions,
+                    byte_count_16bit=byte_count_16bit,
+                )
+                return answer, session.last_byte_at
+            now = time.monotonic()
+            if now >= deadline:
+                session.buffer.clear()
+                what = _what(request)
+                if noise:
+                    raise MalformedFrameError(f"{self.port}: no valid answer of {what}, only noise")
+                raise BusTimeoutError(f"{self.port}: no answer of {what}")
+            await session.wait(deadline - now)
+
+
+def _reason(exc: OSError) -> str:
+    """Why a connection failed, in the words a user can act on."""
+    if exc.errno == errno.ECONNREFUSED:
+        return (
+            "connection refused (nothing listens there: check the converter's address, "
+            "its port and that it is in Modbus TCP mode)"
+        )
+    if exc.errno is not None and exc.errno > 0:
+        return os.strerror(exc.errno)
+    return exc.strerror or str(exc)  # a name that does not resolve: the resolver's words
+
+
+def _what(request: frames.Request) -> str:
+    return f"device {request.device} function {request.function:#04x} at {request.address:#06x}"
