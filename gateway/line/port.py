@@ -156,7 +156,8 @@ class LateAnswer:
 
     device: int
     after_s: float  # from sending the request to the answer's last byte
-    timeout_s: float  # what the request waited
+    timeout_s: float  # the response timeout
+    waited_s: float  # from sending to giving up: the request's wire time and the timeout
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -193,7 +194,7 @@ class Line:
         self.echo = EchoPolicy(bus=bus or port, port=port, mode=echo)
         # The last request that timed out per device (when sent, how long it waited), so
         # that its answer coming later tells how late; the worker asks for it.
-        self._timed_out: dict[int, tuple[float, float]] = {}
+        self._timed_out: dict[int, tuple[float, float, float]] = {}
         self.late_answer: LateAnswer | None = None
         self._last_sent = b""
         # On a network link (``socket://``) the bus's format describes the converter's
@@ -352,9 +353,12 @@ class Line:
         """A stale frame of a device that timed out last: how late its answer came."""
         timed_out = self._timed_out.pop(device, None)
         if timed_out is not None:
-            sent_at, timeout_s = timed_out
+            sent_at, timeout_s, waited_s = timed_out
             self.late_answer = LateAnswer(
-                device=device, after_s=arrived_at - sent_at, timeout_s=timeout_s
+                device=device,
+                after_s=arrived_at - sent_at,
+                timeout_s=timeout_s,
+                waited_s=waited_s,
             )
 
     async def wait_gap(self, gap_s: float, *, not_before: float = 0.0, device: int = 0) -> float:
@@ -466,7 +470,8 @@ class Line:
             self.stats.errors[request.device, _kind(exc)] += 1
             self._finish(sent_at)
             if isinstance(exc, BusTimeoutError):
-                self._timed_out[request.device] = (sent_at, timeout_s)
+                waited_s = request_end + timeout_s - sent_at
+                self._timed_out[request.device] = (sent_at, timeout_s, waited_s)
             raise
         self._timed_out.pop(request.device, None)
         self._finish(sent_at, line_quiet_at=received_at)

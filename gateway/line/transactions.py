@@ -252,7 +252,7 @@ class Transactions:
             self.bus,
             name,
             after_ms,
-            after_ms - late.timeout_s * 1000,
+            after_ms - late.waited_s * 1000,
             late.timeout_s * 1000,
             told,
             suggestion,
