@@ -43,6 +43,7 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.line import port_access
+from gateway.line.answer import AnswerScan, holds_answer
 from gateway.line.echo import ECHO_MARGIN_S, EchoMode, EchoPolicy, earliest_answer
 from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
@@ -521,7 +522,7 @@ class Line:
         if echoed == frame:
             del receiver.buffer[: len(frame)]
             return
-        answered = _holds_answer(request, bytes(receiver.buffer))
+        answered = holds_answer(request, bytes(receiver.buffer))
         receiver.buffer.clear()
         if not echoed or answered:
             came = "the device's answer came instead" if answered else "nothing came"
@@ -549,7 +550,7 @@ class Line:
         """Read until a frame answers ``request``; skip garbage, echoes and frames of others."""
         receiver = self._live_receiver()
         policy = self.echo
-        scan = _Scan(
+        scan = AnswerScan(
             request,
             exceptions=exceptions,
             byte_count_16bit=byte_count_16bit,
@@ -575,7 +576,7 @@ class Line:
                 policy.observed_read(echoed=scan.echo_skipped)
 
     async def _scan_until_answer(
-        self, receiver: _Receiver, scan: _Scan, request: frames.Request, deadline: float
+        self, receiver: _Receiver, scan: AnswerScan, request: frames.Request, deadline: float
     ) -> tuple[frames.Response, float]:
         while True:
             try:
@@ -601,7 +602,7 @@ class Line:
             await _bytes_or_timeout(receiver, wake - now)
             self._live_receiver()
 
-    def _consume(self, receiver: _Receiver, scan: _Scan, device: int) -> None:
+    def _consume(self, receiver: _Receiver, scan: AnswerScan, device: int) -> None:
         """Drop the bytes up to the answer; count what was skipped on the way.
 
         A late answer of another device is a stale frame of that device, garbage is
@@ -613,15 +614,6 @@ class Line:
             self._note_late(scan.other_device, receiver.last_byte_at)
         if scan.garbage:
             self.stats.errors[device, ErrorKind.NOISE] += 1
-
-
-def _holds_answer(request: frames.Request, data: bytes) -> bool:
-    """Whether ``data`` starts with a well-formed answer to ``request`` (CRC included)."""
-    try:
-        need = frames.response_length(request, data)
-    except MalformedFrameError:
-        return False
-    return 0 < need <= len(data) and frames.crc_ok(data[:need])
 
 
 async def _bytes_or_timeout(receiver: _Receiver, timeout_s: float) -> None:
@@ -640,150 +632,6 @@ async def _bytes_or_timeout(receiver: _Receiver, timeout_s: float) -> None:
 def _expire(waiter: asyncio.Future[None]) -> None:
     if not waiter.done():
         waiter.set_result(None)
-
-
-_WAIT: Final = object()  # a plausible answer has started: wait for the rest
-
-
-class _Scan:
-    """Looks for the answer to one request in the bytes received so far.
-
-    Bytes before ``start`` are judged not to be the answer: an echo of the request, or a
-    frame complete before any answer could be (:func:`~gateway.line.echo.earliest_answer`).
-    """
-
-    def __init__(
-        self,
-        request: frames.Request,
-        *,
-        exceptions: Mapping[int, str],
-        byte_count_16bit: bool,
-        echo: bytes | None = None,
-        echo_known: bool = False,
-        answer_floor: float = 0.0,
-        character_s: float = 0.0,
-    ) -> None:
-        self.request = request
-        self.exceptions = exceptions
-        self.byte_count_16bit = byte_count_16bit
-        self.consumed = 0
-        self._length = 0
-        self.crc_bad = False
-        self.other_device: int | None = None
-        self.garbage = False
-        # The request's echo to look for ahead of the answer (None: read back already).
-        self._echo = echo
-        self._echo_known = echo_known  # the line has echoed before: a copy is its echo
-        self.echo_skipped = False
-        self.early = False  # a frame complete before the device could have answered
-        self._answer_floor = answer_floor  # sent + request on the wire + turnaround
-        self._character_s = character_s
-        self.start = 0
-
-    @property
-    def suspect(self) -> bool:
-        return self.crc_bad or self.other_device is not None
-
-    def _too_early(self, length: int, arrived_at: float) -> bool:
-        return arrived_at < self._answer_floor + length * self._character_s
-
-    def _skip_echo(self, data: bytes, arrived_at: float) -> bool | None:
-        """Skip the request's echo at ``start``; ``None`` while it may still be coming.
-
-        A read's echo is never its answer, so a copy of it is the echo whenever it comes.
-        A single write's answer is a copy of its request (function 06, and the first bytes
-        of 16): there, a copy is the echo only if it came too early to be the answer, or
-        if this line is known to echo (then the device's copy follows it).
-        """
-        echo = self._echo
-        if echo is None or self.echo_skipped:
-            return False
-        head = data[self.start : self.start + len(echo)]
-        if len(head) < len(echo):
-            return None if head and echo.startswith(head) else False
-        if head != echo:
-            return False
-        if not self.request.is_write or self._echo_known or self._too_early(len(echo), arrived_at):
-            self.start += len(echo)
-            self.echo_skipped = True
-            return True
-        return False
-
-    def feed(self, buffer: bytearray, arrived_at: float = math.inf) -> frames.Response | None:
-        """The answer if the bytes hold one; ``None`` while more bytes are needed.
-
-        ``arrived_at`` is when the last of the bytes came: a frame judged complete before
-        the device could have answered is not its answer, and is passed over for good.
-        """
-        data = bytes(buffer)
-        if self._skip_echo(data, arrived_at) is None:
-            return None
-        offset = self.start
-        while offset < len(data) - 1:
-            try:
-                verdict = self._try(data[offset:])
-            except DeviceExceptionError:
-                if self._too_early(self._length, arrived_at):
-                    offset = self.start = offset + self._length
-                    self.early = True
-                    continue
-                self.consumed = offset + self._length
-                raise
-            if verdict is _WAIT:
-                return None
-            if isinstance(verdict, frames.Response):
-                if self._too_early(self._length, arrived_at):
-                    offset = self.start = offset + self._length
-                    self.early = True
-                    continue
-                self.consumed = offset + self._length
-                return verdict
-            offset += 1
-        return None
-
-    def _try(self, head: bytes) -> frames.Response | object | None:
-        """Judge a candidate frame at the start of ``head``: the answer, wait, or skip."""
-        request = self.request
-        try:
-            need = frames.response_length(request, head, byte_count_16bit=self.byte_count_16bit)
-        except MalformedFrameError:
-            self.garbage = True
-            return None
-        if need == 0 or len(head) < need:
-            return _WAIT if head[0] == request.device else None
-        candidate = head[:need]
-        if not frames.crc_ok(candidate):
-            self.crc_bad |= head[0] == request.device
-            self.garbage = True
-            return None
-        self._length = need
-        try:
-            return frames.parse_response(
-                request,
-                candidate,
-                exceptions=self.exceptions,
-                byte_count_16bit=self.byte_count_16bit,
-            )
-        except UnexpectedDeviceError:
-            self.other_device = head[0]
-        except MalformedFrameError:
-            self.garbage = True
-        return None
-
-    def failure(self, port: str) -> Exception:
-        request = self.request
-        what = f"device {request.device} function {request.function:#04x} at {request.address:#06x}"
-        if self.crc_bad:
-            return CrcError(f"{port}: answer of {what} failed its CRC")
-        if self.other_device is not None:
-            return UnexpectedDeviceError(
-                f"{port}: device {self.other_device} answered a request for {what}",
-                expected=request.device,
-                received=self.other_device,
-            )
-        if self.garbage:
-            return MalformedFrameError(f"{port}: no valid answer of {what}, only noise")
-        return BusTimeoutError(f"{port}: no answer of {what}")
 
 
 # Unix98 pseudo-terminal slaves: character devices of majors 136..143 (the kernel's
