@@ -17,7 +17,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import aiomqtt
+import pytest
 
+from gateway.cli.demo import Listen, WebPage
+from gateway.config import parse_config
+from gateway.web.auth import host_allowed
 from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:
@@ -217,9 +221,11 @@ async def test_the_demo_serves_its_web_page_on_loopback_and_prints_its_url() -> 
 
 async def test_bind_serves_metrics_and_mqtt_to_other_machines() -> None:
     # A container's ``-p 9108:9108 -p 1883:1883`` reaches only what listens beyond loopback.
-    mqtt_port, metrics_port = free_port(), free_port()
+    mqtt_port, metrics_port, web_port = free_port(), free_port(), free_port()
     bind = "0.0.0.0"  # noqa: S104 - every interface: the point of the test
-    async with demo("--bind", bind, mqtt_port=mqtt_port, metrics_port=metrics_port) as (banner, _):
+    async with demo(
+        "--bind", bind, mqtt_port=mqtt_port, metrics_port=metrics_port, web_port=web_port
+    ) as (banner, _):
         assert f"embedded broker on 0.0.0.0:{mqtt_port}" in banner
         assert "listening on 0.0.0.0 (every interface)" in banner
         # The commands shown still work on this machine.
@@ -234,6 +240,21 @@ async def test_bind_serves_metrics_and_mqtt_to_other_machines() -> None:
             assert message.payload == b"online"
         assert listening_addresses(metrics_port) == {"0.0.0.0"}  # noqa: S104
         assert listening_addresses(mqtt_port) == {"0.0.0.0"}  # noqa: S104
+        # The page too, by the names the demo lets it answer to; others are refused.
+        await get_when_up(f"http://{OTHER_ADDRESS}:{web_port}/")
+        request = urllib.request.Request(
+            f"http://{OTHER_ADDRESS}:{web_port}/api/state",
+            headers={"Host": f"localhost:{web_port}"},
+        )
+        with await asyncio.to_thread(urllib.request.urlopen, request, timeout=5) as answer:
+            assert answer.status == 200
+        refused = urllib.request.Request(
+            f"http://{OTHER_ADDRESS}:{web_port}/api/state", headers={"Host": "evil.example"}
+        )
+        with pytest.raises(urllib.error.HTTPError) as caught:
+            await asyncio.to_thread(urllib.request.urlopen, refused, timeout=5)
+        caught.value.close()
+        assert caught.value.code == 421  # still no rebinding
 
 
 async def test_without_the_demo_extra_the_hint_shows_the_extra() -> None:
@@ -255,3 +276,25 @@ async def test_without_a_live_table_the_demo_prints_its_values() -> None:
             line = await asyncio.wait_for(output.readline(), timeout=15)
             assert line, f"the demo's output ended: {seen}"
             seen += line.decode()
+
+
+def test_bound_beyond_loopback_the_demos_page_answers_to_localhost_from_a_containers_host() -> None:
+    # A browser on the host of a container asks for localhost:8080; the connection comes
+    # in from the container network's gateway, not from loopback.
+    page = WebPage(port=8080, password="demo-password")  # noqa: S106 - a test's
+    everywhere = Listen.parse("0.0.0.0")  # noqa: S104 - the container's --bind
+    config = parse_config(
+        "buses: [{name: line1, port: /dev/null}]\n" + page.config(everywhere), environ={}
+    )
+    allowed = frozenset(config.web.allowed_hosts)
+    assert "localhost" in allowed
+
+    def answers(host: str) -> bool:
+        return host_allowed(
+            host, allowed=allowed, listen=everywhere.host, local="10.88.0.5", remote="10.88.0.1"
+        )
+
+    assert answers("localhost:8080")
+    assert not answers("evil.example")
+    # On loopback only (the default), no name is added: localhost is this machine's anyway.
+    assert "allowed_hosts" not in page.config(Listen.parse("127.0.0.1"))

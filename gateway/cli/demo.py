@@ -21,6 +21,7 @@ import importlib.util
 import ipaddress
 import json
 import os
+import re
 import secrets
 import socket
 import tempfile
@@ -177,11 +178,25 @@ class WebPage:
         return cls(port, os.environ.get("GATEWAY_WEB__PASSWORD") or secrets.token_urlsafe(9))
 
     def config(self, listen: Listen) -> str:
-        """The ``web:`` section."""
+        """The ``web:`` section.
+
+        Reachable from other machines (``--bind 0.0.0.0``, a container with its ports
+        published), the page answers to ``localhost`` and this machine's name too: a
+        browser on the host of a container comes from the container's gateway address,
+        not from loopback, and would otherwise be refused as a rebinding attempt.
+        """
+        names = "" if listen.bind.is_loopback else f", allowed_hosts: {_host_names()}"
         return (
             f"web: {{enabled: true, host: {json.dumps(listen.host)}, port: {self.port}, "
-            f"password: {json.dumps(self.password)}}}\n"
+            f"password: {json.dumps(self.password)}{names}}}\n"
         )
+
+
+def _host_names() -> str:
+    """``localhost`` and this machine's name, as a YAML flow list."""
+    names = ["localhost", socket.gethostname().lower()]
+    # A name the config would refuse (an underscore, say) is left out, not the demo.
+    return json.dumps([n for n in dict.fromkeys(names) if re.fullmatch(r"[a-z0-9.-]+", n)])
 
 
 def _config(
