@@ -32,24 +32,24 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import io
 import json
 import re
-import select
 import socket
 import struct
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import urllib.error
 import urllib.request
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 from bench.soak import scrape, total
+from tests.flood_client import flood
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -238,63 +238,18 @@ class FloodFigures:
     answers: dict[str, int] = field(default_factory=dict)  # by function or exception
 
 
-def _write_flood(
-    sock: socket.socket, unit: int, pdu: bytes, figures: FloodFigures, stop: threading.Event
-) -> None:
-    while not stop.is_set():
-        batch = b"".join(
-            struct.pack(">HHHB", (figures.sent + n) & 0xFFFF, 0, len(pdu) + 1, unit) + pdu
-            for n in range(64)
-        )
-        try:
-            sock.sendall(batch)  # blocks while the gateway reads no more
-        except OSError:
-            return
-        figures.sent += 64
-
-
-def _read_flood(sock: socket.socket, figures: FloodFigures, stop: threading.Event) -> None:
-    buffer = b""
-    while not stop.is_set():
-        if not select.select([sock], [], [], 0.1)[0]:
-            continue
-        try:
-            chunk = sock.recv(65536)
-        except OSError:
-            return
-        if not chunk:
-            return
-        buffer += chunk
-        while len(buffer) >= 6:  # noqa: PLR2004 - up to the MBAP length
-            end = 6 + int.from_bytes(buffer[4:6], "big")
-            if len(buffer) < end:
-                break
-            answer, buffer = buffer[7:end], buffer[end:]
-            key = answer[:2].hex() if answer[0] & 0x80 else f"{answer[0]:02x}"
-            figures.answers[key] = figures.answers.get(key, 0) + 1
-
-
 def flood_client(port: int, kind: str, seconds: float, figures: FloodFigures) -> None:
     """Pipeline one request over and over for ``seconds``; tally the answers meanwhile.
 
-    Blocking sockets in threads of their own, so the flood does not wait on this
-    process's event loop (the one that scrapes the metrics).
+    The load tests' client (``tests.flood_client``): blocking sockets in threads of their
+    own, so the flood does not wait on this process's event loop (the one that scrapes).
     """
     unit, pdu = FLOODS[kind]
-    sock = socket.create_connection(("127.0.0.1", port))
-    stop = threading.Event()
-    writer = threading.Thread(target=_write_flood, args=(sock, unit, pdu, figures, stop))
-    reader = threading.Thread(target=_read_flood, args=(sock, figures, stop))
-    writer.start()
-    reader.start()
-    time.sleep(seconds)
-    stop.set()
-    reader.join(timeout=1.0)
-    with contextlib.suppress(OSError):
-        sock.shutdown(socket.SHUT_RDWR)  # wakes a writer held by the gateway's backpressure
-    writer.join(timeout=1.0)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-    sock.close()
+    with contextlib.redirect_stdout(io.StringIO()):  # its "connected" line is for tests
+        result = flood(port, unit, pdu, seconds)
+    figures.sent = int(cast("int", result["sent"]))
+    answers = cast("dict[str, int]", result["answers"])
+    figures.answers = {key: n for key, n in answers.items() if key != "eof"}
 
 
 async def measure_flood(seconds: float, kind: str, rate_limit: float | None) -> dict[str, Any]:

@@ -57,24 +57,22 @@ def _writer(sock: socket.socket, unit: int, pdu: bytes, sent: list[int]) -> None
         sent[0] += BATCH
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--port", type=int, required=True)
-    parser.add_argument("--unit", type=int, required=True)
-    parser.add_argument("--pdu", default="0300000002")
-    parser.add_argument("--seconds", type=float, default=3.0)
-    args = parser.parse_args()
-    pdu = bytes.fromhex(args.pdu)
-    sock = socket.create_connection(("127.0.0.1", args.port))
+def flood(port: int, unit: int, pdu: bytes, seconds: float) -> dict[str, object]:
+    """Pipeline ``pdu`` to ``unit`` for ``seconds``: the requests sent and answers by kind.
+
+    Blocking sockets in threads of their own (also what ``bench/shared_bus.py`` runs), so
+    the flood never waits on an event loop.
+    """
+    sock = socket.create_connection(("127.0.0.1", port))
     tally: Counter[str] = Counter()
     sent = [0]
     stop = threading.Event()
     reader = threading.Thread(target=_reader, args=(sock, tally, stop), daemon=True)
-    writer = threading.Thread(target=_writer, args=(sock, args.unit, pdu, sent), daemon=True)
+    writer = threading.Thread(target=_writer, args=(sock, unit, pdu, sent), daemon=True)
     reader.start()
     writer.start()
     print("connected", flush=True)  # noqa: T201 - the test waits for this line
-    time.sleep(args.seconds)
+    time.sleep(seconds)
     stop.set()
     reader.join(timeout=1.0)
     # A writer blocked by the gateway's backpressure wakes on the shutdown; the abort
@@ -84,7 +82,18 @@ def main() -> None:
     writer.join(timeout=1.0)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
     sock.close()
-    json.dump({"sent": sent[0], "answers": dict(tally)}, sys.stdout)
+    return {"sent": sent[0], "answers": dict(tally)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--unit", type=int, required=True)
+    parser.add_argument("--pdu", default="0300000002")
+    parser.add_argument("--seconds", type=float, default=3.0)
+    args = parser.parse_args()
+    result = flood(args.port, args.unit, bytes.fromhex(args.pdu), args.seconds)
+    json.dump(result, sys.stdout)
     print(flush=True)  # noqa: T201
 
 

@@ -87,10 +87,10 @@ def reported_min_response_s(state: DeviceState) -> float | None:
     ``None``: the profile has no such register, the device refuses it, or it has not
     been read yet (the read of it waits the manual's longest, see :meth:`Transactions.read_block`).
     """
-    name = state.profile.timing.min_response_time_point
-    if name is None:
+    point = state.target.min_response_point
+    if point is None:
         return None
-    value = state.values.get(name)
+    value = state.values.get(point.name)
     if isinstance(value, int) and not isinstance(value, bool):
         return min(max(value, 0) / 1000, MIN_RESPONSE_TIME_MAX_S)
     return None
@@ -139,37 +139,24 @@ class Transactions:
         self.cache = RegisterCache()
 
     def timeout_for(
-        self, state: DeviceState, response_bytes: int, *, min_response_s: float | None = None
+        self, state: DeviceState, response_bytes: int, min_response_s: float | None
     ) -> float:
         """How long to wait for an answer of ``response_bytes`` from the device.
 
-        ``min_response_s`` stands in for a minimum response time the device has not
-        reported yet.
+        ``min_response_s``: its minimum response time as reported, or what stands in for
+        it until then (``None``: the configured one).
         """
-        reported = reported_min_response_s(state)
-        if reported is None:
-            reported = min_response_s
-        key = (state.target.name, response_bytes, reported)
+        key = (state.target.name, response_bytes, min_response_s)
         timeout = self._timeouts.get(key)
         if timeout is None:  # the target, its profile and the line format never change
             timeout = default_timeout_s(
                 state.target,
                 response_bytes,
                 self.line.format.character_s,
-                min_response_s=reported,
+                min_response_s=min_response_s,
             )
             self._timeouts[key] = timeout
         return timeout
-
-    @staticmethod
-    def turnaround_s(state: DeviceState) -> float:
-        """The least time the device takes to answer: what it reported, once it has.
-
-        Not the configured value and not the manual's longest: an answer refused as too
-        early must never be the device's own, so only the device's word counts.
-        """
-        reported = reported_min_response_s(state)
-        return 0.0 if reported is None else reported
 
     def gap_s(self, state: DeviceState) -> float:
         """The silence the device needs before a request."""
@@ -198,15 +185,21 @@ class Transactions:
         the next request sent over the retry's real answer). A corrupted answer of its own
         (CRC) is the device's answer: nothing more is to come.
         """
+        # The least time the device takes to answer is what it reported, once it has: not
+        # the configured value, not the manual's longest. An answer refused as too early
+        # must never be the device's own.
+        reported = reported_min_response_s(state)
         try:
             exchange = await self.line.transact(
                 request,
-                timeout_s=self.timeout_for(state, response_bytes, min_response_s=min_response_s),
+                timeout_s=self.timeout_for(
+                    state, response_bytes, min_response_s if reported is None else reported
+                ),
                 gap_s=self.gap_s(state),
                 not_before=state.not_before,
                 exceptions=state.profile.exceptions,
                 byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
-                turnaround_s=self.turnaround_s(state),
+                turnaround_s=0.0 if reported is None else reported,
             )
         except LineNoiseError:
             raise  # nothing was sent: no answer can come late
@@ -235,12 +228,11 @@ class Transactions:
         name = state.target.name
         after_ms = late.after_s * 1000
         suggestion = math.ceil(late.after_s * 1.5 * 10) / 10  # half as much again, in 0.1 s
-        point = state.profile.timing.min_response_time_point
-        reported = state.values.get(point) if point is not None else None
+        point = state.target.min_response_point
+        reported = state.values.get(point.name) if point is not None else None
         told = (
             f" It reports a minimum response time of {reported} ms (register "
-            f"{state.profile.point(point).address:#06x}); set `min_response_time_ms: "
-            f"{reported}` for the device, or"
+            f"{point.address:#06x}); set `min_response_time_ms: {reported}` for the device, or"
             if point is not None and isinstance(reported, int)
             else " Set"
         )
@@ -267,11 +259,11 @@ class Transactions:
         """The reads of points of the device's profile."""
         planner = self._planners[state.target.name]
         blocks = planner.plan(points, split_before=frozenset(state.split_before))
-        learn = state.profile.timing.min_response_time_point
-        if learn is not None and learn not in state.values and len(blocks) > 1:
+        learn = state.target.min_response_point
+        if learn is not None and len(blocks) > 1 and learn.name not in state.values:
             # The block with the device's minimum response time first: the reads after
             # it in the same turn then wait as long as the device takes (``_learning``).
-            first = [b for b in blocks if any(p.name == learn for p in b.points)]
+            first = [b for b in blocks if learn in b.points]
             blocks = (*first, *(b for b in blocks if b not in first))
         return blocks
 
@@ -366,12 +358,10 @@ class Transactions:
         ms): a sensor set slower than the config says would otherwise time out on every
         read, that one included, and never be heard. Every other read waits as configured.
         """
-        name = state.profile.timing.min_response_time_point
-        if name is None or name in state.values:
+        learn = state.target.min_response_point
+        if learn is None or learn.name in state.values or learn not in block.points:
             return None
-        if any(point.name == name for point in block.points):
-            return MIN_RESPONSE_TIME_MAX_S
-        return None
+        return MIN_RESPONSE_TIME_MAX_S
 
     def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
         names = [p.name for p in block.points]
@@ -420,8 +410,8 @@ class Transactions:
         needed = {u for p in points if (u := p.unit_from) is not None}
         if profile.float_order_register is not None and state.target.float_order is None:
             needed.add(profile.float_order_register.point)
-        if profile.timing.min_response_time_point is not None:
-            needed.add(profile.timing.min_response_time_point)
+        if state.target.min_response_point is not None:
+            needed.add(state.target.min_response_point.name)
         if needed:
             await self.read_now(state, [profile.point(name) for name in sorted(needed)])
         return await self.read_now(state, points)
