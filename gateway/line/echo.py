@@ -64,8 +64,13 @@ class EchoPolicy:
     """One bus's expectation of an echo, and what it has seen of one."""
 
     def __init__(self, *, bus: str, port: str, mode: EchoMode = EchoMode.AUTO) -> None:
-        """Start from the configured mode; ``auto`` is undecided until the first reads."""
-        self.bus = bus
+        """Start from the configured mode; ``auto`` is undecided until the first reads.
+
+        ``bus`` is the configured bus's name; empty for a port named on the command line,
+        whose log lines then speak of the port.
+        """
+        self.bus = bus or port  # what a log line begins with
+        self.setting = f"bus {bus}" if bus else f"the bus on {port} in your config"
         self.port = port
         self.mode = mode
         self.echoes: bool | None = {EchoMode.ON: True, EchoMode.OFF: False}.get(mode)
@@ -79,12 +84,11 @@ class EchoPolicy:
         return self.echoes is True
 
     def observed_read(self, *, echoed: bool) -> None:
-        """A read's answer came, after an echo of the request or without one."""
-        if echoed:
-            self.seen = True
-        if self.mode is not EchoMode.AUTO or self.echoes is not None:
-            if echoed and self.mode is EchoMode.OFF:
-                self.unexpected()
+        """``auto``, undecided: a read's answer came after an echo of the request or without.
+
+        (An echo where none is expected is the line's to count: :meth:`unexpected`.)
+        """
+        if self.echoes is not None:
             return
         self._votes.append(echoed)
         if len(self._votes) < AUTO_DECISION_READS:
@@ -93,19 +97,19 @@ class EchoPolicy:
             self.echoes = True
             _LOGGER.info(
                 "%s: the adapter on %s echoes every request (local echo); reading it back "
-                "before each answer. Set `echo: on` for bus %s to say so in the config",
+                "before each answer. Set `echo: on` for %s to say so in the config",
                 self.bus,
                 self.port,
-                self.bus,
+                self.setting,
             )
         elif not any(self._votes):
             self.echoes = False
             _LOGGER.info(
                 "%s: the adapter on %s does not echo what it sends; set `echo: off` for "
-                "bus %s to say so in the config",
+                "%s to say so in the config",
                 self.bus,
                 self.port,
-                self.bus,
+                self.setting,
             )
         else:  # mixed: another master or noise; keep looking at fresh reads
             self._votes.clear()
@@ -118,9 +122,9 @@ class EchoPolicy:
         self._warned = True
         _LOGGER.warning(
             "%s: the adapter on %s echoes every request back (its receiver stays on while it "
-            "sends) but bus %s has `echo: off`; set `echo: on` (or `auto`) for it. Until "
+            "sends) but %s has `echo: off`; set `echo: on` (or `auto`) for it. Until "
             "then echoes are skipped and counted as errors of kind echo",
             self.bus,
             self.port,
-            self.bus,
+            self.setting,
         )

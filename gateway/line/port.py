@@ -192,7 +192,7 @@ class Line:
         self._latency_warned = False
         self.format = line
         self.stats = stats or LineStats()
-        self.echo = EchoPolicy(bus=bus or port, port=port, mode=echo)
+        self.echo = EchoPolicy(bus=bus, port=port, mode=echo)
         # The last request that timed out per device (when sent, how long it waited), so
         # that its answer coming later tells how late; the worker asks for it.
         self._timed_out: dict[int, tuple[float, float, float]] = {}
@@ -527,7 +527,7 @@ class Line:
         if not echoed or answered:
             came = "the device's answer came instead" if answered else "nothing came"
             raise EchoMismatchError(
-                f"{self.port}: bus {self.echo.bus} is set to `echo: on` but the request to "
+                f"{self.port}: {self.echo.setting} is set to `echo: on` but the request to "
                 f"device {request.device} did not come back ({came}): this adapter does "
                 "not echo what it sends; set `echo: off` (or `auto`) for the bus"
             )
