@@ -685,10 +685,17 @@ def main() -> None:
     )
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--keep", type=Path, help="keep the run's files (the gateway's log, its config) here"
+    )
     args = parser.parse_args()
     seconds = args.minutes * 60
-    with tempfile.TemporaryDirectory(prefix="soak-") as tmp:
-        result = asyncio.run(run_soak(seconds, args.seed, Path(tmp)))
+    if args.keep is not None:
+        args.keep.mkdir(parents=True, exist_ok=False)
+        result = asyncio.run(run_soak(seconds, args.seed, args.keep))
+    else:
+        with tempfile.TemporaryDirectory(prefix="soak-") as tmp:
+            result = asyncio.run(run_soak(seconds, args.seed, Path(tmp)))
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "soak.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
     rows = [

@@ -52,6 +52,9 @@ class SimulatedBus:
     violations: list[Violation] = field(default_factory=list)
     frame_log: deque[FrameRecord] = field(default_factory=lambda: deque(maxlen=200_000))
     requests_by_device: Counter[int] = field(default_factory=Counter)
+    # Until when the line's times rest on a frame that was not judged: its arrival time,
+    # so its end and its answer's, may be later than on the wire.
+    doubtful_until: float = float("-inf")
     referee: Referee = field(init=False)
     _dice: FaultDice = field(init=False)
 
@@ -74,12 +77,20 @@ class SimulatedBus:
         ``judged=False`` answers without refereeing the timing (see the transport's watch).
         """
         self.counters["frames"] += 1
+        # A frame that came in while the answer to an unjudged one was still due is not
+        # judged either: that frame may have waited in the kernel, so the end and the
+        # answer the referee would measure this one against are later than on the wire
+        # (the soak saw a master that had rightly given up on an answer blamed for a gap).
+        judged = judged and start >= self.doubtful_until
         if not judged:
             self.counters["unjudged"] += 1
         record = FrameRecord.of(frame, start - self.started)
         self.frame_log.append(record)
         replies = self._on_frame(frame, start, record, judged=judged)
         answers = [r for r in replies if r.kind in {"response", "late"}]
+        if not judged:
+            end = start + self.line.wire_s(len(frame))
+            self.doubtful_until = max(self.doubtful_until, end, *(r.at for r in replies))
         if answers:
             record.answer_at = answers[-1].at - self.started
         elif record.outcome == "answered":

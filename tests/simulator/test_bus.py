@@ -453,6 +453,40 @@ def test_request_while_an_answer_is_pending_is_a_collision() -> None:
     assert bus.on_frame(frames.read_request(1, 0x2620, 2).frame, master.now + 0.1) == []
     assert bus.violations[-1].rule == "answer_in_progress"
 
+@pytest.mark.parametrize("first_judged", [True, False])
+def test_a_frame_measured_against_an_unjudged_one_is_not_judged(first_judged: bool) -> None:
+    """The soak's case: a request held up in the kernel, then the master's next one.
+
+    The first request waited out a stall of the simulator, so its arrival (and the end
+    and answer reckoned from it) is later than on the wire; the master gave up on its
+    answer and sent the next request a gap after what it saw, 3.7 ms after the end the
+    referee reckons. Judged, the same bytes are an inter-frame gap violation.
+    """
+    line = {"baudrate": 9600, "parity": "E", "stopbits": 1}
+    bus = make_bus(S10, H10, line=line, pace=True)
+    first = frames.read_request(1, 0x2600, 2).frame
+    replies = bus.on_frame(first, 26.1181, judged=first_judged)
+    assert len(replies) == 1
+    request_end = 26.1181 + bus.line.wire_s(len(first))
+    second = frames.read_request(2, 0x2001, 6).frame
+    outcome = bus.on_frame(second, request_end + 0.003713)
+    if first_judged:
+        assert outcome == []
+        assert bus.violations[-1].rule == "inter_frame_gap"
+        assert bus.counters["unjudged"] == 0
+    else:
+        assert len(outcome) == 1  # answered, as a slave would once it heard the request
+        assert bus.violations == []
+        assert bus.counters["unjudged"] == 2
+    # Once the answers reckoned from it are on the line, frames are judged again.
+    for reply in (*replies, *outcome):
+        bus.on_sent(reply, reply.at)
+    last = max(reply.at for reply in (*replies, *outcome))
+    violations = len(bus.violations)
+    assert bus.on_frame(second, last + 0.001) == []
+    assert len(bus.violations) == violations + 1
+    assert bus.violations[-1].rule == "inter_frame_gap"
+
 
 def test_a_late_answer_colliding_with_a_request_is_the_slaves_fault() -> None:
     """A late answer that starts as the master sends collides; the master kept its gap."""
