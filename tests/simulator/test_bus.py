@@ -453,8 +453,11 @@ def test_request_while_an_answer_is_pending_is_a_collision() -> None:
     assert bus.on_frame(frames.read_request(1, 0x2620, 2).frame, master.now + 0.1) == []
     assert bus.violations[-1].rule == "answer_in_progress"
 
+
 @pytest.mark.parametrize("first_judged", [True, False])
-def test_a_frame_measured_against_an_unjudged_one_is_not_judged(first_judged: bool) -> None:
+def test_a_frame_measured_against_an_unjudged_one_is_not_judged(
+    first_judged: bool,  # noqa: FBT001
+) -> None:
     """The soak's case: a request held up in the kernel, then the master's next one.
 
     The first request waited out a stall of the simulator, so its arrival (and the end
