@@ -31,10 +31,19 @@ import os
 import signal
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Final
 
-from bench.publish import gateway_config, mosquitto, rss_mib, scrape, settled, simulators
+from bench.publish import (
+    gateway_config,
+    healthz,
+    mosquitto,
+    rss_mib,
+    scrape,
+    settled,
+    simulators,
+)
 from gateway.app import device_target
 from gateway.config import load_config
 
@@ -110,6 +119,20 @@ async def import_floor(modules_file: Path) -> float:
     return float(result["rss_mib"])
 
 
+async def serving(port: int, timeout_s: float = 120.0) -> None:
+    """Wait until /healthz answers: a traced gateway takes a while to import and start."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            await asyncio.to_thread(healthz, port)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.5)
+        else:
+            return
+
+
 async def one(
     broker: int, directory: Path, buses: int, devices: int, seconds: float, *, trace: int
 ) -> dict[str, float]:
@@ -132,9 +155,12 @@ async def one(
             stderr=(run_dir / "gateway.log").open("wb"),
         )
         try:
+            await serving(metrics_port)
             await asyncio.sleep(WARM_UP_S)
             await settled(metrics_port)
+            settled_rss = rss_mib(process.pid)
             await asyncio.sleep(seconds)
+            before = rss_mib(process.pid)
             exposition = await asyncio.to_thread(scrape, metrics_port)
             rss = rss_mib(process.pid)
             peak = rss_mib(process.pid, "VmHWM")
@@ -154,6 +180,8 @@ async def one(
         "polled_points": polled_points(config),
         "exposition_bytes": exposition,
         "import_floor_mib": floor,
+        "rss_backlog_sent_mib": settled_rss,
+        "rss_before_scrape_mib": before,
         "rss_after_scrape_mib": rss,
         "peak_rss_mib": peak,
         "rss_above_floor_mib": rss - floor,
