@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import ctypes
 import itertools
 import json
 import logging
@@ -25,7 +26,7 @@ from gateway.publish.prometheus.collector import GatewayCollector
 from gateway.publish.prometheus.identity import identity_report
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Iterator, Sequence
+    from collections.abc import Callable, Iterable, Iterator, Sequence
 
     from prometheus_client.metrics_core import Metric
 
@@ -94,6 +95,34 @@ def _pieces(metric: Metric) -> Iterator[bytes]:
         first = False
         if len(chunk) < PIECE_SAMPLES:
             return
+
+
+def _malloc_trim() -> Callable[[], object] | None:
+    """The C library's ``malloc_trim(0)``, if it has one (glibc; musl has not)."""
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes = (ctypes.c_size_t,)
+    trim.restype = ctypes.c_int
+    return lambda: trim(0)
+
+
+_TRIM: Final = _malloc_trim()
+
+
+def release_free_memory() -> None:
+    """Give the C heap's free pages back to the system, after a scrape.
+
+    A scrape at 16 x 16 makes some 6 MB of text and the lists and strings it is made of;
+    freed, what lies in the middle of the heap stays resident (the C library returns only
+    the top of its heap by itself), and so does what the start's burst of messages left
+    (every point read at once). Once per scrape (every 15 s or so), in the scrape's own
+    thread, the free pages go back: some milliseconds of this thread, none of the buses'.
+    Python's own small objects live in arenas of their own, which this does not touch.
+    """
+    if _TRIM is not None:
+        _TRIM()
 
 
 # --- /healthz --------------------------------------------------------------------------------
@@ -244,6 +273,9 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         for piece in body:
             self.wfile.write(piece)
+        if path == "/metrics":
+            del body
+            release_free_memory()
 
     def _answer(self, path: str) -> tuple[HTTPStatus, str, Sequence[bytes]]:
         """The status, content type and body (in pieces) of one request."""
