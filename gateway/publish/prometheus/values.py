@@ -37,7 +37,7 @@ class LazySamples:
 
     At 16 buses x 16 devices a scrape has some 130,000 samples (most of them status bits);
     made at once as ``prometheus_client`` samples (a named tuple and a dict of labels
-    each) they took some 30 MB, which the process kept as resident memory after the
+    each) they took some 25 MB, which the process kept as resident memory after the
     scrape. Here a family keeps what it was built from (the snapshot's own samples) and
     makes each exposition sample when it is read; iterable more than once.
     """
