@@ -13,12 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from gateway.config import Cadence, PublishSettings
-from gateway.control.command_router import CommandRouter
-from gateway.control.feeds import FeedEngine
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.control.link import DeviceLink
-from gateway.control.shared_bus import SharedBusServer, units
-from gateway.control.sparkplug_commands import SparkplugCommands
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
 from gateway.line.echo import EchoMode
@@ -27,11 +23,13 @@ from gateway.line.foreign import SharePolicy
 from gateway.line.port_access import SystemRoots, port_name_advice, port_options
 from gateway.line.worker import BusWorker
 from gateway.profiles.identity import pinned_serial
-from gateway.publish.mqtt import MqttSink
-from gateway.publish.prometheus import MetricsServer
-from gateway.publish.sparkplug import SparkplugSink
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 
+# What only an optional feature needs (MQTT and its client, Prometheus and its server, the
+# commands, the feeds, Sparkplug with protobuf, the shared bus, the web page with aiohttp)
+# is imported where that feature is configured, not here: `gateway run` holds in memory,
+# for as long as it runs, only the libraries of what its config switches on
+# (tests/test_imports.py checks it).
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
@@ -41,7 +39,12 @@ if TYPE_CHECKING:
         GatewayConfig,
         LoggingConfig,
     )
+    from gateway.control.feeds import FeedEngine
+    from gateway.control.shared_bus import SharedBusServer
     from gateway.line.samples import Sink
+    from gateway.publish.mqtt import MqttSink
+    from gateway.publish.prometheus import MetricsServer
+    from gateway.publish.sparkplug import SparkplugSink
     from gateway.web import WebServer
 
 _LOGGER = logging.getLogger(__name__)
@@ -145,11 +148,17 @@ def _wire_writes(
         for device in config.devices
         for point in device.flash_writes
     }
-    feeds = FeedEngine(config.feeds, writers, state=state) if config.feeds else None
-    if feeds is not None:
+    feeds: FeedEngine | None = None
+    if config.feeds:
+        from gateway.control.feeds import FeedEngine  # noqa: PLC0415 - only when configured
+
+        feeds = FeedEngine(config.feeds, writers, state=state)
         for worker in workers:
             worker.sinks.append(feeds)
     if mqtt is not None and config.commands.enabled:
+        # The router brings the sensor operations' catalogue: only with commands on.
+        from gateway.control.command_router import CommandRouter  # noqa: PLC0415
+
         mqtt.listeners.append(
             CommandRouter(config.mqtt.base_topic, writers, state=state, qos=config.mqtt.qos)
         )
@@ -165,6 +174,9 @@ def shared_bus_server(
     shared = config.shared_bus
     if not shared.enabled:
         return None
+    # The listeners, the PDU decoding and pymodbus's TCP framer: only with the bus shared.
+    from gateway.control.shared_bus import SharedBusServer, units  # noqa: PLC0415
+
     policy = SharePolicy(
         share=shared.bus_share, max_wait_s=shared.max_wait, max_pending=shared.max_pending
     )
@@ -184,6 +196,9 @@ def shared_bus_server(
 
 def sparkplug_sink(config: GatewayConfig, state: GatewayState) -> SparkplugSink:
     """The Sparkplug B edge node of every configured device (the points each polls)."""
+    # Sparkplug's payloads are protobuf messages: protobuf only with Sparkplug on.
+    from gateway.publish.sparkplug import SparkplugSink  # noqa: PLC0415
+
     devices = [
         (target.name, target.profile, target.intervals.keys())
         for bus in config.buses
@@ -206,6 +221,8 @@ def _wire_sparkplug_commands(
     The same writers as MQTT's commands and the feeds: one write path per device.
     """
     if sparkplug is not None and config.commands.enabled:
+        from gateway.control.sparkplug_commands import SparkplugCommands  # noqa: PLC0415
+
         sparkplug.session.commands = SparkplugCommands(sparkplug, writers)
 
 
@@ -219,7 +236,7 @@ def _web_page(
     if not config.web.enabled:
         return None
     # Here, not at the top: without the page, `gateway run` holds neither aiohttp nor the
-    # calibrations and the scan in memory (tests/test_cli.py checks it).
+    # calibrations and the scan in memory (tests/test_imports.py checks it).
     from gateway.web import LineScans, WebServer  # noqa: PLC0415
 
     formats = {bus.name: bus.line for bus in config.buses}
@@ -307,6 +324,8 @@ async def run(
     all_sinks: list[Sink] = list(sinks)
     mqtt: MqttSink | None = None
     if config.mqtt.enabled:
+        from gateway.publish.mqtt import MqttSink  # noqa: PLC0415 - aiomqtt and paho with it
+
         mqtt = MqttSink(
             config.mqtt, state, state_dir=state_directory(config), publish=publish_settings(config)
         )
@@ -322,6 +341,8 @@ async def run(
     page = _web_page(config, state, workers, writers)
     metrics: MetricsServer | None = None
     if config.prometheus.enabled:
+        from gateway.publish.prometheus import MetricsServer  # noqa: PLC0415
+
         metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
         metrics.start()
     async with contextlib.AsyncExitStack() as stack:

@@ -3,23 +3,21 @@
 from __future__ import annotations
 
 import asyncio
+import importlib
 import json
 import signal
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Final
 
 import typer
 from rich.console import Console
 from rich.markup import escape
+from typer.core import TyperGroup
 
 from gateway import __version__
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
-from gateway.cli import calibrate as cli_calibrate
-from gateway.cli import operations as cli_operations
-from gateway.cli import write as cli_write
-from gateway.cli.demo import LOCAL_BIND, run_demo
 from gateway.cli.device import fail
 from gateway.cli.heap import return_large_blocks
 from gateway.config import load_config, review_config
@@ -34,13 +32,51 @@ from gateway.wire import codec
 from gateway.wire.timing import LineFormat
 
 if TYPE_CHECKING:
+    from typer import _click
+
     from gateway.simulator import SimulationSettings
 
 # What only one command needs (tables, progress bars, the simulator, the bus scan) is
 # imported in that command, so that `gateway run` does not hold it in memory for as long
-# as the gateway runs.
+# as the gateway runs. The commands of a module of their own are imported only when one
+# of them is run or listed (tests/test_imports.py checks what `gateway run` imports).
+LAZY_COMMANDS: Final = {
+    "demo": "gateway.cli.demo",
+    "write": "gateway.cli.write",
+    "calibrate": "gateway.cli.calibrate",
+    "set-clock": "gateway.cli.operations",
+    "measure": "gateway.cli.operations",
+    "calibration-log": "gateway.cli.operations",
+}
+
+
+class LazyCommands(TyperGroup):
+    """The ``gateway`` group: the commands of ``LAZY_COMMANDS`` built when asked for.
+
+    Each such module has ``register(app)``, which adds its commands to a Typer app; it
+    is imported, and its commands built, the first time one of them is looked up: to run
+    it, or to list it in ``gateway --help``.
+    """
+
+    def list_commands(self, ctx: _click.Context) -> list[str]:
+        """The commands of this module, then the others, in the order they were written."""
+        return [*super().list_commands(ctx), *LAZY_COMMANDS]
+
+    def get_command(self, ctx: _click.Context, cmd_name: str) -> _click.Command | None:
+        """The command ``cmd_name``, its module imported if it has one of its own."""
+        command = super().get_command(ctx, cmd_name)
+        if command is not None or cmd_name not in LAZY_COMMANDS:
+            return command
+        holder = typer.Typer()
+        importlib.import_module(LAZY_COMMANDS[cmd_name]).register(holder)
+        command = typer.main.get_group(holder).get_command(ctx, cmd_name)
+        if command is not None:
+            self.add_command(command, cmd_name)
+        return command
+
 
 app = typer.Typer(
+    cls=LazyCommands,
     name="gateway",
     help="Polling gateway for RS485 water-quality sensors (Modbus RTU to MQTT and Prometheus).",
     no_args_is_help=True,
@@ -441,49 +477,6 @@ def read(
         raise typer.Exit(code=1)
 
 
-@app.command()
-def demo(
-    mqtt_port: Annotated[
-        int, typer.Option(help="MQTT port: a broker there, else an embedded one.")
-    ] = 1883,
-    metrics_port: Annotated[int, typer.Option(help="Port of /metrics and /healthz.")] = 9108,
-    web_port: Annotated[int, typer.Option(help="Port of the web page.")] = 8080,
-    modbus_port: Annotated[
-        int,
-        typer.Option(help="Modbus TCP port for other masters (the shared bus); 0: off."),
-    ] = 1502,
-    bind: Annotated[
-        str,
-        typer.Option(
-            help="Address /metrics, the web page and the embedded MQTT broker listen on; "
-            "0.0.0.0 for every interface (a container with published ports)."
-        ),
-    ] = LOCAL_BIND,
-    live: Annotated[
-        bool,
-        typer.Option(
-            "--live/--no-live",
-            help="The live table (on a terminal); without it, one line per poll cycle.",
-        ),
-    ] = True,
-) -> None:
-    """Try it all with no hardware: simulated sensors, MQTT, metrics, the web page, a live table."""
-    try:
-        return_large_blocks()
-        asyncio.run(
-            run_demo(
-                mqtt_port=mqtt_port,
-                metrics_port=metrics_port,
-                web_port=web_port,
-                modbus_port=modbus_port,
-                bind=bind,
-                live=live,
-            )
-        )
-    except GatewayError as exc:
-        raise fail(exc) from exc
-
-
 @app.command("check-config")
 def check_config_command(
     config: Annotated[Path, typer.Argument(metavar="FILE", help="The gateway's YAML config.")],
@@ -635,11 +628,6 @@ def scan_command(
     if not report.devices:
         _err.print(f"[bold red]no device answered[/] on {escape(port)}", highlight=False)
         raise typer.Exit(code=1)
-
-
-cli_write.register(app)
-cli_calibrate.register(app)
-cli_operations.register(app)
 
 
 def main() -> None:

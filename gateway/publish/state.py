@@ -11,13 +11,14 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 from gateway.line.samples import Quality
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Mapping, Sequence
+    from collections.abc import Callable, Iterator, Sequence
     from datetime import date
 
     from gateway.line.foreign import ForeignStats
@@ -169,13 +170,95 @@ class WebStatus:
         return sum(1 for until in self.locked_until.values() if until > now)
 
 
+_Samples = dict[tuple[str, str], dict[str, "Sample"]]  # (bus, device) -> point -> sample
+
+
+class PointSamples(Mapping[tuple[str, str, str], "Sample"]):
+    """One sample per point, keyed ``(bus, device, point)``, kept by device.
+
+    At 16 buses x 16 devices the gateway polls some 26,000 points; a key of three names
+    per point in a flat dict (and a second for the last good samples) cost some 200 bytes
+    a point. Here the points of a device are one dict keyed by the point's name (a
+    string of the profile, shared); the flat keys are made only when iterated.
+    """
+
+    __slots__ = ("_devices",)
+
+    def __init__(self, devices: _Samples) -> None:
+        """A view of ``devices`` (not a copy: the owner copies under its lock)."""
+        self._devices = devices
+
+    def __getitem__(self, key: tuple[str, str, str]) -> Sample:
+        """The sample of ``(bus, device, point)``."""
+        bus, device, point = key
+        return self._devices[bus, device][point]
+
+    def __iter__(self) -> Iterator[tuple[str, str, str]]:
+        """Every ``(bus, device, point)``, device by device."""
+        for (bus, device), points in self._devices.items():
+            for point in points:
+                yield bus, device, point
+
+    def __len__(self) -> int:
+        """How many points have a sample."""
+        return sum(len(points) for points in self._devices.values())
+
+    def values(self) -> Iterator[Sample]:  # type: ignore[override]
+        """Every sample, device by device (without making the keys)."""
+        for points in self._devices.values():
+            yield from points.values()
+
+
+class LastGood(Mapping[tuple[str, str, str], "Sample"]):
+    """The newest good sample of each point, keyed ``(bus, device, point)``.
+
+    The latest sample where it is good (most points, most of the time), else the one kept
+    apart when the point's latest stopped being good: no second sample or key per point.
+    """
+
+    __slots__ = ("_before", "_devices")
+
+    def __init__(self, devices: _Samples, before: _Samples) -> None:
+        """A view of the latest samples and of the good ones kept apart."""
+        self._devices = devices
+        self._before = before
+
+    def _good(self, bus: str, device: str, point: str, latest: Sample) -> Sample | None:
+        if latest.quality is Quality.GOOD:
+            return latest
+        return self._before.get((bus, device), {}).get(point)
+
+    def __getitem__(self, key: tuple[str, str, str]) -> Sample:
+        """The newest good sample of ``(bus, device, point)``."""
+        bus, device, point = key
+        good = self._good(bus, device, point, self._devices[bus, device][point])
+        if good is None:
+            raise KeyError(key)
+        return good
+
+    def __iter__(self) -> Iterator[tuple[str, str, str]]:
+        """Every ``(bus, device, point)`` that has had a good sample."""
+        for item in self.items():
+            yield item[0]
+
+    def __len__(self) -> int:
+        """How many points have had a good sample."""
+        return sum(1 for _ in self.items())
+
+    def items(self) -> Iterator[tuple[tuple[str, str, str], Sample]]:  # type: ignore[override]
+        """Every point that has had a good sample, with it, device by device."""
+        for (bus, device), points in self._devices.items():
+            for point, latest in points.items():
+                good = self._good(bus, device, point, latest)
+                if good is not None:
+                    yield (bus, device, point), good
+
+
 @dataclass(slots=True)
 class GatewayState:
     """Latest samples, device availability, line statistics and the MQTT status."""
 
     devices: dict[tuple[str, str], DeviceInfo] = field(default_factory=dict)
-    latest: dict[tuple[str, str, str], Sample] = field(default_factory=dict)
-    last_good: dict[tuple[str, str, str], Sample] = field(default_factory=dict)
     lines: dict[str, LineStats] = field(default_factory=dict)
     health_sources: dict[str, Callable[[], list[DeviceHealth]]] = field(default_factory=dict)
     mqtt: MqttStatus = field(default_factory=MqttStatus)
@@ -186,7 +269,26 @@ class GatewayState:
     web: WebStatus = field(default_factory=WebStatus)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
-    _by_device: dict[tuple[str, str], dict[str, Sample]] = field(default_factory=dict)
+    _by_device: _Samples = field(default_factory=dict)  # the latest sample of each point
+    # The last good sample of the points whose latest is not good (while it is, the latest
+    # is the last good one: kept once).
+    _good_before: _Samples = field(default_factory=dict)
+
+    @property
+    def latest(self) -> PointSamples:
+        """The latest sample of every point, by ``(bus, device, point)``.
+
+        A view: read it from a :meth:`snapshot` where another thread records.
+        """
+        return PointSamples(self._by_device)
+
+    @property
+    def last_good(self) -> LastGood:
+        """The newest good sample of every point that has had one, by ``(bus, device, point)``.
+
+        A view: read it from a :meth:`snapshot` where another thread records.
+        """
+        return LastGood(self._by_device, self._good_before)
 
     def add_device(self, info: DeviceInfo) -> None:
         """Register a configured device before polling starts."""
@@ -209,13 +311,20 @@ class GatewayState:
 
     def record(self, samples: Sequence[Sample]) -> None:
         """Keep the newest sample of every point, and the newest good one apart."""
+        good = Quality.GOOD
         with self._lock:
             for sample in samples:
-                key = (sample.bus, sample.device, sample.point)
-                self.latest[key] = sample
-                self._by_device.setdefault((sample.bus, sample.device), {})[sample.point] = sample
-                if sample.quality is Quality.GOOD:
-                    self.last_good[key] = sample
+                device = (sample.bus, sample.device)
+                points = self._by_device.get(device)
+                if points is None:
+                    points = self._by_device[device] = {}
+                previous = points.get(sample.point)
+                points[sample.point] = sample
+                if sample.quality is good:
+                    if (before := self._good_before.get(device)) is not None:
+                        before.pop(sample.point, None)
+                elif previous is not None and previous.quality is good:
+                    self._good_before.setdefault(device, {})[sample.point] = previous
 
     def record_event(self, event: DeviceEvent) -> None:
         """Keep a device's availability."""
@@ -251,10 +360,8 @@ class GatewayState:
     def snapshot(self) -> GatewayState:
         """A consistent copy to read without the lock (line stats are shared, read-only)."""
         with self._lock:
-            return GatewayState(
+            copy = GatewayState(
                 devices=dict(self.devices),
-                latest=dict(self.latest),
-                last_good=dict(self.last_good),
                 lines=dict(self.lines),
                 health_sources=dict(self.health_sources),
                 mqtt=replace(self.mqtt),
@@ -274,6 +381,11 @@ class GatewayState:
                 ),
                 started=self.started,
             )
+            copy._by_device = {device: dict(points) for device, points in self._by_device.items()}
+            copy._good_before = {
+                device: dict(points) for device, points in self._good_before.items() if points
+            }
+            return copy
 
     def is_stale(self, sample: Sample, now: float | None = None) -> bool:
         """Whether a good value is older than its interval allows."""

@@ -85,10 +85,9 @@ class Topics:
         self._publish = dict(publish or {})
         self._default_publish = PublishSettings()
         self._last: dict[str, _Published] = {}  # the change modes' last publish per topic
-        # Each point's value topic, {base}/{device}/{point}, made at its first sample: by
-        # device, then point, so that tens of thousands of points keep one string each.
-        self._topics: dict[str, dict[str, str]] = {}
-        self._flags: dict[str, bool] = {}
+        # The status bits last sent, by device, then bit (the profile's name of it: a
+        # string shared by every device of the profile, not a topic made per bit).
+        self._flags: dict[str, dict[str, bool]] = {}
         self._fault_cleared: set[str] = set()
         self._discovered: set[tuple[str, str]] = set()
         self._sequence: dict[str, int] = {}  # state documents per device since the start
@@ -144,18 +143,11 @@ class Topics:
             retain=retain,
         )
 
-    def _topic(self, sample: Sample) -> str:
-        """A point's value topic, made at its first sample."""
-        topic = f"{self.base}/{sample.device}/{sample.point}"
-        self._topics.setdefault(sample.device, {})[sample.point] = topic
-        return topic
-
     def _value_messages(self, sample: Sample, messages: list[Message]) -> None:
         """Append a sample's value (and status bit) messages to ``messages``."""
-        topics = self._topics.get(sample.device)
-        topic = topics.get(sample.point) if topics is not None else None
-        if topic is None:
-            topic = self._topic(sample)
+        # Made for each message, not kept: tens of thousands of points would keep a string
+        # each (some 80 bytes a point), for an f-string's time per message sent.
+        topic = f"{self.base}/{sample.device}/{sample.point}"
         value_qos = self.settings.value_qos
         if sample.quality is not Quality.GOOD:
             # No number for a fault or a failed read: clear the retained value once.
@@ -180,11 +172,18 @@ class Topics:
                 Message(topic=topic, payload=payload.encode(), qos=value_qos, retain=True)
             )
         if isinstance(value, BitfieldValue):
-            for flag, on in value.flags:
-                key = f"{sample.device}/status/{flag}"
-                if self._flags.get(key) != on:
-                    self._flags[key] = on
-                    messages.append(self._message(key, "true" if on else "false", retain=True))
+            self._flag_messages(sample.device, value, messages)
+
+    def _flag_messages(self, device: str, value: BitfieldValue, messages: list[Message]) -> None:
+        """Append a message for each status bit that changed since it was last sent."""
+        sent = self._flags.get(device)
+        if sent is None:
+            sent = self._flags[device] = {}
+        for flag, on in value.flags:
+            if sent.get(flag) != on:
+                sent[flag] = on
+                key = f"{device}/status/{flag}"
+                messages.append(self._message(key, "true" if on else "false", retain=True))
 
     def _due(self, topic: str, settings: PublishSettings, sample: Sample) -> bool:
         """Whether a change mode wants this value out now."""

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Final
 
-from prometheus_client.metrics_core import GaugeMetricFamily, Metric
+from prometheus_client.metrics_core import Metric
+from prometheus_client.samples import Sample as PromSample
 
 from gateway.line.samples import Quality
 from gateway.publish.prometheus.naming import (
@@ -22,18 +23,64 @@ from gateway.publish.prometheus.naming import (
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator
+    from collections.abc import Callable, Iterator, Sequence
 
     from gateway.line.samples import Sample
     from gateway.publish.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
+_Row = Any  # what a lazy family's samples are made from: its own kind of row
+
+
+class LazySamples:
+    """A family's samples, made one at a time as the exposition reads them.
+
+    At 16 buses x 16 devices a scrape has some 130,000 samples (most of them status bits);
+    made at once as ``prometheus_client`` samples (a named tuple and a dict of labels
+    each) they took some 25 MB, which the process kept as resident memory after the
+    scrape. Here a family keeps what it was built from (the snapshot's own samples) and
+    makes each exposition sample when it is read; iterable more than once.
+    """
+
+    __slots__ = ("_make", "_rows")
+
+    def __init__(self, rows: Sequence[_Row], make: Callable[[_Row], Iterator[PromSample]]) -> None:
+        """``make`` turns one of ``rows`` into its samples (none, one or several)."""
+        self._rows = rows
+        self._make = make
+
+    def __iter__(self) -> Iterator[PromSample]:
+        """Every sample of the family, in the order of the rows."""
+        make = self._make
+        for row in self._rows:
+            yield from make(row)
+
+    def __len__(self) -> int:
+        """How many samples there are (made and counted, not kept)."""
+        return sum(1 for _ in self)
+
+
+def lazy_gauge(
+    name: str,
+    documentation: str,
+    rows: Sequence[_Row],
+    make: Callable[[_Row], Iterator[PromSample]],
+) -> Metric:
+    """A gauge family whose samples are made from ``rows`` when read (:class:`LazySamples`)."""
+    family = Metric(name, documentation, "gauge")
+    family.samples = LazySamples(rows, make)  # type: ignore[assignment] # iterated only
+    return family
+
+
+def _labels(names: Sequence[str], values: Sequence[str]) -> dict[str, str]:
+    return dict(zip(names, values, strict=True))
 
 
 @dataclass(slots=True)
 class _ValueFamily:
     documentation: str
-    rows: dict[tuple[str, ...], tuple[str | None, float]] = field(default_factory=dict)
+    rows: list[tuple[Sample, str | None, float]] = field(default_factory=list)
+    devices: set[str] = field(default_factory=set)  # one row per device (the first)
     has_unit: bool = False
 
 
@@ -48,40 +95,30 @@ def value_families(snapshot: GatewayState, now: float) -> Iterator[Metric]:
 
 
 class _Values:
-    """The value-like families of one scrape, filled sample by sample."""
+    """The value-like families of one scrape, filled sample by sample.
+
+    What is kept is the snapshot's samples (a reference each), sorted into families; the
+    exposition's samples are made when the family is read.
+    """
 
     def __init__(self) -> None:
         self._values: dict[str, _ValueFamily] = {}
-        self._faults = GaugeMetricFamily(
-            "gateway_value_fault",
-            "1 while the latest sample of a point is a sensor fault (named in 'fault')",
-            labels=[*POINT_LABELS, "fault"],
-        )
-        self._flags = GaugeMetricFamily(
-            "gateway_status_flag",
-            "State of one named bit of a status or error word (0 or 1)",
-            labels=[*POINT_LABELS, "flag"],
-        )
-        self._enums = GaugeMetricFamily(
-            "gateway_enum_info",
-            "The current label (and code) of an enumerated point; always 1",
-            labels=[*POINT_LABELS, "label", "code"],
-        )
+        self._faults: list[Sample] = []
+        self._flags: list[Sample] = []
+        self._enums: list[Sample] = []
 
     def add(self, sample: Sample) -> None:
         """Export one latest sample: a fault by name, never a number; comms errors not."""
-        point = [sample.bus, sample.device, sample.profile, sample.point]
         if sample.quality is Quality.FAULT:
-            self._faults.add_metric([*point, sample.fault or "unknown"], 1.0)
+            self._faults.append(sample)
             return
         if sample.quality is not Quality.GOOD:
             return
         value = sample.value
         if isinstance(value, BitfieldValue):
-            for flag, state in value.flags:
-                self._flags.add_metric([*point, flag], float(state))
+            self._flags.append(sample)
         elif isinstance(value, EnumValue):
-            self._enums.add_metric([*point, value.label, str(value.code)], 1.0)
+            self._enums.append(sample)
         elif isinstance(value, bool | int | float):
             self._add_value(sample, float(value))
         # strings and date-times are not numbers: MQTT carries them
@@ -98,13 +135,13 @@ class _Values:
         family = self._values.get(naming.family)
         if family is None:
             family = self._values[naming.family] = _ValueFamily(description)
-        key = (sample.bus, sample.device, sample.profile)
-        if key in family.rows:
+        if sample.device in family.devices:
             # Two points of one device named into one family (``x`` in s next to a
             # dimensionless ``x_seconds``): no profile has such a pair; keep the first.
             _LOGGER.debug("%s: %s also maps to %s; left out", sample.device, sample.point, naming)
             return
-        family.rows[key] = (unit, value)
+        family.devices.add(sample.device)
+        family.rows.append((sample, unit, value))
         family.has_unit |= unit is not None
 
     def families(self) -> Iterator[Metric]:
@@ -112,27 +149,83 @@ class _Values:
         labelled = labelled_families()
         for name in sorted(self._values):
             family = self._values[name]
-            with_unit = family.has_unit or name in labelled
-            gauge = GaugeMetricFamily(
-                name,
-                family.documentation,
-                labels=[*VALUE_LABELS, "unit"] if with_unit else VALUE_LABELS,
-            )
-            for key, (unit, value) in family.rows.items():
-                gauge.add_metric([*key, unit or ""] if with_unit else list(key), value)
-            yield gauge
-        yield from (self._faults, self._flags, self._enums)
+            yield _value_family(name, family, with_unit=family.has_unit or name in labelled)
+        yield lazy_gauge(
+            "gateway_value_fault",
+            "1 while the latest sample of a point is a sensor fault (named in 'fault')",
+            self._faults,
+            _fault_samples,
+        )
+        yield lazy_gauge(
+            "gateway_status_flag",
+            "State of one named bit of a status or error word (0 or 1)",
+            self._flags,
+            _flag_samples,
+        )
+        yield lazy_gauge(
+            "gateway_enum_info",
+            "The current label (and code) of an enumerated point; always 1",
+            self._enums,
+            _enum_samples,
+        )
+
+
+_FAULT_LABELS: Final = (*POINT_LABELS, "fault")
+_FLAG_LABELS: Final = (*POINT_LABELS, "flag")
+_ENUM_LABELS: Final = (*POINT_LABELS, "label", "code")
+_VALUE_UNIT_LABELS: Final = (*VALUE_LABELS, "unit")
+
+
+def _point(sample: Sample) -> tuple[str, str, str, str]:
+    return (sample.bus, sample.device, sample.profile, sample.point)
+
+
+def _fault_samples(sample: _Row) -> Iterator[PromSample]:
+    labels = _labels(_FAULT_LABELS, (*_point(sample), sample.fault or "unknown"))
+    yield PromSample("gateway_value_fault", labels, 1.0)
+
+
+def _flag_samples(sample: _Row) -> Iterator[PromSample]:
+    value = sample.value
+    assert isinstance(value, BitfieldValue)  # noqa: S101 - sorted so by _Values.add
+    point = _point(sample)
+    for flag, state in value.flags:
+        yield PromSample("gateway_status_flag", _labels(_FLAG_LABELS, (*point, flag)), float(state))
+
+
+def _enum_samples(sample: _Row) -> Iterator[PromSample]:
+    value = sample.value
+    assert isinstance(value, EnumValue)  # noqa: S101 - sorted so by _Values.add
+    labels = _labels(_ENUM_LABELS, (*_point(sample), value.label, str(value.code)))
+    yield PromSample("gateway_enum_info", labels, 1.0)
+
+
+def _value_family(name: str, family: _ValueFamily, *, with_unit: bool) -> Metric:
+    """One value family; its samples made when read."""
+
+    def make(row: tuple[Sample, str | None, float]) -> Iterator[PromSample]:
+        sample, unit, value = row
+        key = (sample.bus, sample.device, sample.profile)
+        if with_unit:
+            yield PromSample(name, _labels(_VALUE_UNIT_LABELS, (*key, unit or "")), value)
+        else:
+            yield PromSample(name, _labels(VALUE_LABELS, key), value)
+
+    return lazy_gauge(name, family.documentation, family.rows, make)
 
 
 def _ages(snapshot: GatewayState, now: float) -> Metric:
-    ages = GaugeMetricFamily(
-        "gateway_value_age_seconds",
-        "Seconds since the last good sample of a polled point",
-        labels=POINT_LABELS,
-    )
-    for (bus, device, point), sample in snapshot.last_good.items():
+    def make(item: tuple[tuple[str, str, str], Sample]) -> Iterator[PromSample]:
+        (bus, device, point), sample = item
         info = snapshot.devices.get((bus, device))
         if info is not None and point in info.intervals and info.intervals[point] is None:
-            continue  # identity, read once per connection: its age says nothing
-        ages.add_metric([bus, device, sample.profile, point], max(0.0, now - sample.monotonic))
-    return ages
+            return  # identity, read once per connection: its age says nothing
+        labels = _labels(POINT_LABELS, (bus, device, sample.profile, point))
+        yield PromSample("gateway_value_age_seconds", labels, max(0.0, now - sample.monotonic))
+
+    return lazy_gauge(
+        "gateway_value_age_seconds",
+        "Seconds since the last good sample of a polled point",
+        list(snapshot.last_good.items()),
+        make,
+    )
