@@ -43,11 +43,13 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Final
+from typing import TYPE_CHECKING, Any, Final, Protocol
 
 import aiomqtt
 
+from bench import cgroups
 from bench import peer_modbus2mqtt as peer
+from bench.cgroups import process_tree
 from bench.peer_line import wire_figures
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import LineFormat, Parity
@@ -55,6 +57,7 @@ from gateway.wire.timing import LineFormat, Parity
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
 
+    from bench.cgroups import CpuGroup
     from gateway.profiles import Point, Profile
 
 ROOT: Final = Path(__file__).resolve().parents[1]
@@ -344,45 +347,45 @@ async def mosquitto(work: Path) -> AsyncIterator[int]:
 class ProcessSample:
     """CPU seconds so far and memory of a process with its children."""
 
-    cpu_s: float
+    cpu_s: float  # the fine clock: the master's cgroup, or its threads' schedstat
+    ticks_cpu_s: float  # utime + stime (and waited-for children's) in 10 ms ticks
     rss_mib: float
     peak_rss_mib: float
 
 
-def _stat_fields(pid: int) -> list[str]:
-    # The fields after the command name, which may hold spaces: ppid is [1], utime [11],
-    # stime [12], cutime [13], cstime [14] (proc(5) numbers them from 3: fields 4, 14-17).
-    return Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()
+class CpuClock(Protocol):
+    """Where a master's CPU seconds are read: its control group, or its threads' schedstat."""
+
+    def usage_s(self) -> float: ...
 
 
-def process_tree(pid: int) -> list[int]:
-    """The process and every live descendant (the peer's paho runs a thread, not a child)."""
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            with contextlib.suppress(OSError, IndexError):
-                parents[int(entry.name)] = int(_stat_fields(int(entry.name))[1])
-    tree, frontier = [pid], [pid]
-    while frontier:
-        frontier = [p for p, parent in parents.items() if parent in frontier]
-        tree.extend(frontier)
-    return tree
-
-
-def sample_process(pid: int) -> ProcessSample:
-    """CPU (utime + stime, waited-for children too) and VmRSS/VmHWM over the tree."""
+def sample_process(pid: int, clock: CpuClock) -> ProcessSample:
+    """CPU from ``clock``, from /proc ticks beside it, and VmRSS/VmHWM over the tree."""
     ticks = os.sysconf("SC_CLK_TCK")
-    cpu = rss = peak = 0.0
+    ticked = rss = peak = 0.0
     for member in process_tree(pid):
         with contextlib.suppress(OSError):
-            cpu += sum(int(f) for f in _stat_fields(member)[11:15]) / ticks
+            fields = Path(f"/proc/{member}/stat").read_text(encoding="utf-8")
+            # utime, stime, cutime, cstime: proc(5) fields 14-17, [11:15] after the name.
+            ticked += sum(int(f) for f in fields.rsplit(")", 1)[1].split()[11:15]) / ticks
             status = Path(f"/proc/{member}/status").read_text(encoding="utf-8")
             for line in status.splitlines():
                 if line.startswith("VmRSS:"):
                     rss += int(line.split()[1]) / 1024
                 elif line.startswith("VmHWM:"):
                     peak += int(line.split()[1]) / 1024
-    return ProcessSample(cpu_s=cpu, rss_mib=rss, peak_rss_mib=peak)
+    return ProcessSample(cpu_s=clock.usage_s(), ticks_cpu_s=ticked, rss_mib=rss, peak_rss_mib=peak)
+
+
+@contextlib.contextmanager
+def cpu_group(name: str) -> Iterator[CpuGroup | None]:
+    """A control group that counts the master's CPU in ns, or None where none can be made."""
+    try:
+        with cgroups.open_group(name) as group:
+            yield group
+    except cgroups.CgroupError as missing:
+        print(f"CPU from each thread's schedstat (no control group: {missing})", flush=True)
+        yield None
 
 
 # --- what reaches the broker -------------------------------------------------------------
@@ -480,13 +483,18 @@ async def one_run(
         await stack.enter_async_context(child(simulate, log=run / "line.log", ready=b"ready"))
         received = await stack.enter_async_context(listen(broker, master.subscription))
         argv = master.command(port, line, broker, run)
+        group = stack.enter_context(cpu_group(f"gateway-bench-peers-{run.name}"))
+        if group is not None:  # the master enters it before it runs: every thread counted
+            argv = group.enter_argv(argv)
         process = await stack.enter_async_context(child(argv, log=run / "master.log"))
+        clock: CpuClock = group if group is not None else cgroups.SchedstatClock(process.pid)
         await asyncio.sleep(WARM_UP_S)
         if process.returncode is not None:
             raise RuntimeError(f"{master.name} stopped:\n{_tail(run / 'master.log')}")
-        t0, before = time.monotonic(), sample_process(process.pid)
+        t0, before = time.monotonic(), sample_process(process.pid, clock)
         await asyncio.sleep(seconds)
-        t1, after = time.monotonic(), sample_process(process.pid)
+        t1, after = time.monotonic(), sample_process(process.pid, clock)
+        cpu_clock = "cgroup" if group is not None else "schedstat"
     document = json.loads(out.read_text(encoding="utf-8"))
     required = {s.address: line.frame_gap_s(s.profile.timing.min_gap_s) for s in PLANT}
     wire = wire_figures(document, line, required_gap_s=required, t0=t0, t1=t1)
@@ -498,6 +506,8 @@ async def one_run(
         "cpu_s": cpu_s,
         "cpu_share": cpu_s / (t1 - t0),
         "cpu_us_per_transaction": 1e6 * cpu_s / max(wire["transactions"], 1),
+        "cpu_clock": cpu_clock,
+        "ticks_cpu_share": (after.ticks_cpu_s - before.ticks_cpu_s) / (t1 - t0),
         "rss_mib": after.rss_mib,
         "peak_rss_mib": after.peak_rss_mib,
     }
