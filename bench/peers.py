@@ -14,16 +14,20 @@ Two phases, each master in turn: a clean line, then one with 2 % of the answers 
 - frames per cycle: the different requests one poll of every point takes (frame log);
 - transactions/s: answered requests per second; values/s: the compared values published
   per second, against the ones asked (a master that drifts polls less often than asked);
-- CPU µs per transaction and CPU % of one core: utime + stime of the master and its
-  children from /proc over the window; RSS: resident memory, its peak;
+- CPU µs per transaction and CPU % of one core: the master's own control group counts
+  its CPU (every thread and child, to the nanosecond; see bench/cgroups.py), or where
+  none can be made, each of its threads' schedstat; utime + stime from /proc (10 ms
+  ticks) beside it; RSS: resident memory, its peak;
 - the gap from the end of an answer to the next request (minimum and median), against
   the 3.5 characters the line requires, and the referee's timing violations;
-- with faults: published values that differ from the truth, of all published.
+- with faults: published values that differ from the truth, of all published;
+- whether the gateway uses no more CPU than the peer (target 2 of the engine-cost work)
+  while it stays ahead on transactions, values, gaps and wrong values under faults.
 
 Printed as a table and written to bench/results/peers.json.
 
-Run from the repository root: .venv/bin/python -m bench.peers [--seconds 20]
-[--format 9600-E-1] [--keep DIR]
+Run from the repository root (as root, for the control groups):
+.venv/bin/python -m bench.peers [--seconds 30] [--format 9600-E-1] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -564,7 +568,8 @@ ROWS: Final[tuple[tuple[str, str, Callable[[Figures], str]], ...]] = (
     ("clean", "transactions/s", _number("transactions_per_s", ".2f")),
     ("clean", f"values/s ({POINTS} asked)", _number("values_per_s", ".2f")),
     ("clean", "CPU µs per transaction", _number("cpu_us_per_transaction", ".0f")),
-    ("clean", "CPU % of one core", _number("cpu_share", ".2f", 100)),
+    ("clean", "CPU % of one core", _number("cpu_share", ".3f", 100)),
+    ("clean", "CPU % (10 ms ticks)", _number("ticks_cpu_share", ".2f", 100)),
     ("clean", "RSS MiB (peak)", _number("peak_rss_mib", ".1f")),
     ("clean", "min gap ms", _number("min_gap_ms", ".2f")),
     ("clean", "median gap ms", _number("median_gap_ms", ".2f")),
@@ -594,6 +599,66 @@ def table(results: Mapping[str, Mapping[str, Figures]], line: LineFormat) -> str
     return "\n".join(lines)
 
 
+def verdicts(results: Mapping[str, Mapping[str, Figures]]) -> list[str]:
+    """Target 2 of the engine-cost work, and the figures the gateway must stay ahead on.
+
+    Ahead means: no more CPU than the peer (the target), and as now more transactions and
+    values a second, smaller gaps (closer to the 3.5 characters the line requires, none
+    below it) and no more wrong values under faults.
+    """
+    ours, theirs = results[GATEWAY.name], results[peer.PEER]
+    clean, faults = "clean", "faults"
+
+    def line(label: str, ok: bool, shown: str) -> str:  # noqa: FBT001 - reads as a verdict
+        return f"{label:<44} {shown:<28} {'yes' if ok else 'no'}"
+
+    def pair(key: str, phase: str, fmt: str, scale: float = 1.0) -> str:
+        return f"{ours[phase][key] * scale:{fmt}} vs {theirs[phase][key] * scale:{fmt}}"
+
+    gaps_ok = all(ours[phase]["gaps_below_required"] == 0 for phase in (clean, faults))
+    checks = [
+        line(
+            "target 2: CPU share <= the peer's",
+            ours[clean]["cpu_share"] <= theirs[clean]["cpu_share"],
+            pair("cpu_share", clean, ".3f", 100) + " %",
+        ),
+        line(
+            "ahead on transactions/s",
+            ours[clean]["transactions_per_s"] > theirs[clean]["transactions_per_s"],
+            pair("transactions_per_s", clean, ".2f"),
+        ),
+        line(
+            "ahead on values/s, clean",
+            ours[clean]["values_per_s"] > theirs[clean]["values_per_s"],
+            pair("values_per_s", clean, ".2f"),
+        ),
+        line(
+            "ahead on values/s, with faults",
+            ours[faults]["values_per_s"] > theirs[faults]["values_per_s"],
+            pair("values_per_s", faults, ".2f"),
+        ),
+        line(
+            "ahead on gaps (min, median; none too short)",
+            gaps_ok
+            and ours[clean]["min_gap_ms"] < theirs[clean]["min_gap_ms"]
+            and ours[clean]["median_gap_ms"] < theirs[clean]["median_gap_ms"],
+            pair("median_gap_ms", clean, ".2f") + " ms",
+        ),
+        line(
+            "no more wrong values under faults",
+            ours[faults]["wrong_values"] <= theirs[faults]["wrong_values"],
+            pair("wrong_values", faults, ".0f"),
+        ),
+    ]
+    met = all(c.endswith("yes") for c in checks)
+    clock = ours[clean].get("cpu_clock", "?")
+    return [
+        f"{'gateway vs ' + peer.PEER:<44} {'(CPU clock: ' + clock + ')':<28} met",
+        *checks,
+        f"target 2 and every lead kept: {'yes' if met else 'no'}",
+    ]
+
+
 def parse_format(text: str) -> LineFormat:
     """``9600-E-1`` as a line format; anything else ends the bench with a usage error."""
     baudrate, parity, stopbits = [*text.split("-"), "", "", ""][:3]
@@ -606,7 +671,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--seconds", type=float, default=20.0, help="measured per run")
+    parser.add_argument("--seconds", type=float, default=30.0, help="measured per run")
     parser.add_argument("--format", default="9600-E-1", help="the line, BAUD-PARITY-STOPBITS")
     parser.add_argument(
         "--keep", type=Path, metavar="DIR", help="keep each run's configs and logs under DIR"
@@ -633,6 +698,7 @@ def main() -> None:
     }
     (RESULTS / "peers.json").write_text(json.dumps(document, indent=2), encoding="utf-8")
     print(table(results, line))
+    print("\n".join(verdicts(results)))
 
 
 if __name__ == "__main__":
