@@ -412,16 +412,19 @@ async def one_plant(
         cpu0, throttle0 = group.usage_s(), group.throttling()
         sim0 = process_figures(sim_pid)[1]
         documents.measuring = True
-        lag, after = worst_lag(before), before
-        while time.monotonic() - t0 < seconds:
-            await asyncio.sleep(min(scrape_every_s, seconds - (time.monotonic() - t0)))
-            after = await asyncio.to_thread(scrape, metrics)
-            lag = max(lag, worst_lag(after))
+        lag = worst_lag(before)
+        while (remaining := seconds - (time.monotonic() - t0)) > 0:
+            await asyncio.sleep(min(scrape_every_s, remaining))
+            if time.monotonic() - t0 < seconds:
+                lag = max(lag, worst_lag(await asyncio.to_thread(scrape, metrics)))
         documents.measuring = False
+        # The window's figures before the last scrape: what it costs falls after them.
         t1 = time.monotonic()
-        depth1 = await queue_depth(metrics)
         cpu1, throttle1 = group.usage_s(), group.throttling()
         sim1 = process_figures(sim_pid)[1]
+        depth1 = await queue_depth(metrics)
+        after = await asyncio.to_thread(scrape, metrics)
+        lag = max(lag, worst_lag(after))
         rss = process_figures(process.pid)[0]
         if process.returncode is not None:
             raise RuntimeError(f"the gateway stopped:\n{_tail(log)}")
