@@ -4,17 +4,19 @@
 CPU quota (``--quota``, 25 % of one core by default: 25 ms of every 100 ms, as
 ``systemd-run -p CPUQuota=25%`` or cgroup v2's ``cpu.max`` "25000 100000" set it; see
 bench/cgroups.py). The simulated lines (one process apart), the broker and this bench's
-subscriber stay outside the quota. Two plants, every device polled at 1 s:
+subscriber stay outside the quota. Two plants by default (``--plants``), every device
+polled at 1 s:
 
 - **reference**: the soak's three lines (9600 8E1, 19200 8N1, 38400 8E1) with all the
   families, 8 sensors: S10, H10, H20, tecLine Cl2, ClO2 and TC, Reiss M0c and M3c;
 - **16x16**: 16 lines at 115200 8N1 with 16 sensors each (S10, tecLine Cl2, Reiss M0c and
-  H10 in turn), the plant of bench/publish.py and bench/scale.py.
+  H10 in turn), the plant of bench/publish.py and bench/scale.py; any other
+  ``BUSESxDEVICES`` (``4x16``) is the same at another size.
 
 The simulators pace every frame (it takes its wire time) and referee the master's timing.
 After the start (identity reads, the first read of every point and the messages it leaves
 queued; the quota slows that too), for ``--seconds``, with a scrape of ``/metrics`` every
-15 s as Prometheus makes them:
+``--scrape-every`` seconds (15 s, as a Prometheus might; 0: only before and after):
 
 - deadlines missed, from the gateway's ``gateway_missed_deadlines_total`` (and the worst
   ``gateway_poll_lag_seconds`` seen), in the window and since the start;
@@ -46,7 +48,7 @@ import sys
 import tempfile
 import time
 import urllib.request
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
@@ -54,7 +56,7 @@ from typing import TYPE_CHECKING, Any, Final
 import aiomqtt
 
 from bench import cgroups
-from bench.publish import healthz, mosquitto, percentile_ms, plant_config
+from bench.publish import free_port, healthz, mosquitto, percentile_ms, plant_config
 from bench.soak import LINES, process_figures, total
 from gateway.wire.timing import LineFormat
 
@@ -313,13 +315,13 @@ class Documents:
     """State documents seen while measuring: (arrival, the cycle's first answer), wall clock."""
 
     measuring: bool = False
-    arrivals: list[tuple[float, float]] | None = None
+    arrivals: list[tuple[float, float]] = field(default_factory=list)
 
 
 @contextlib.asynccontextmanager
 async def subscriber(broker: int) -> AsyncIterator[Documents]:
     """State documents of every device, timed on arrival while ``measuring``."""
-    documents = Documents(arrivals=[])
+    documents = Documents()
 
     async def listen() -> None:
         async with aiomqtt.Client("127.0.0.1", broker) as client:
@@ -328,7 +330,6 @@ async def subscriber(broker: int) -> AsyncIterator[Documents]:
                 if documents.measuring and isinstance(message.payload, bytes):
                     arrived = time.time()
                     cycle = datetime.fromisoformat(json.loads(message.payload)["time"])
-                    assert documents.arrivals is not None
                     documents.arrivals.append((arrived, cycle.timestamp()))
 
     task = asyncio.create_task(listen(), name="bench.budget.subscriber")
@@ -410,7 +411,7 @@ async def one_plant(
     directory = work / plant.name
     directory.mkdir()
     lines = plant.lines(directory)
-    metrics = _free_port()
+    metrics = free_port()
     config = directory / "gateway.yaml"
     config.write_text(plant.config(directory, lines, broker, metrics), encoding="utf-8")
     log = directory / "gateway.log"
@@ -453,7 +454,6 @@ async def one_plant(
             raise RuntimeError(f"the gateway stopped:\n{_tail(log)}")
     window = t1 - t0
     stats = json.loads(stats_file.read_text(encoding="utf-8"))
-    assert documents.arrivals is not None
     latencies = sorted(arrived - cycle for arrived, cycle in documents.arrivals)
     devices = sum(len(s.settings["devices"]) for s in lines)
 
@@ -494,14 +494,6 @@ async def one_plant(
         "met": int(delta("gateway_missed_deadlines_total")) == 0
         and violations(stats, t0, t1)["violations"] == 0,
     }
-
-
-def _free_port() -> int:
-    import socket  # noqa: PLC0415
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 async def run_all(
