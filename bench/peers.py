@@ -14,16 +14,20 @@ Two phases, each master in turn: a clean line, then one with 2 % of the answers 
 - frames per cycle: the different requests one poll of every point takes (frame log);
 - transactions/s: answered requests per second; values/s: the compared values published
   per second, against the ones asked (a master that drifts polls less often than asked);
-- CPU µs per transaction and CPU % of one core: utime + stime of the master and its
-  children from /proc over the window; RSS: resident memory, its peak;
+- CPU µs per transaction and CPU % of one core: the master's own control group counts
+  its CPU (every thread and child, to the nanosecond; see bench/cgroups.py), or where
+  none can be made, each of its threads' schedstat; utime + stime from /proc (10 ms
+  ticks) beside it; RSS: resident memory, its peak;
 - the gap from the end of an answer to the next request (minimum and median), against
   the 3.5 characters the line requires, and the referee's timing violations;
-- with faults: published values that differ from the truth, of all published.
+- with faults: published values that differ from the truth, of all published;
+- whether the gateway uses no more CPU than the peer (target 2 of the engine-cost work)
+  while it stays ahead on transactions, values, gaps and wrong values under faults.
 
 Printed as a table and written to bench/results/peers.json.
 
-Run from the repository root: .venv/bin/python -m bench.peers [--seconds 20]
-[--format 9600-E-1] [--keep DIR]
+Run from the repository root (as root, for the control groups):
+.venv/bin/python -m bench.peers [--seconds 30] [--format 9600-E-1] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -43,11 +47,13 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Final
+from typing import TYPE_CHECKING, Any, Final, Protocol
 
 import aiomqtt
 
+from bench import cgroups
 from bench import peer_modbus2mqtt as peer
+from bench.cgroups import process_tree
 from bench.peer_line import wire_figures
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import LineFormat, Parity
@@ -55,6 +61,7 @@ from gateway.wire.timing import LineFormat, Parity
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
 
+    from bench.cgroups import CpuGroup
     from gateway.profiles import Point, Profile
 
 ROOT: Final = Path(__file__).resolve().parents[1]
@@ -344,45 +351,45 @@ async def mosquitto(work: Path) -> AsyncIterator[int]:
 class ProcessSample:
     """CPU seconds so far and memory of a process with its children."""
 
-    cpu_s: float
+    cpu_s: float  # the fine clock: the master's cgroup, or its threads' schedstat
+    ticks_cpu_s: float  # utime + stime (and waited-for children's) in 10 ms ticks
     rss_mib: float
     peak_rss_mib: float
 
 
-def _stat_fields(pid: int) -> list[str]:
-    # The fields after the command name, which may hold spaces: ppid is [1], utime [11],
-    # stime [12], cutime [13], cstime [14] (proc(5) numbers them from 3: fields 4, 14-17).
-    return Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()
+class CpuClock(Protocol):
+    """Where a master's CPU seconds are read: its control group, or its threads' schedstat."""
+
+    def usage_s(self) -> float: ...
 
 
-def process_tree(pid: int) -> list[int]:
-    """The process and every live descendant (the peer's paho runs a thread, not a child)."""
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            with contextlib.suppress(OSError, IndexError):
-                parents[int(entry.name)] = int(_stat_fields(int(entry.name))[1])
-    tree, frontier = [pid], [pid]
-    while frontier:
-        frontier = [p for p, parent in parents.items() if parent in frontier]
-        tree.extend(frontier)
-    return tree
-
-
-def sample_process(pid: int) -> ProcessSample:
-    """CPU (utime + stime, waited-for children too) and VmRSS/VmHWM over the tree."""
+def sample_process(pid: int, clock: CpuClock) -> ProcessSample:
+    """CPU from ``clock``, from /proc ticks beside it, and VmRSS/VmHWM over the tree."""
     ticks = os.sysconf("SC_CLK_TCK")
-    cpu = rss = peak = 0.0
+    ticked = rss = peak = 0.0
     for member in process_tree(pid):
         with contextlib.suppress(OSError):
-            cpu += sum(int(f) for f in _stat_fields(member)[11:15]) / ticks
+            fields = Path(f"/proc/{member}/stat").read_text(encoding="utf-8")
+            # utime, stime, cutime, cstime: proc(5) fields 14-17, [11:15] after the name.
+            ticked += sum(int(f) for f in fields.rsplit(")", 1)[1].split()[11:15]) / ticks
             status = Path(f"/proc/{member}/status").read_text(encoding="utf-8")
             for line in status.splitlines():
                 if line.startswith("VmRSS:"):
                     rss += int(line.split()[1]) / 1024
                 elif line.startswith("VmHWM:"):
                     peak += int(line.split()[1]) / 1024
-    return ProcessSample(cpu_s=cpu, rss_mib=rss, peak_rss_mib=peak)
+    return ProcessSample(cpu_s=clock.usage_s(), ticks_cpu_s=ticked, rss_mib=rss, peak_rss_mib=peak)
+
+
+@contextlib.contextmanager
+def cpu_group(name: str) -> Iterator[CpuGroup | None]:
+    """A control group that counts the master's CPU in ns, or None where none can be made."""
+    try:
+        with cgroups.open_group(name) as group:
+            yield group
+    except cgroups.CgroupError as missing:
+        print(f"CPU from each thread's schedstat (no control group: {missing})", flush=True)
+        yield None
 
 
 # --- what reaches the broker -------------------------------------------------------------
@@ -480,13 +487,18 @@ async def one_run(
         await stack.enter_async_context(child(simulate, log=run / "line.log", ready=b"ready"))
         received = await stack.enter_async_context(listen(broker, master.subscription))
         argv = master.command(port, line, broker, run)
+        group = stack.enter_context(cpu_group(f"gateway-bench-peers-{run.name}"))
+        if group is not None:  # the master enters it before it runs: every thread counted
+            argv = group.enter_argv(argv)
         process = await stack.enter_async_context(child(argv, log=run / "master.log"))
+        clock: CpuClock = group if group is not None else cgroups.SchedstatClock(process.pid)
         await asyncio.sleep(WARM_UP_S)
         if process.returncode is not None:
             raise RuntimeError(f"{master.name} stopped:\n{_tail(run / 'master.log')}")
-        t0, before = time.monotonic(), sample_process(process.pid)
+        t0, before = time.monotonic(), sample_process(process.pid, clock)
         await asyncio.sleep(seconds)
-        t1, after = time.monotonic(), sample_process(process.pid)
+        t1, after = time.monotonic(), sample_process(process.pid, clock)
+        cpu_clock = "cgroup" if group is not None else "schedstat"
     document = json.loads(out.read_text(encoding="utf-8"))
     required = {s.address: line.frame_gap_s(s.profile.timing.min_gap_s) for s in PLANT}
     wire = wire_figures(document, line, required_gap_s=required, t0=t0, t1=t1)
@@ -498,6 +510,8 @@ async def one_run(
         "cpu_s": cpu_s,
         "cpu_share": cpu_s / (t1 - t0),
         "cpu_us_per_transaction": 1e6 * cpu_s / max(wire["transactions"], 1),
+        "cpu_clock": cpu_clock,
+        "ticks_cpu_share": (after.ticks_cpu_s - before.ticks_cpu_s) / (t1 - t0),
         "rss_mib": after.rss_mib,
         "peak_rss_mib": after.peak_rss_mib,
     }
@@ -554,7 +568,8 @@ ROWS: Final[tuple[tuple[str, str, Callable[[Figures], str]], ...]] = (
     ("clean", "transactions/s", _number("transactions_per_s", ".2f")),
     ("clean", f"values/s ({POINTS} asked)", _number("values_per_s", ".2f")),
     ("clean", "CPU µs per transaction", _number("cpu_us_per_transaction", ".0f")),
-    ("clean", "CPU % of one core", _number("cpu_share", ".2f", 100)),
+    ("clean", "CPU % of one core", _number("cpu_share", ".3f", 100)),
+    ("clean", "CPU % (10 ms ticks)", _number("ticks_cpu_share", ".2f", 100)),
     ("clean", "RSS MiB (peak)", _number("peak_rss_mib", ".1f")),
     ("clean", "min gap ms", _number("min_gap_ms", ".2f")),
     ("clean", "median gap ms", _number("median_gap_ms", ".2f")),
@@ -584,6 +599,66 @@ def table(results: Mapping[str, Mapping[str, Figures]], line: LineFormat) -> str
     return "\n".join(lines)
 
 
+def verdicts(results: Mapping[str, Mapping[str, Figures]]) -> list[str]:
+    """Target 2 of the engine-cost work, and the figures the gateway must stay ahead on.
+
+    Ahead means: no more CPU than the peer (the target), and as now more transactions and
+    values a second, smaller gaps (closer to the 3.5 characters the line requires, none
+    below it) and no more wrong values under faults.
+    """
+    ours, theirs = results[GATEWAY.name], results[peer.PEER]
+    clean, faults = "clean", "faults"
+
+    def line(label: str, ok: bool, shown: str) -> str:  # noqa: FBT001 - reads as a verdict
+        return f"{label:<44} {shown:<28} {'yes' if ok else 'no'}"
+
+    def pair(key: str, phase: str, fmt: str, scale: float = 1.0) -> str:
+        return f"{ours[phase][key] * scale:{fmt}} vs {theirs[phase][key] * scale:{fmt}}"
+
+    gaps_ok = all(ours[phase]["gaps_below_required"] == 0 for phase in (clean, faults))
+    checks = [
+        line(
+            "target 2: CPU share <= the peer's",
+            ours[clean]["cpu_share"] <= theirs[clean]["cpu_share"],
+            pair("cpu_share", clean, ".3f", 100) + " %",
+        ),
+        line(
+            "ahead on transactions/s",
+            ours[clean]["transactions_per_s"] > theirs[clean]["transactions_per_s"],
+            pair("transactions_per_s", clean, ".2f"),
+        ),
+        line(
+            "ahead on values/s, clean",
+            ours[clean]["values_per_s"] > theirs[clean]["values_per_s"],
+            pair("values_per_s", clean, ".2f"),
+        ),
+        line(
+            "ahead on values/s, with faults",
+            ours[faults]["values_per_s"] > theirs[faults]["values_per_s"],
+            pair("values_per_s", faults, ".2f"),
+        ),
+        line(
+            "ahead on gaps (min, median; none too short)",
+            gaps_ok
+            and ours[clean]["min_gap_ms"] < theirs[clean]["min_gap_ms"]
+            and ours[clean]["median_gap_ms"] < theirs[clean]["median_gap_ms"],
+            pair("median_gap_ms", clean, ".2f") + " ms",
+        ),
+        line(
+            "no more wrong values under faults",
+            ours[faults]["wrong_values"] <= theirs[faults]["wrong_values"],
+            pair("wrong_values", faults, ".0f"),
+        ),
+    ]
+    met = all(c.endswith("yes") for c in checks)
+    clock = ours[clean].get("cpu_clock", "?")
+    return [
+        f"{'gateway vs ' + peer.PEER:<44} {'(CPU clock: ' + clock + ')':<28} met",
+        *checks,
+        f"target 2 and every lead kept: {'yes' if met else 'no'}",
+    ]
+
+
 def parse_format(text: str) -> LineFormat:
     """``9600-E-1`` as a line format; anything else ends the bench with a usage error."""
     baudrate, parity, stopbits = [*text.split("-"), "", "", ""][:3]
@@ -596,7 +671,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--seconds", type=float, default=20.0, help="measured per run")
+    parser.add_argument("--seconds", type=float, default=30.0, help="measured per run")
     parser.add_argument("--format", default="9600-E-1", help="the line, BAUD-PARITY-STOPBITS")
     parser.add_argument(
         "--keep", type=Path, metavar="DIR", help="keep each run's configs and logs under DIR"
@@ -623,6 +698,7 @@ def main() -> None:
     }
     (RESULTS / "peers.json").write_text(json.dumps(document, indent=2), encoding="utf-8")
     print(table(results, line))
+    print("\n".join(verdicts(results)))
 
 
 if __name__ == "__main__":
