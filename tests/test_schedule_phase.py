@@ -121,8 +121,8 @@ def test_256_cycles_do_not_fall_due_in_the_same_150_ms() -> None:
         for state in schedule.devices.values():
             read_due(schedule, state, START + 0.01)  # the start's backlog: all at once
             due.append(value_due(state))
-    # The next cycles are all within one interval of the start, each at its own instant.
-    assert all(START < t <= START + 1.01 for t in due)
+    # The next cycles all come in the interval after the next, each at its own instant.
+    assert all(START + 1.01 < t <= START + 2.01 for t in due)
     assert len(set(due)) == 256
     ordered = sorted(due)
     busiest = max(sum(1 for t in ordered if s <= t < s + 0.150) for s in ordered)
@@ -140,13 +140,31 @@ def test_the_first_cycle_is_read_at_once_and_the_next_at_the_devices_slot() -> N
     schedule.restart(START)
     assert schedule.pick(START, slow=False) is state  # due at once: online promptly
     assert set(read_due(schedule, state, START + 0.02)) == set(VALUES)
-    # A quarter of its 2 s interval: due at 2k + 0.5 s of the monotonic clock.
-    assert value_due(state) == pytest.approx(1000.5)
-    assert schedule.pick(1000.49, slow=False) is None
-    assert schedule.pick(1000.5, slow=False) is state
-    read_due(schedule, state, 1000.53)
+    # A quarter of its 2 s interval: due at 2k + 0.5 s of the monotonic clock, the first
+    # such slot a whole interval after the first cycle (1000.39 + 2).
     assert value_due(state) == pytest.approx(1002.5)
+    assert schedule.pick(1002.49, slow=False) is None
+    assert schedule.pick(1002.5, slow=False) is state
+    read_due(schedule, state, 1002.53)
+    assert value_due(state) == pytest.approx(1004.5)
     assert state.missed_deadlines == 0
+
+
+def test_a_long_first_cycle_leaves_the_next_slot_a_whole_interval_away() -> None:
+    # At 9600 baud an H10's first cycle (its identity) took 0.6 s and a tecLine's another
+    # 0.3 s; the H10's slot within the first interval (1000.75) would have been missed
+    # before it was served.
+    h10 = DeviceState(target=target("h10", 2, phase=0.5, interval_s=0.5))
+    cl2 = DeviceState(target=target("cl2", 20, phase=0.0, interval_s=0.5))
+    schedule = Schedule({"h10": h10, "cl2": cl2})
+    schedule.restart(START)
+    read_due(schedule, h10, START)  # began at the start, ended 0.6 s later
+    read_due(schedule, cl2, START + 0.6)  # began then, ended 0.3 s later
+    read_due(schedule, h10, START + 0.9)
+    read_due(schedule, cl2, START + 1.13)
+    assert (h10.missed_deadlines, cl2.missed_deadlines) == (0, 0)
+    assert value_due(h10) % 0.5 == pytest.approx(0.25)  # back on its slots
+    assert value_due(cl2) % 0.5 == pytest.approx(0.0, abs=1e-9)
 
 
 def test_phase_zero_is_no_spread_devices_at_zero_fall_due_together() -> None:
@@ -156,7 +174,7 @@ def test_phase_zero_is_no_spread_devices_at_zero_fall_due_together() -> None:
     schedule.restart(START)
     for state in schedule.devices.values():
         read_due(schedule, state, START + 0.05 * state.target.address)
-    assert [value_due(s) for s in schedule.devices.values()] == [1001.0, 1001.0]
+    assert [value_due(s) for s in schedule.devices.values()] == [1002.0, 1002.0]
 
 
 def test_without_a_phase_deadlines_count_from_the_start_as_before() -> None:
@@ -175,12 +193,12 @@ def test_points_at_a_multiple_of_the_interval_fall_due_with_the_others() -> None
     schedule.restart(START)
     now = START
     turns = []
-    for _ in range(12):
+    for _ in range(17):
         names = read_due(schedule, state, now)
         turns.append((round(now, 6), VALUES[0] in names))
         now = min(state.next_due[n] for n in VALUES)
     slow_point_turns = [t for t, read in turns if read]
-    assert slow_point_turns == [START, 1000.3 + 5.0, 1000.3 + 10.0]
+    assert slow_point_turns == [START, 1010.3, 1015.3]  # its first slot 5 s after START
     assert all(round(t - 0.3, 6) % 1 == 0 for t, _ in turns[1:])  # every turn on its slot
 
 
@@ -201,10 +219,10 @@ def test_missed_slots_are_counted_and_the_phase_kept() -> None:
     schedule = Schedule({"basin": state})
     schedule.restart(START)
     read_due(schedule, state, START)
-    assert value_due(state) == pytest.approx(1000.5)
-    read_due(schedule, state, 1003.2)  # the line was busy: 1001.5 and 1002.5 missed
+    assert value_due(state) == pytest.approx(1001.5)
+    read_due(schedule, state, 1004.2)  # the line was busy: 1002.5 and 1003.5 missed
     assert state.missed_deadlines == 2 * len(VALUES)
-    assert value_due(state) == pytest.approx(1003.5)
+    assert value_due(state) == pytest.approx(1004.5)
 
 
 # --- the phase holds ----------------------------------------------------------------------
@@ -233,7 +251,7 @@ def test_a_restart_reads_at_once_then_returns_to_the_same_slots(how: str) -> Non
         read_due(schedule, state, again + 0.01)
     after = {name: value_due(s) % 1.0 for name, s in schedule.devices.items()}
     assert after == pytest.approx(before)
-    assert all(again < value_due(s) <= again + 1.01 for s in restarted)
+    assert all(again + 1.01 < value_due(s) <= again + 2.01 for s in restarted)
 
 
 def test_values_read_again_for_another_master_return_to_their_slot() -> None:

@@ -12,7 +12,8 @@ every cycle, and their cycles reach the MQTT publisher in bursts. A device with 
 of the monotonic clock, ``phase_s + k * interval``, the same clock for every bus, so the
 gateway spreads its devices by giving each its own fraction (:func:`spread_phase`). The
 first cycle after a (re)start is read at once, as before (devices come online promptly);
-the next one waits for the device's slot, at most one interval later, and every cycle after
+the next one waits for the device's first slot a whole interval or more after it (one to
+two intervals: the first cycle may take long, reading identity), and every cycle after
 keeps it: a device back online or a port reconnected returns to the same slots. The slow
 class keeps its deadlines as they were (from the start and the cycle that read it). A
 device without a phase (the command line's) counts its deadlines from its (re)start.
@@ -253,7 +254,8 @@ class Schedule:
             if interval is None or name not in state.next_due:
                 continue
             deadline = state.next_due[name]
-            if name in state.fresh:  # the first cycle after a (re)start reads everything
+            first = name in state.fresh
+            if first:  # the first cycle after a (re)start reads everything
                 state.fresh.discard(name)
                 if not state.fresh:  # an emptied set keeps its table: 8 KiB for an H10
                     state.fresh = set()
@@ -264,7 +266,9 @@ class Schedule:
                     state.next_due[name] = now + interval
                 continue
             lag = now - deadline
-            state.next_due[name] = self._following(state, deadline, interval, now, offset_s)
+            state.next_due[name] = self._following(
+                state, deadline, interval, now, offset_s, first=first
+            )
             state.lag_s = max(0.0, lag)
             if lag <= interval or state.lag_reported:
                 continue
@@ -278,12 +282,23 @@ class Schedule:
 
     @staticmethod
     def _following(
-        state: DeviceState, deadline: float, interval: float, now: float, offset_s: float | None
+        state: DeviceState,
+        deadline: float,
+        interval: float,
+        now: float,
+        offset_s: float | None,
+        *,
+        first: bool,
     ) -> float:
         """The deadline after ``deadline`` (a point read at ``now``); missed ones counted.
 
-        With a phase (``offset_s``), the point's next slot, also after a (re)start or a
-        reread, whose deadline was the moment they came, not a slot.
+        With a phase (``offset_s``), the point's next slot, also after a reread, whose
+        deadline was the moment it came, not a slot. After the first cycle of a (re)start,
+        the first slot a whole interval after it: that cycle's ``now`` is when it began,
+        and it may have read the device's identity for a second and more, with the other
+        devices' first cycles still to come; a slot sooner would be missed before it is
+        served (a start at 9600 baud counted missed deadlines). So the second cycle comes
+        one to two intervals after the first, never sooner than before phases.
         """
         nxt = deadline + interval
         if nxt <= now:
@@ -291,5 +306,6 @@ class Schedule:
             nxt += skipped * interval
             state.missed_deadlines += skipped
         if offset_s is not None:
-            nxt = next_slot(now, interval_s=interval, offset_s=offset_s)
+            after = now + interval if first else now
+            nxt = next_slot(after, interval_s=interval, offset_s=offset_s)
         return nxt
