@@ -21,6 +21,7 @@ from gateway.line.echo import EchoMode
 from gateway.line.factory import build_line
 from gateway.line.foreign import SharePolicy
 from gateway.line.port_access import SystemRoots, port_name_advice, port_options
+from gateway.line.schedule import spread_phase
 from gateway.line.worker import BusWorker
 from gateway.profiles.identity import pinned_serial
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
@@ -51,8 +52,14 @@ _LOGGER = logging.getLogger(__name__)
 SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports
 
 
-def device_target(device: DeviceConfig, bus: BusConfig) -> DeviceTarget:
-    """What the bus engine polls for one configured device."""
+def device_target(
+    device: DeviceConfig, bus: BusConfig, *, phase: float | None = None
+) -> DeviceTarget:
+    """What the bus engine polls for one configured device.
+
+    ``phase``: the spread the gateway gives it (:func:`spread_phase`), which its own
+    ``poll_phase`` overrides; ``None`` and no ``poll_phase``: deadlines from each start.
+    """
     profile = device.get_profile()
     intervals: dict[str, float | None] = {}
     for point in profile.points:
@@ -75,6 +82,7 @@ def device_target(device: DeviceConfig, bus: BusConfig) -> DeviceTarget:
         retries=device.retries_on(bus),
         offline_after=device.offline_after,
         serial_number=pinned_serial(profile, device.serial_number),
+        phase=device.poll_phase if device.poll_phase is not None else phase,
     )
 
 
@@ -83,10 +91,16 @@ def build_workers(
 ) -> list[BusWorker]:
     """One worker per configured bus, with its devices; registered in ``state`` if given."""
     workers = []
-    for bus in config.buses:
+    for b, bus in enumerate(config.buses):
         if (advice := port_name_advice(bus.port, SystemRoots())) is not None:
             _LOGGER.warning("%s: %s", bus.name, advice)  # as check-config warns
-        targets = [device_target(d, bus) for d in config.devices_on(bus.name)]
+        on_bus = config.devices_on(bus.name)
+        # Spread across the interval and across buses: not 256 cycles due at one instant.
+        phases = (
+            spread_phase(device=j, devices=len(on_bus), bus=b, buses=len(config.buses))
+            for j in range(len(on_bus))
+        )
+        targets = [device_target(d, bus, phase=p) for d, p in zip(on_bus, phases, strict=True)]
         worker = BusWorker(
             name=bus.name,
             line=build_line(

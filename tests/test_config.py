@@ -568,3 +568,10 @@ def test_echo_off_and_on_unquoted_mean_the_words(written: str, meant: str) -> No
         environ=NO_ENV,
     )
     assert config.buses[0].echo == meant
+
+
+def test_poll_phase_is_a_fraction_of_the_poll_interval_spread_by_default() -> None:
+    assert device_with().poll_phase is None  # the gateway spreads the devices
+    assert device_with(poll_phase=0).poll_phase == 0.0  # no spread
+    assert device_with(poll_phase=0.25, poll_interval=2).poll_phase == 0.25
+    assert device_with(poll_phase="0.75").poll_phase == 0.75

@@ -18,7 +18,8 @@ def seeded(seed: int) -> random.Random:
     return random.Random(seed)  # noqa: S311 - a repeatable test, nothing secret
 
 
-def states(count: int, rng: random.Random) -> dict[str, DeviceState]:
+def states(count: int, rng: random.Random, *, phases: bool = False) -> dict[str, DeviceState]:
+    """Devices of every family; ``phases``: some with a phase (some with none), as spread."""
     result = {}
     for n in range(count):
         profile = get_profile(FAMILIES[n % len(FAMILIES)])
@@ -26,8 +27,13 @@ def states(count: int, rng: random.Random) -> dict[str, DeviceState]:
         slow = [p for p in profile.points_in(PollGroup.DIAGNOSTICS) if not p.view][:3]
         intervals: dict[str, float | None] = {p.name: rng.choice((0.5, 1.0, 2.0)) for p in process}
         intervals.update({p.name: 10.0 for p in slow})
+        phase = rng.choice((None, 0.0, rng.random())) if phases else None
         target = DeviceTarget(
-            name=f"d{n}", address=rng.randint(1, 247), profile=profile, intervals=intervals
+            name=f"d{n}",
+            address=rng.randint(1, 247),
+            profile=profile,
+            intervals=intervals,
+            phase=phase,
         )
         result[target.name] = DeviceState(target=target)
     return result
@@ -48,10 +54,11 @@ def identity_read(state: DeviceState) -> None:
     state.deadline_cache.clear()
 
 
+@pytest.mark.parametrize("phases", [False, True], ids=["from-start", "phased"])
 @pytest.mark.parametrize("seed", range(10))
-def test_the_heap_picks_what_a_scan_picks(seed: int) -> None:
+def test_the_heap_picks_what_a_scan_picks(seed: int, *, phases: bool) -> None:
     rng = seeded(seed)
-    devices = states(rng.randint(1, 40), rng)
+    devices = states(rng.randint(1, 40), rng, phases=phases)
     schedule = Schedule(devices)
     now = 1000.0
     schedule.restart(now)

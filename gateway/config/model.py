@@ -323,6 +323,9 @@ class DeviceConfig(_Model):
     address: Annotated[int, Field(ge=1, le=247)]
     profile: Annotated[str, Field(min_length=1)]
     poll_interval: Seconds = 1.0  # process values and status
+    # Where in poll_interval its values fall due, as a fraction of it (0.25: a quarter of an
+    # interval after the devices at 0); None: spread by the gateway (README: poll phases).
+    poll_phase: Annotated[float, Field(ge=0, lt=1)] | None = None
     diagnostics_interval: Seconds = 60.0
     configuration_interval: Seconds = 300.0
     points: dict[str, PointSettings] = {}

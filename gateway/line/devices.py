@@ -36,6 +36,10 @@ class DeviceTarget:
     offline_after: int = 3
     probe_max_s: float = PROBE_MAX_S
     serial_number: PinnedSerial | None = None  # the serial it must report; None: any
+    # Where in its poll interval its values fall due (0 <= phase < 1, a fraction of the
+    # interval, on the monotonic clock: see gateway.line.schedule); None: counted from each
+    # (re)start, as a one-off command reads.
+    phase: float | None = None
 
     # Points of the diagnostics and configuration groups, polled in free line time; resolved
     # once here, not looked up on every scheduling step.
@@ -46,6 +50,10 @@ class DeviceTarget:
     unit_tables: Mapping[str, Mapping[int, str]] = field(init=False, repr=False, compare=False)
     # The register with the device's minimum response time (digiLine 0x0305), resolved once.
     min_response_point: Point | None = field(init=False, repr=False, compare=False)
+    # The phase in seconds: ``phase`` of the poll interval, the same offset for every value
+    # point, so points at multiples of the poll interval keep falling due with the others
+    # (and are read in the same request).
+    phase_s: float | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         """Resolve the slow points and the unit registers from the profile."""
@@ -59,6 +67,8 @@ class DeviceTarget:
         object.__setattr__(
             self, "min_response_point", profile.point(learn) if learn is not None else None
         )
+        phase_s = None if self.phase is None else self.phase * self.poll_interval_s
+        object.__setattr__(self, "phase_s", phase_s)
 
     @property
     def poll_interval_s(self) -> float:

@@ -6,6 +6,18 @@ deadlines are counted and skipped, never piled up. Values (process values and st
 come first; diagnostics and configuration (the slow class) fill the time values leave
 free. Between devices the earliest deadline wins, ties to the lower address.
 
+Phases: devices that share an interval would otherwise all fall due at the same instant,
+every cycle, and their cycles reach the MQTT publisher in bursts. A device with a phase
+(``DeviceTarget.phase``, a fraction of its poll interval) has its values fall due on a grid
+of the monotonic clock, ``phase_s + k * interval``, the same clock for every bus, so the
+gateway spreads its devices by giving each its own fraction (:func:`spread_phase`). The
+first cycle after a (re)start is read at once, as before (devices come online promptly);
+the next one waits for the device's first slot a whole interval or more after it (one to
+two intervals: the first cycle may take long, reading identity), and every cycle after
+keeps it: a device back online or a port reconnected returns to the same slots. The slow
+class keeps its deadlines as they were (from the start and the cycle that read it). A
+device without a phase (the command line's) counts its deadlines from its (re)start.
+
 The earliest deadline of a device is cached per class, and the devices sit in a heap per
 class keyed by it, so the next device is found in O(log n). The heap is checked lazily: an
 entry whose device has since moved on is dropped or pushed again when it comes to the top,
@@ -31,6 +43,34 @@ if TYPE_CHECKING:
     from gateway.line.devices import DeviceState
 
 SLOW_GROUP_DELAY_S: Final = 2.0  # after a (re)start, the slow class waits for the values
+
+
+def spread_phase(*, device: int, devices: int, bus: int, buses: int) -> float:
+    """The default phase of a device: device ``device`` of ``devices`` on bus ``bus`` of ``buses``.
+
+    The devices of a bus share its interval evenly (device j of m at j/m: they take turns on
+    the line anyway, and so each bus's work is spread across its interval), and the buses
+    are staggered within that slot (bus b of B at b/(B*m)), so that 16 buses of 16 devices
+    fall due at 256 different instants, not 16 at once::
+
+        spread_phase(device=1, devices=4, bus=0, buses=2)  # 0.25
+        spread_phase(device=1, devices=4, bus=1, buses=2)  # 0.375
+    """
+    return (device + bus / max(buses, 1)) / max(devices, 1)
+
+
+def next_slot(after: float, *, interval_s: float, offset_s: float) -> float:
+    """The first instant of the grid ``offset_s + k * interval_s`` later than ``after``.
+
+    Computed from the grid, not added up cycle by cycle, so a phase does not drift with
+    rounding however long the gateway runs.
+    """
+    slot = offset_s + (math.floor((after - offset_s) / interval_s) + 1) * interval_s
+    if slot <= after:  # the division rounded down across a slot
+        slot += interval_s
+    elif slot - interval_s > after:  # ... or up
+        slot -= interval_s
+    return slot
 
 
 @dataclass(frozen=True, slots=True)
@@ -207,26 +247,28 @@ class Schedule:
         state.deadline_cache.clear()
         late: Late | None = None
         starting: bool | None = None  # whether any device still reads its identity, once
+        phase_s = state.target.phase_s
+        slow_points = state.target.slow_points
         for name in set(names):
             interval = state.target.intervals.get(name)
             if interval is None or name not in state.next_due:
                 continue
             deadline = state.next_due[name]
-            if name in state.fresh:  # the first cycle after a (re)start reads everything
+            first = name in state.fresh
+            if first:  # the first cycle after a (re)start reads everything
                 state.fresh.discard(name)
                 if not state.fresh:  # an emptied set keeps its table: 8 KiB for an H10
                     state.fresh = set()
                 deadline = now
+            offset_s = None if name in slow_points else phase_s  # None: no phase
             if deadline > now:  # read early, along with due diagnostics: take their phase
-                state.next_due[name] = now + interval
+                if offset_s is None:  # a phased value keeps its slot
+                    state.next_due[name] = now + interval
                 continue
             lag = now - deadline
-            nxt = deadline + interval
-            if nxt <= now:
-                skipped = math.floor((now - nxt) / interval) + 1
-                nxt += skipped * interval
-                state.missed_deadlines += skipped
-            state.next_due[name] = nxt
+            state.next_due[name] = self._following(
+                state, deadline, interval, now, offset_s, first=first
+            )
             state.lag_s = max(0.0, lag)
             if lag <= interval or state.lag_reported:
                 continue
@@ -237,3 +279,33 @@ class Schedule:
                 late = Late(point=name, lag_s=lag, interval_s=interval)
         self.touch(state)  # a point read early takes a new phase, which may come sooner
         return late
+
+    @staticmethod
+    def _following(
+        state: DeviceState,
+        deadline: float,
+        interval: float,
+        now: float,
+        offset_s: float | None,
+        *,
+        first: bool,
+    ) -> float:
+        """The deadline after ``deadline`` (a point read at ``now``); missed ones counted.
+
+        With a phase (``offset_s``), the point's next slot, also after a reread, whose
+        deadline was the moment it came, not a slot. After the first cycle of a (re)start,
+        the first slot a whole interval after it: that cycle's ``now`` is when it began,
+        and it may have read the device's identity for a second and more, with the other
+        devices' first cycles still to come; a slot sooner would be missed before it is
+        served (a start at 9600 baud counted missed deadlines). So the second cycle comes
+        one to two intervals after the first, never sooner than before phases.
+        """
+        nxt = deadline + interval
+        if nxt <= now:
+            skipped = math.floor((now - nxt) / interval) + 1
+            nxt += skipped * interval
+            state.missed_deadlines += skipped
+        if offset_s is not None:
+            after = now + interval if first else now
+            nxt = next_slot(after, interval_s=interval, offset_s=offset_s)
+        return nxt
