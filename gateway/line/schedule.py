@@ -73,6 +73,28 @@ def next_slot(after: float, *, interval_s: float, offset_s: float) -> float:
     return slot
 
 
+def _earliest_by_class(state: DeviceState) -> tuple[float, float]:
+    """The earliest deadline of the device's values and of its slow class, in one pass.
+
+    Run after every poll, over every point of the device (an H10 has 289): both classes
+    at once, with :meth:`Schedule.is_slow` written out, since at 16 x 16 a pass per class
+    through a call per point took a sixth of the gateway's CPU.
+    """
+    fast = slow = math.inf
+    unreadable = state.unreadable
+    slow_points = state.target.slow_points
+    pending = state.identity_pending
+    for name, deadline in state.next_due.items():
+        if name in unreadable:
+            continue
+        if name in slow_points and name not in pending:
+            if deadline < slow:  # noqa: PLR1730 - a comparison, not a call per point
+                slow = deadline
+        elif deadline < fast:
+            fast = deadline
+    return fast, slow
+
+
 @dataclass(frozen=True, slots=True)
 class Late:
     """A point found more than one interval late: reported once per device."""
@@ -185,17 +207,11 @@ class Schedule:
             return state.probe_at if not slow else math.inf
         if not slow and any(n not in state.unreadable for n in state.identity_pending):
             return 0.0
-        cached = state.deadline_cache.get(slow)
+        cache = state.deadline_cache
+        cached = cache.get(slow)
         if cached is None:
-            cached = min(
-                (
-                    t
-                    for n, t in state.next_due.items()
-                    if n not in state.unreadable and self.is_slow(state, n) == slow
-                ),
-                default=math.inf,
-            )
-            state.deadline_cache[slow] = cached
+            cache[False], cache[True] = _earliest_by_class(state)
+            cached = cache[slow]
         return cached
 
     def pick(self, now: float, *, slow: bool) -> DeviceState | None:
