@@ -91,6 +91,8 @@ class Topics:
         self._fault_cleared: set[str] = set()
         self._discovered: set[tuple[str, str]] = set()
         self._sequence: dict[str, int] = {}  # state documents per device since the start
+        # Each device's points in the document's order, sorted once, not at every cycle.
+        self._order: dict[str, tuple[str, ...]] = {}
 
     def cycle(self, samples: Sequence[Sample]) -> list[Message]:
         """One device's poll cycle as messages, in the order they go out.
@@ -215,7 +217,12 @@ class Topics:
         intervals = info.intervals if info is not None else {}
         now = time.monotonic()
         good = Quality.GOOD
-        for point, sample in sorted(self.state.device_samples(bus, device).items()):
+        samples = self.state.device_samples(bus, device)
+        order = self._order.get(device)
+        if order is None or len(order) != len(samples):  # points are added, never removed
+            order = self._order[device] = tuple(sorted(samples))
+        for point in order:
+            sample = samples[point]
             units[point] = sample.unit
             if sample.quality is good:
                 value = sample.value
