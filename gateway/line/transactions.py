@@ -189,6 +189,7 @@ class Transactions:
         # the configured value, not the manual's longest. An answer refused as too early
         # must never be the device's own.
         reported = reported_min_response_s(state)
+        profile = state.target.profile
         try:
             exchange = await self.line.transact(
                 request,
@@ -197,8 +198,8 @@ class Transactions:
                 ),
                 gap_s=self.gap_s(state),
                 not_before=state.not_before,
-                exceptions=state.profile.exceptions,
-                byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
+                exceptions=profile.exceptions,
+                byte_count_16bit=profile.quirks.string_byte_count_16bit,
                 turnaround_s=0.0 if reported is None else reported,
             )
         except LineNoiseError:
@@ -344,8 +345,9 @@ class Transactions:
             _LOGGER.debug("%s/%s: %s", self.bus, state.target.name, exc)
             return self.decoder.failed(state, block, _FAILURE_NAMES.get(type(exc), "comms_error"))
         await self.availability.answered(state, "answered")
-        for point in block.points:
-            state.attempts.pop(point.name, None)
+        if state.attempts:  # only after a failure: nearly every read has nothing to forget
+            for point in block.points:
+                state.attempts.pop(point.name, None)
         if self.cache.enabled:
             self.cache.store(state.target.name, block.address, response.registers, time.monotonic())
         return self.decoder.decode(state, block, response.registers)

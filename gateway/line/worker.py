@@ -411,7 +411,9 @@ class BusWorker:
         reads = self.transactions
         plan = reads.plan_slow(state, names) if slow else reads.plan(state, names)
         # Oldest deadlines first, so a read cut short by due values resumes where it left.
-        blocks = sorted(plan, key=lambda b: self._block_deadline(state, b))
+        blocks = plan
+        if len(plan) > 1:
+            blocks = tuple(sorted(plan, key=lambda b: self._block_deadline(state, b)))
         for block in blocks:
             if state.not_before > time.monotonic() or state.online is False:
                 break  # a failure set a quarantine or took the device offline: others first
@@ -424,7 +426,10 @@ class BusWorker:
             _LOGGER.warning(
                 "%s/%s: %s", self.name, state.target.name, self.lateness.explain(late, now)
             )
-        published = await self.identity.screen(state, samples)
+        # Only a pinned device's samples wait on its identity: the others go as they are.
+        published = (
+            await self.identity.screen(state, samples) if self.identity.screens(state) else samples
+        )
         if published:
             for sink in self.sinks:
                 await sink.publish(published)
