@@ -57,12 +57,13 @@ class Decoder:
         # block kept to tell a reused id apart): plans are made once and read again and
         # again, and looking each point's offset, decoder and group up on every read was
         # a good part of a transaction's CPU.
-        self._layouts: dict[int, tuple[ReadBlock, tuple[_Slot, ...]]] = {}
+        self._layouts: dict[int, tuple[ReadBlock, tuple[_Slot, ...], bool]] = {}
 
-    def _layout(self, block: ReadBlock) -> tuple[_Slot, ...]:
+    def _layout(self, block: ReadBlock) -> tuple[tuple[_Slot, ...], bool]:
+        """The block's slots, and whether any is a float (whose word order is then needed)."""
         known = self._layouts.get(id(block))
         if known is not None and known[0] is block:
-            return known[1]
+            return known[1], known[2]
         if len(self._layouts) >= LAYOUTS_MAX:
             self._layouts.clear()
         layout = tuple(
@@ -78,20 +79,23 @@ class Decoder:
             )
             for p in block.points
         )
-        self._layouts[id(block)] = (block, layout)
-        return layout
+        floats = any(p.format.dtype is codec.DataType.FLOAT32 for p in block.points)
+        self._layouts[id(block)] = (block, layout, floats)
+        return layout, floats
 
     def decode(
         self, state: DeviceState, block: ReadBlock, registers: tuple[int, ...]
     ) -> list[Sample]:
         """The samples of a block read; the device's values and pending identity updated."""
         monotonic, now = time.monotonic(), datetime.now(tz=UTC)
-        order = state.float_order
+        layout, floats = self._layout(block)
+        # Only a float's decoder reads the word order, which takes some looking up.
+        order = state.float_order if floats else codec.DEFAULT_FLOAT_ORDER
         values = state.values
         pending = state.identity_pending
         bus, device, profile = self.bus, state.target.name, state.target.profile.id
         samples = []
-        for slot in self._layout(block):
+        for slot in layout:
             chunk = registers[slot.start : slot.end]
             fmt = slot.format
             try:

@@ -25,7 +25,7 @@ import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Final, cast
 
 import serial
 import serial_asyncio_fast
@@ -225,6 +225,7 @@ class Line:
         self._judge_by_wire = "://" not in port
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
         self._transport: asyncio.Transport | None = None
+        self._serial: serial.Serial | None = None
         self._receiver: _Receiver | None = None
         self._character_s = line.character_s
         self._silence_s = max(SILENCE_CHARACTERS * self._character_s, MIN_SILENCE_S)
@@ -288,6 +289,8 @@ class Line:
             self.stats.closed_because(port_access.PortReason.DRIVER, message)
             raise BusClosedError(message) from exc
         self._transport, self._receiver = transport, receiver
+        # The serial port under the transport, looked at before every request.
+        self._serial = cast("serial.Serial | None", transport.get_extra_info("serial"))
         self.stats.closed_because(None, "")
         self.stats.port_open = True
         self.last_frame_end = time.monotonic()
@@ -296,6 +299,7 @@ class Line:
         """Close the port (idempotent); back once the device is closed (its lock released)."""
         transport, receiver = self._transport, self._receiver
         self._transport = self._receiver = None
+        self._serial = None
         self.stats.port_open = False
         self._timer.close()
         if transport is None:
@@ -326,7 +330,7 @@ class Line:
         answer sat in the kernel's buffer while the event loop was busy, so the gap was
         measured from an older byte.
         """
-        port = self._transport.get_extra_info("serial") if self._transport else None
+        port = self._serial
         if port is None or not port.is_open:
             return False  # the port went away: the write or the receiver will say so
         try:
