@@ -25,7 +25,7 @@ import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Final, cast
+from typing import TYPE_CHECKING, Final, Protocol, cast
 
 import serial
 import serial_asyncio_fast
@@ -172,6 +172,16 @@ class _Receiver(asyncio.Protocol):
             waiter.set_result(None)
 
 
+class WaitWatch(Protocol):
+    """Told of the line's timed waits: the event loop's watch (``line/lateness``)."""
+
+    def asleep(self) -> None:
+        """A timed wait begins."""
+
+    def awake(self, due: float, now: float) -> None:
+        """The timed wait due at ``due`` ended at ``now``."""
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class LateAnswer:
     """A device's own answer that came after its request had timed out."""
@@ -234,6 +244,8 @@ class Line:
         # How late each request started after its gap was due (seconds), kept only when
         # a benchmark sets a list here; nothing in the gateway reads it.
         self.gap_lateness_s: list[float] | None = None
+        # Told when the gap's wait sleeps and wakes (the bus worker sets it while it runs).
+        self.wait_watch: WaitWatch | None = None
 
     @property
     def is_open(self) -> bool:
@@ -420,7 +432,16 @@ class Line:
                 give_up = max(now, not_before) + bound_s
             if now >= give_up:
                 self._no_silence(device, gap_s, bound_s)
-            await self._timer.sleep_until(min(ready, give_up))
+            wake_at = min(ready, give_up)
+            watch = self.wait_watch
+            if watch is None:
+                await self._timer.sleep_until(wake_at)
+            else:
+                watch.asleep()
+                try:
+                    await self._timer.sleep_until(wake_at)
+                finally:
+                    watch.awake(wake_at, time.monotonic())
             self._live_receiver()
 
     def _no_silence(self, device: int, gap_s: float, bound_s: float) -> None:

@@ -127,9 +127,11 @@ class BusWorker:
         self.jobs.running = True
         watch = self.lateness.watch = loop_watch()
         watch.attach()
+        self.line.wait_watch = watch  # the gap's waits sleep and wake under the watch
         try:
             await self._run(delay)
         finally:
+            self.line.wait_watch = None
             watch.detach()
             self.jobs.running = False
             self.foreign.accepting = False
@@ -397,8 +399,15 @@ class BusWorker:
         timeout = max(0.0, wake_at - now)
         if math.isinf(timeout):
             timeout = 1.0
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        watch = self.line.wait_watch
+        if watch is not None:
+            watch.asleep()
+        try:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        finally:
+            if watch is not None:
+                watch.awake(now + timeout, time.monotonic())
         if self._resume is not None:
             return  # a pause: the port is closed on purpose
         if not self.line.is_open:
