@@ -287,6 +287,7 @@ class Line:
                     protocol=receiver,
                 )
                 transport = opened.transport
+                _direct_io(opened.transport.serial)
                 self.stats.latency_timer_s = opened.latency_timer_s
                 if opened.latency_advice is not None and not self._latency_warned:
                     self._latency_warned = True  # once per line, not at every reconnection
@@ -697,6 +698,51 @@ async def _bytes_or_timeout(receiver: _Receiver, timeout_s: float) -> None:
 def _expire(waiter: asyncio.Future[None]) -> None:
     if not waiter.done():
         waiter.set_result(None)
+
+
+def _direct_io(device: serial.Serial | None) -> None:
+    """Let the transport read and write the device with one ``os.read``/``os.write``.
+
+    pyserial-asyncio-fast calls the port's ``read`` when the event loop has seen it
+    readable; pyserial then makes two timeout objects, calls ``select`` once more and
+    only then ``os.read`` (a system call and some 15 Python calls per answer, for what
+    the loop already knew: 7.5 against 3 µs a read, measured on a pseudo-terminal). Its
+    non-blocking ``write`` makes a timeout object around one ``os.write``. The
+    replacements keep pyserial's verdicts: nothing to read (``EAGAIN``, ``EINTR``) is
+    no data, a read that fails or finds the device gone (readable, yet nothing) is a
+    :class:`serial.SerialException`, which the transport turns into a lost connection;
+    a write the kernel cannot take now (``EAGAIN``) is left to the transport's buffer
+    (pyserial spun on it), a failed one is a :class:`serial.SerialException`. Only a
+    port opened as a local device gets them.
+    """
+    fd = getattr(device, "fd", None)
+    if device is None or not isinstance(fd, int):
+        return
+
+    def read(size: int = 1) -> bytes:
+        try:
+            data = os.read(fd, size)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:
+            raise serial.SerialException(f"read failed: {exc}") from exc
+        if not data:
+            raise serial.SerialException(
+                "device reports readiness to read but returned no data "
+                "(device disconnected or multiple access on port?)"
+            )
+        return data
+
+    def write(data: bytes | bytearray | memoryview) -> int:
+        try:
+            return os.write(fd, data)
+        except (BlockingIOError, InterruptedError):
+            raise
+        except OSError as exc:
+            raise serial.SerialException(f"write failed: {exc}") from exc
+
+    device.read = read  # type: ignore[method-assign]
+    device.write = write  # type: ignore[method-assign,assignment]
 
 
 # Unix98 pseudo-terminal slaves: character devices of majors 136..143 (the kernel's
