@@ -16,6 +16,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import DecodeError
+from gateway.line.devices import SLOW_GROUPS
 from gateway.line.samples import Quality, Sample, hex_registers
 from gateway.wire import codec
 
@@ -80,7 +81,11 @@ class Decoder:
             for p in block.points
         )
         floats = any(p.format.dtype is codec.DataType.FLOAT32 for p in block.points)
-        self._layouts[id(block)] = (block, layout, floats)
+        if block.points and block.points[0].group not in SLOW_GROUPS:
+            # Kept for the values polled every interval; a diagnostics block, read now and
+            # then, is resolved for its read only: hundreds of points per family (some
+            # 26,000 at 16 x 16) would otherwise each keep a slot for little gain.
+            self._layouts[id(block)] = (block, layout, floats)
         return layout, floats
 
     def decode(
