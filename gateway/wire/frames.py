@@ -1,11 +1,18 @@
 """Modbus RTU frames: requests built and responses parsed with pymodbus's framer and PDUs.
 
-pymodbus does the Modbus part well (PDU classes, ``FramerRTU``, its CRC); this module
-adds what a strict master needs on top and what pymodbus's client cannot give us:
-matching a response against the request in flight (device, function, byte count,
-length), classifying every failure as its own error, the frame length expected from
-the first bytes, and the digiLine string quirk as an explicit, reported tolerance.
-The server-side helpers serve the simulator.
+pymodbus does the Modbus part well (PDU classes, ``FramerRTU``); this module adds what a
+strict master needs on top and what pymodbus's client cannot give us: matching a
+response against the request in flight (device, function, byte count, length),
+classifying every failure as its own error, the frame length expected from the first
+bytes, and the digiLine string quirk as an explicit, reported tolerance. The
+server-side helpers serve the simulator.
+
+The transaction path, every answer of every poll, does not go through pymodbus: the CRC
+is our own table (:func:`crc_value`) and a read's answer is unpacked by a struct per
+register count (:func:`read_answer`). pymodbus's framer and decoder cost more per
+answer than the rest of a transaction's own work; read requests are built through it
+once per planned block and reused, and it still builds writes and one-off requests and
+parses everything but the plain read answer.
 """
 
 from __future__ import annotations
