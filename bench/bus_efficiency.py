@@ -51,6 +51,7 @@ from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 
 if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
+    from typing import Any
 
     from gateway.line.plan import ReadBlock
     from gateway.line.port import LineStats
@@ -213,6 +214,18 @@ def lateness_figures(lateness_s: list[float]) -> dict[str, float]:
 
 
 SWEEP = ("9600-E-1", "19200-N-1", "38400-E-1", "115200-N-1", "9600-N-2")
+# Issue 23, target 1: CPU per transaction within 1.25 times the bare master's at every
+# format, the line as efficient as before.
+CPU_RATIO_TARGET = 1.25
+EFFICIENCY_TARGET = 0.95
+
+
+def target_met(results: Sequence[dict[str, Any]]) -> bool:
+    """Whether every format kept both: the CPU ratio to the bare master and the efficiency."""
+    return all(
+        r["cpu_ratio_to_bare"] <= CPU_RATIO_TARGET and r["efficiency"] >= EFFICIENCY_TARGET
+        for r in results
+    )
 
 
 @contextlib.contextmanager
@@ -278,6 +291,8 @@ def one_format(line: LineFormat, seconds: float) -> dict[str, object]:
         **measured,
         **floor,
         "efficiency": figures["bus_s_per_cycle"] / measured_cycle_s,
+        "cpu_ratio_to_bare": measured["cpu_us_per_transaction"]
+        / floor["bare_cpu_us_per_transaction"],
         "gateway_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "timing_violations": referee["timing_violations"],
     }
@@ -305,7 +320,7 @@ def main() -> None:
     print(
         f"{'line':<12} {'frames/cycle':>13} {'min ms':>7} {'meas ms':>8} {'efficiency':>10} "
         f"{'late ms':>7} {'p99':>5} {'tx/s':>6} {'values/s':>8} {'µs CPU/tx':>9} "
-        f"{'bare µs/tx':>10} {'wake µs':>7} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
+        f"{'bare µs/tx':>10} {'ratio':>5} {'wake µs':>7} {'RSS MiB':>7} {'err':>4} {'viol':>4}"
     )
     for r in results:
         frames_text = f"{r['frames_per_cycle']}/{r['frames_per_cycle_one_per_point']}"
@@ -315,10 +330,16 @@ def main() -> None:
             f"{r['gap_late_ms_median']:>7.3f} {r['gap_late_ms_p99']:>5.2f} "
             f"{r['transactions_per_s']:>6.1f} {r['values_per_s']:>8.1f} "
             f"{r['cpu_us_per_transaction']:>9.0f} {r['bare_cpu_us_per_transaction']:>10.0f} "
+            f"{r['cpu_ratio_to_bare']:>5.2f} "
             f"{r['wake_cpu_us']:>7.0f} "
             f"{r['gateway_rss_mib']:>7.1f} "
             f"{r['errors']:>4} {r['timing_violations']:>4}"
         )
+    verdict = "met" if target_met(results) else "not met"
+    print(
+        f"CPU per transaction <= {CPU_RATIO_TARGET}x the bare master's and efficiency >= "
+        f"{EFFICIENCY_TARGET} at every format: {verdict}"
+    )
 
 
 if __name__ == "__main__":

@@ -137,3 +137,41 @@ async def test_a_poll_made_late_by_a_held_loop_blames_the_process_not_the_line(
     assert 0.8 - 0.2 <= lag <= 1.0 + 0.1
     assert busy < 0.2 * lag
     assert loop >= lag - 0.1
+
+
+async def test_while_every_worker_sleeps_the_watch_rests_and_the_sleeper_measures_the_loop() -> (
+    None
+):
+    """The watch's timer does not wake an idle loop: the sleeping worker's own wake tells
+    how late the loop ran it, once (the resting timer adds nothing on top)."""
+    watch = LoopWatch(asyncio.get_running_loop())
+    watch.attach()
+    start = time.monotonic()
+    watch.asleep()
+    due = start + 0.05
+    time.sleep(0.3)  # noqa: ASYNC251 - the point: the loop held past the sleeper's due time
+    await asyncio.sleep(0.1)  # a timer of the watch would run now, late
+    woke = time.monotonic()
+    watch.awake(due, woke)
+    stalled = watch.since(start).stalled_s
+    watch.detach()
+    # Late by the time from its due to its wake: the hold past it, and the loop's free 0.1 s.
+    assert woke - due - 0.001 <= stalled <= woke - due + 0.001
+    assert 0.3 <= stalled < 0.5  # a timer of its own would have added some 0.3 s again
+
+
+async def test_while_one_worker_is_awake_the_watch_keeps_time_and_a_sleeper_adds_nothing() -> None:
+    loop = asyncio.get_running_loop()
+    watch = LoopWatch(loop)
+    watch.attach()
+    watch.attach()  # a second worker, awake
+    await asyncio.sleep(0.06)
+    start = time.monotonic()
+    watch.asleep()
+    time.sleep(0.3)  # noqa: ASYNC251 - the loop held
+    await asyncio.sleep(0.06)  # the watch's timer runs, late
+    watch.awake(start, time.monotonic())  # late too, by more: not counted again
+    stalled = watch.since(start).stalled_s
+    watch.detach()
+    watch.detach()
+    assert 0.3 - 0.05 - 0.02 <= stalled <= 0.3 + 0.02  # the watch's timer alone

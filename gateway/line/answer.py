@@ -44,6 +44,26 @@ class AnswerScan:
     frame complete before any answer could be (:func:`~gateway.line.echo.earliest_answer`).
     """
 
+    __slots__ = (
+        "_answer_floor",
+        "_character_s",
+        "_echo",
+        "_echo_known",
+        "_head",
+        "_length",
+        "_need",
+        "byte_count_16bit",
+        "consumed",
+        "crc_bad",
+        "early",
+        "echo_skipped",
+        "exceptions",
+        "garbage",
+        "other_device",
+        "request",
+        "start",
+    )
+
     def __init__(
         self,
         request: frames.Request,
@@ -77,6 +97,13 @@ class AnswerScan:
         self._answer_floor = answer_floor  # sent + request on the wire + turnaround
         self._character_s = character_s
         self.start = 0
+        # A read's own answer, as nearly every answer is: its first three bytes (device,
+        # function, byte count) and its length, for the fast path of :meth:`feed`.
+        if request.function in frames.READ_FUNCTIONS and not request.is_broadcast:
+            self._head: bytes | None = bytes((request.device, request.function, 2 * request.count))
+            self._need = 5 + 2 * request.count
+        else:
+            self._head, self._need = None, 0
 
     def _too_early(self, length: int, arrived_at: float) -> bool:
         return arrived_at < self._answer_floor + length * self._character_s
@@ -109,6 +136,11 @@ class AnswerScan:
         ``arrived_at`` is when the last of the bytes came: a frame judged complete before
         the device could have answered is not its answer, and is passed over for good.
         """
+        if len(buffer) <= self.start:
+            return None  # nothing new since what was passed over (the scan keeps nothing else)
+        answer = self._own_read_answer(buffer, arrived_at)
+        if answer is not None:
+            return answer
         data = bytes(buffer)
         if self._skip_echo(data, arrived_at) is None:
             return None
@@ -134,6 +166,26 @@ class AnswerScan:
                 return verdict
             offset += 1
         return None
+
+    def _own_read_answer(self, buffer: bytearray, arrived_at: float) -> frames.Response | None:
+        """The read's answer at the start of ``buffer``, found without the general scan.
+
+        The same verdict the scan below gives such a frame (its CRC checked once, not
+        twice, and no PDU decoder), for the answer that comes on nearly every
+        transaction; ``None`` leaves anything else (a bad CRC, an answer too early, what
+        may be the request's echo) to the scan.
+        """
+        head, need = self._head, self._need
+        if head is None or self.start or len(buffer) < need or not buffer.startswith(head):
+            return None  # not a read, something passed over already, or not (all) there yet
+        echo = self._echo
+        if echo is not None and not self.echo_skipped and echo.startswith(buffer[: len(echo)]):
+            return None  # the request's echo, or its beginning: the scan decides
+        frame = buffer[:need]
+        if not frames.crc_ok(frame) or self._too_early(need, arrived_at):
+            return None
+        self._length = self.consumed = need
+        return frames.read_answer(self.request, frame)
 
     def _try(self, head: bytes) -> frames.Response | object | None:
         """Judge a candidate frame at the start of ``head``: the answer, wait, or skip."""

@@ -98,6 +98,10 @@ class IdentityGuard:
 
     # --- what the worker asks ----------------------------------------------------------
 
+    def screens(self, state: DeviceState) -> bool:
+        """Whether the device's samples go through :meth:`screen` (its serial is pinned)."""
+        return state.target.name in self._pins
+
     def holds(self, state: DeviceState) -> bool:
         """Whether the device is held (another serial, or none): only its serial is read."""
         pin = self._pins.get(state.target.name)

@@ -53,13 +53,19 @@ class _Charge:
 class LoopWatch:
     """How late one event loop runs a timer; time that work charges to it, by source.
 
-    One per event loop (:func:`loop_watch`); its timer runs while a bus worker runs.
+    One per event loop (:func:`loop_watch`); its timer runs while a bus worker runs,
+    except while every worker sleeps on a timer of its own (:meth:`asleep`): then each
+    measures how late the loop woke it (:meth:`awake`), which is all of the loop's
+    lateness that can make a poll late, and the watch's timer does not wake the loop
+    20 times a second for nothing (at one poll a second, that was 2.5 wakes per
+    transaction; at 9600 baud some 50 µs of CPU per transaction).
     """
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         """Idle until :meth:`attach`."""
         self._loop = loop
         self._users = 0
+        self._sleepers = 0  # workers in a timed wait of their own
         self._handle: asyncio.TimerHandle | None = None
         self._due = 0.0
         self._stalls: deque[tuple[float, float]] = deque(maxlen=HISTORY)  # (end, seconds)
@@ -77,6 +83,26 @@ class LoopWatch:
         if self._users == 0 and self._handle is not None:
             self._handle.cancel()
             self._handle = None
+
+    def asleep(self) -> None:
+        """A worker waits on a timer of its own; the last to do so lets the watch's rest."""
+        self._sleepers += 1
+        if self._sleepers >= self._users and self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+    def awake(self, due: float, now: float) -> None:
+        """A worker's timed wait due at ``due`` ended at ``now`` (early, when woken by work).
+
+        While the watch's timer rested, how late the loop woke the worker is the loop's
+        lateness; the timer runs again while the worker is awake.
+        """
+        self._sleepers = max(0, self._sleepers - 1)
+        if self._handle is None and self._users:
+            late = now - due
+            if late > STALL_MIN_S:
+                self._stalls.append((now, late))
+            self._arm(now)
 
     def _arm(self, now: float) -> None:
         self._due = now + TICK_S

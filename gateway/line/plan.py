@@ -327,6 +327,22 @@ class Planner:
         self._cache[key] = blocks
         return blocks
 
+    def plan_names(
+        self, names: Iterable[str], *, split_before: frozenset[int] = frozenset()
+    ) -> tuple[ReadBlock, ...]:
+        """The plan of the profile's points named ``names``, as :meth:`plan` gives it.
+
+        Keyed by the names as they come: the points are looked up only to make a plan
+        the cache does not hold, not on every poll.
+        """
+        key = (frozenset(names), split_before)
+        blocks = self._cache.pop(key, None)
+        if blocks is None:
+            point = self.profile.point
+            return self.plan([point(name) for name in key[0]], split_before=split_before)
+        self._cache[key] = blocks  # most recently used last
+        return blocks
+
     def clear(self) -> None:
         """Forget every cached plan."""
         self._cache.clear()

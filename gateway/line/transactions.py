@@ -52,6 +52,7 @@ BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms
 # digiLine 0x0305: the minimum response time is 0-500 ms (S10 and H10 manuals, interface
 # settings). Until a sensor has said its own, the gateway waits as if it were the longest.
 MIN_RESPONSE_TIME_MAX_S: Final = 0.5
+_NO_SPLITS: Final[frozenset[int]] = frozenset()
 
 _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     BusTimeoutError: "timeout",
@@ -189,6 +190,7 @@ class Transactions:
         # the configured value, not the manual's longest. An answer refused as too early
         # must never be the device's own.
         reported = reported_min_response_s(state)
+        profile = state.target.profile
         try:
             exchange = await self.line.transact(
                 request,
@@ -197,8 +199,8 @@ class Transactions:
                 ),
                 gap_s=self.gap_s(state),
                 not_before=state.not_before,
-                exceptions=state.profile.exceptions,
-                byte_count_16bit=state.profile.quirks.string_byte_count_16bit,
+                exceptions=profile.exceptions,
+                byte_count_16bit=profile.quirks.string_byte_count_16bit,
                 turnaround_s=0.0 if reported is None else reported,
             )
         except LineNoiseError:
@@ -253,12 +255,18 @@ class Transactions:
 
     def plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
         """The reads of the named points of the device (the schedule names what is due)."""
-        return self.plan_points(state, [state.profile.point(name) for name in names])
+        planner = self._planners[state.target.name]
+        split = frozenset(state.split_before) if state.split_before else _NO_SPLITS
+        return self._learn_first(state, planner.plan_names(names, split_before=split))
 
     def plan_points(self, state: DeviceState, points: Sequence[Point]) -> tuple[ReadBlock, ...]:
         """The reads of points of the device's profile."""
         planner = self._planners[state.target.name]
-        blocks = planner.plan(points, split_before=frozenset(state.split_before))
+        split = frozenset(state.split_before) if state.split_before else _NO_SPLITS
+        return self._learn_first(state, planner.plan(points, split_before=split))
+
+    @staticmethod
+    def _learn_first(state: DeviceState, blocks: tuple[ReadBlock, ...]) -> tuple[ReadBlock, ...]:
         learn = state.target.min_response_point
         if learn is not None and len(blocks) > 1 and learn.name not in state.values:
             # The block with the device's minimum response time first: the reads after
@@ -344,8 +352,9 @@ class Transactions:
             _LOGGER.debug("%s/%s: %s", self.bus, state.target.name, exc)
             return self.decoder.failed(state, block, _FAILURE_NAMES.get(type(exc), "comms_error"))
         await self.availability.answered(state, "answered")
-        for point in block.points:
-            state.attempts.pop(point.name, None)
+        if state.attempts:  # only after a failure: nearly every read has nothing to forget
+            for point in block.points:
+                state.attempts.pop(point.name, None)
         if self.cache.enabled:
             self.cache.store(state.target.name, block.address, response.registers, time.monotonic())
         return self.decoder.decode(state, block, response.registers)

@@ -127,9 +127,11 @@ class BusWorker:
         self.jobs.running = True
         watch = self.lateness.watch = loop_watch()
         watch.attach()
+        self.line.wait_watch = watch  # the gap's waits sleep and wake under the watch
         try:
             await self._run(delay)
         finally:
+            self.line.wait_watch = None
             watch.detach()
             self.jobs.running = False
             self.foreign.accepting = False
@@ -397,8 +399,15 @@ class BusWorker:
         timeout = max(0.0, wake_at - now)
         if math.isinf(timeout):
             timeout = 1.0
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        watch = self.line.wait_watch
+        if watch is not None:
+            watch.asleep()
+        try:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+        finally:
+            if watch is not None:
+                watch.awake(now + timeout, time.monotonic())
         if self._resume is not None:
             return  # a pause: the port is closed on purpose
         if not self.line.is_open:
@@ -411,7 +420,9 @@ class BusWorker:
         reads = self.transactions
         plan = reads.plan_slow(state, names) if slow else reads.plan(state, names)
         # Oldest deadlines first, so a read cut short by due values resumes where it left.
-        blocks = sorted(plan, key=lambda b: self._block_deadline(state, b))
+        blocks = plan
+        if len(plan) > 1:
+            blocks = tuple(sorted(plan, key=lambda b: self._block_deadline(state, b)))
         for block in blocks:
             if state.not_before > time.monotonic() or state.online is False:
                 break  # a failure set a quarantine or took the device offline: others first
@@ -424,7 +435,10 @@ class BusWorker:
             _LOGGER.warning(
                 "%s/%s: %s", self.name, state.target.name, self.lateness.explain(late, now)
             )
-        published = await self.identity.screen(state, samples)
+        # Only a pinned device's samples wait on its identity: the others go as they are.
+        published = (
+            await self.identity.screen(state, samples) if self.identity.screens(state) else samples
+        )
         if published:
             for sink in self.sinks:
                 await sink.publish(published)

@@ -261,10 +261,24 @@ _IEEE_FROM_WIRE: dict[WordOrder, tuple[int, int, int, int]] = {
 }
 
 
+def _swap(word: int) -> int:
+    """A register's two bytes exchanged."""
+    return ((word & 0xFF) << 8) | (word >> 8)
+
+
+# The IEEE bit pattern of two registers in each wire order, with shifts: a float is decoded
+# on every poll, and packing the registers into bytes to pick them took several times as long.
+_FLOAT_BITS: Final[dict[WordOrder, Callable[[Sequence[int]], int]]] = {
+    WordOrder.ABCD: lambda r: (r[0] << 16) | r[1],
+    WordOrder.CDAB: lambda r: (r[1] << 16) | r[0],
+    WordOrder.BADC: lambda r: (_swap(r[0]) << 16) | _swap(r[1]),
+    WordOrder.DCBA: lambda r: (_swap(r[1]) << 16) | _swap(r[0]),
+}
+
+
 def _float_bits(registers: Sequence[int], order: WordOrder) -> int:
-    wire = registers_to_bytes(registers[:2])
-    a, b, c, d = _IEEE_FROM_WIRE[order]
-    return int.from_bytes(bytes((wire[a], wire[b], wire[c], wire[d])), "big")
+    """The IEEE 754 bits of a float32 in two registers (16-bit values, as read)."""
+    return _FLOAT_BITS[order](registers)
 
 
 # --- decoders --------------------------------------------------------------------------
@@ -280,20 +294,34 @@ def shortest_float32(value: float) -> float:
     """
     if not math.isfinite(value):
         return value
-    packed = struct.pack(">f", value)
-    for digits in range(6, 10):
-        candidate = float(f"{value:.{digits}g}")
-        if struct.pack(">f", candidate) == packed:
+    return _shortest(value, _F32.pack(value))
+
+
+_F32: Final = struct.Struct(">f")
+_U32: Final = struct.Struct(">I")
+_SHORTEST_FORMATS: Final = ("%.6g", "%.7g", "%.8g", "%.9g")  # 9 digits always round-trip
+_EXPONENT_BITS: Final = 0x7F800000  # all set: an infinity or a NaN
+
+
+def _shortest(value: float, packed: bytes) -> float:
+    """:func:`shortest_float32` of a finite ``value`` whose float32 bytes are ``packed``."""
+    pack = _F32.pack
+    for text in _SHORTEST_FORMATS:
+        candidate = float(text % value)
+        if pack(candidate) == packed:
             return candidate
     return value
 
 
 def _decode_float(fmt: Format, regs: Sequence[int], order: WordOrder) -> Decoded:
     bits = _float_bits(regs, order)
-    value: float = struct.unpack(">f", bits.to_bytes(4, "big"))[0]
+    packed = _U32.pack(bits)
+    value: float = _F32.unpack(packed)[0]
     if fmt.float_faults and (name := FLOAT_FAULTS.get(bits)) is not None:
         return Fault(name=name, raw=value)
-    return shortest_float32(value)
+    if bits & _EXPONENT_BITS == _EXPONENT_BITS:
+        return value  # not finite: as it is
+    return _shortest(value, packed)
 
 
 def _decode_uint8(_fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decoded:
@@ -403,6 +431,15 @@ _DECODERS: dict[DataType, _Decoder] = {
     DataType.YYMMDDHHMM: _decode_yymmddhhmm,
     DataType.DATETIME: _decode_datetime,
 }
+
+
+def decoder_of(dtype: DataType) -> Callable[[Format, Sequence[int], WordOrder], Decoded]:
+    """The decoder of a type, to resolve once per point; its registers must be ``count`` long.
+
+    :func:`decode` checks the count and looks the decoder up on every call; a poll loop
+    that decodes the same points again and again resolves them once (Telegraf's way).
+    """
+    return _DECODERS[dtype]
 
 
 def decode(
