@@ -403,8 +403,11 @@ class BusWorker:
         if watch is not None:
             watch.asleep()
         try:
+            # asyncio.timeout, not wait_for: wait_for wraps the wait in a task of its own,
+            # at every sleep (with devices' phases spread, a bus sleeps between most polls).
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake.wait(), timeout=timeout)
+                async with asyncio.timeout(timeout):
+                    await self._wake.wait()
         finally:
             if watch is not None:
                 watch.awake(now + timeout, time.monotonic())
