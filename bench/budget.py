@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 import aiomqtt
 
-from bench import cgroups
+from bench import cgroups, peers
 from bench.publish import free_port, healthz, mosquitto, percentile_ms, plant_config
 from bench.soak import LINES, process_figures, total
 from gateway.wire.timing import LineFormat
@@ -267,15 +267,8 @@ async def simulators(lines: list[SimLine], directory: Path) -> AsyncIterator[tup
 
 
 async def stop(process: asyncio.subprocess.Process) -> None:
-    """SIGTERM, a bounded wait, then SIGKILL."""
-    if process.returncode is not None:
-        return
-    process.terminate()
-    try:
-        await asyncio.wait_for(asyncio.shield(process.wait()), STOP_S)
-    except TimeoutError:
-        process.kill()
-        await process.wait()
+    """SIGTERM, a bounded wait (a gateway of 256 devices takes a while), then SIGKILL."""
+    await peers.stop(process, STOP_S)
 
 
 def violations(stats: Mapping[str, Any], t0: float, t1: float) -> dict[str, Any]:

@@ -313,13 +313,13 @@ async def child(
             await stop(process)
 
 
-async def stop(process: asyncio.subprocess.Process) -> None:
+async def stop(process: asyncio.subprocess.Process, timeout_s: float = STOP_S) -> None:
     """SIGTERM, a bounded wait, then SIGKILL: no process is left behind."""
     if process.returncode is not None:
         return
     process.terminate()
     try:
-        await asyncio.wait_for(asyncio.shield(process.wait()), STOP_S)
+        await asyncio.wait_for(asyncio.shield(process.wait()), timeout_s)
     except TimeoutError:
         process.kill()
         await process.wait()
