@@ -13,7 +13,7 @@ import subprocess
 import sys
 from typing import TYPE_CHECKING, Any, Self
 
-import aiomqtt
+import paho.mqtt.client as paho
 import pytest
 
 from gateway.app import run
@@ -394,13 +394,13 @@ async def test_a_handed_over_cycle_is_published_at_once_not_by_a_timer(
     recorder = StateSink(state)
     counter = TurnCounter()
     sent: list[tuple[str, bytes, int]] = []  # topic, payload, the turn it reached the client
-    client_publish = aiomqtt.Client.publish
+    client_publish = paho.Client.publish  # where every publish reaches the client
 
-    async def spy(client: aiomqtt.Client, topic: str, payload: Any, **kwargs: Any) -> None:
+    def spy(client: paho.Client, topic: str, payload: Any, *args: Any, **kwargs: Any) -> Any:
         sent.append((topic, payload, counter.turns))
-        await client_publish(client, topic, payload, **kwargs)
+        return client_publish(client, topic, payload, *args, **kwargs)
 
-    monkeypatch.setattr(aiomqtt.Client, "publish", spy)
+    monkeypatch.setattr(paho.Client, "publish", spy)
     task = asyncio.create_task(sink.run())
     try:
         async with asyncio.timeout(10):

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 from collections import deque
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Any, Final
 
 import aiomqtt
+import paho.mqtt.client as mqtt
 
 if TYPE_CHECKING:
-    from collections.abc import Coroutine
+    from collections.abc import Callable, Coroutine
 
     from gateway.publish.message import Message
     from gateway.publish.state import MqttStatus
@@ -34,8 +34,10 @@ BATCH: Final = 100  # messages read from disk at a time while a backlog drains
 WINDOW: Final = 16
 CLIENT_TIMEOUT_S: Final = 4.0  # connect, PUBACK and disconnect: within the app's stop bound
 
+# A live publish in flight: paho's receipt, published once the broker acknowledged it.
+_InFlight = mqtt.MQTTMessageInfo
 # The sender's window: each publish in flight with the loop time it was started at.
-_Window = deque[tuple[asyncio.Task[None], float]]
+_Window = deque[tuple[_InFlight, float]]
 
 
 class Outbox:
@@ -107,37 +109,35 @@ class Outbox:
         The loop wakes on a new message as well as on an acknowledgement (a publish's end
         sets the same event), so a cycle handed over while the window waits for a PUBACK
         goes out at once, not after it. A publish carries no timer of its own: the oldest
-        unacknowledged one is given :data:`CLIENT_TIMEOUT_S`, as aiomqtt gave each.
+        unacknowledged one is given :data:`CLIENT_TIMEOUT_S`, as aiomqtt gave each. The
+        end of the session wakes it too, so that a lost connection ends it at once.
         """
         window: _Window = deque()
         wake = self._wake
         loop = asyncio.get_running_loop()
-        try:
-            while True:
-                if len(self.store) and not window:
-                    self.connected = False  # newer messages queue on disk behind the backlog
-                    await self._drain(client)  # the backlog first, before anything newer
-                if not self.connected:
-                    self.connected = True
-                    self.update_status()
-                wake.clear()
-                self._retire(window)
-                if len(window) < WINDOW and len(self._live) > len(window):
-                    self._fill(client, window, loop.time())
-                if not window:
-                    self.update_status()
+        wake_on_puback(client, wake)
+        while True:
+            if len(self.store) and not window:
+                self.connected = False  # newer messages queue on disk behind the backlog
+                await self._drain(client)  # the backlog first, before anything newer
+            if not self.connected:
+                self.connected = True
+                self.update_status()
+            wake.clear()
+            self._retire(window, client)
+            if len(window) < WINDOW and len(self._live) > len(window):
+                self._fill(client, window, loop.time())
+            if not window:
+                self.update_status()
+                await wake.wait()
+                continue
+            if wake.is_set():
+                continue
+            try:
+                async with asyncio.timeout_at(window[0][1] + CLIENT_TIMEOUT_S):
                     await wake.wait()
-                    continue
-                if wake.is_set():
-                    continue
-                try:
-                    async with asyncio.timeout_at(window[0][1] + CLIENT_TIMEOUT_S):
-                        await wake.wait()
-                except TimeoutError:
-                    raise aiomqtt.MqttError("Operation timed out") from None
-        finally:
-            for task, _ in window:
-                task.cancel()
+            except TimeoutError:
+                raise aiomqtt.MqttError("Operation timed out") from None
 
     async def _drain(self, client: aiomqtt.Client) -> None:
         """Send the disk queue in order, removing what the broker acknowledged."""
@@ -157,40 +157,74 @@ class Outbox:
             self.status.published += len(batch)
             self.update_status()
 
-    def _retire(self, window: _Window) -> None:
+    def _retire(self, window: _Window, client: aiomqtt.Client) -> None:
         """The acknowledged head of the window leaves it, and the live queue, in order."""
         live = self._live
         status = self.status
-        while window and window[0][0].done():
-            window.popleft()[0].result()  # a failed publish ends the session
+        while window and window[0][0].is_published():
+            window.popleft()
             live.popleft()
             status.published += 1
+        disconnected = client._disconnected  # noqa: SLF001 - see _direct_publish
+        if disconnected.done():
+            raise aiomqtt.MqttError("Disconnected from the broker") from _why_ended(disconnected)
 
     def _fill(self, client: aiomqtt.Client, window: _Window, now: float) -> None:
         """Start the live messages behind the window until it is full."""
         live = self._live
+        publish = _direct_publish(client)
         while len(window) < WINDOW and len(live) > len(window):
-            window.append((self._start(client, live[len(window)]), now))
-
-    def _start(self, client: aiomqtt.Client, message: Message) -> asyncio.Task[None]:
-        """A live publish as a task whose end wakes the sender (ack or failure alike)."""
-        task = asyncio.create_task(
-            client.publish(
-                message.topic,
-                message.payload,
-                qos=message.qos,
-                retain=message.retain,
-                timeout=math.inf,  # the sender times the oldest publish itself
+            message = live[len(window)]
+            window.append(
+                (publish(message.topic, message.payload, message.qos, message.retain), now)
             )
-        )
-        task.add_done_callback(self._published)
-        return task
 
-    def _published(self, done: asyncio.Task[None]) -> None:
-        """A live publish ended: wake the sender; its failure counts as seen."""
-        self._wake.set()
-        if not done.cancelled():
-            done.exception()
+
+def _direct_publish(client: aiomqtt.Client) -> Callable[[str, bytes, int, bool], _InFlight]:
+    """Paho's own publish of ``client``, checked: its receipt, or the session's error.
+
+    Live messages bypass ``aiomqtt.Client.publish`` on purpose. It runs as a task per
+    message (a coroutine, an event, a pending-call context, a count of every pending call),
+    which made the MQTT path the largest cost of a gateway polling each second
+    (bench/peers.py: about a fifth of its CPU). paho's publish queues the packet on
+    aiomqtt's own socket callbacks and gives a receipt that turns published on the PUBACK;
+    :func:`wake_on_puback` makes the PUBACK wake the sender. aiomqtt still connects,
+    subscribes, receives, reconnects and sends the backlog and everything else.
+    """
+    paho = client._client  # noqa: SLF001 - aiomqtt's paho client, see above
+    disconnected = client._disconnected  # noqa: SLF001
+
+    def publish(topic: str, payload: bytes, qos: int, retain: bool) -> _InFlight:  # noqa: FBT001
+        info = paho.publish(topic, payload, qos, retain)
+        if info.rc != mqtt.MQTT_ERR_SUCCESS:
+            cause = _why_ended(disconnected) if disconnected.done() else None
+            raise aiomqtt.MqttCodeError(info.rc, "Could not publish message") from cause
+        return info
+
+    return publish
+
+
+def wake_on_puback(client: aiomqtt.Client, wake: asyncio.Event) -> None:
+    """Set ``wake`` at every PUBACK and when the session ends, besides aiomqtt's own handling."""
+    paho = client._client  # noqa: SLF001 - see _direct_publish
+    aiomqtt_on_publish = paho.on_publish
+
+    def on_publish(*args: Any) -> None:  # noqa: ANN401 - paho's callback signature
+        if aiomqtt_on_publish is not None:
+            aiomqtt_on_publish(*args)
+        wake.set()
+
+    def on_disconnect(disconnected: asyncio.Future[None]) -> None:
+        _why_ended(disconnected)  # seen: asyncio logs an error for an exception never read
+        wake.set()
+
+    paho.on_publish = on_publish
+    client._disconnected.add_done_callback(on_disconnect)  # noqa: SLF001
+
+
+def _why_ended(disconnected: asyncio.Future[None]) -> BaseException | None:
+    """What ended a session (aiomqtt's disconnect future, done), if anything was said."""
+    return None if disconnected.cancelled() else disconnected.exception()
 
 
 async def _send(client: aiomqtt.Client, message: Message) -> None:

@@ -40,7 +40,6 @@ from gateway.publish.prometheus.naming import (
 from gateway.publish.prometheus.server import (
     DEFAULT_HOST,
     DEFAULT_PORT,
-    POLL_INTERVAL_S,
     REQUEST_TIMEOUT_S,
     STOP_TIMEOUT_S,
     MetricsServer,
@@ -54,7 +53,6 @@ __all__ = [
     "DEPRECATION_NOTE",
     "ERROR_KINDS",
     "IDENTITY_LABELS",
-    "POLL_INTERVAL_S",
     "PREFIX",
     "REQUEST_TIMEOUT_S",
     "RESERVED_NAMES",
