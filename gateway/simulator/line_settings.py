@@ -24,6 +24,8 @@ _LOGGER = logging.getLogger(__name__)
 _ADDRESS: Final = ("device_address", "modbus_address")
 _BAUD_RATE: Final = ("baud_rate",)
 _FRAMING: Final = ("data_format", "parity_stop_bits")
+# (profile, point, setting) already warned of: a bench of 256 sensors says it once a profile.
+_WARNED: set[tuple[str, str, str]] = set()
 
 
 def report_line(image: RegisterImage, address: int, line: LineFormat) -> None:
@@ -42,8 +44,11 @@ def report_line(image: RegisterImage, address: int, line: LineFormat) -> None:
         for point in (profile.point(n) for n in names if profile.has_point(n)):
             if point.format.enum and value not in point.format.enum.values():
                 # A real sensor cannot be set to this line (tests run faster ones): say
-                # so, and leave the register as the behaviour set it.
-                _LOGGER.warning(
+                # so, once a profile, and leave the register as the behaviour set it.
+                said = (profile.id, point.name, str(value))
+                log = _LOGGER.debug if said in _WARNED else _LOGGER.warning
+                _WARNED.add(said)
+                log(
                     "%s at %d: %s has no code for %s (codes: %s)",
                     profile.id,
                     address,
