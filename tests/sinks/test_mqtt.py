@@ -219,6 +219,40 @@ async def test_outage_and_restart_lose_nothing_and_repeat_nothing(
     assert min(live) > max(positions)
 
 
+async def test_a_lost_broker_is_seen_at_once_with_nothing_to_send(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """A session with nothing in flight and no command topics still ends when the broker goes.
+
+    Polling once a minute, the gateway must not show ``connected`` (``/healthz``, the
+    metrics) until its next publish fails, nor wait for a PUBACK timeout to notice.
+    """
+    state = GatewayState()
+    sink = MqttSink(
+        MqttConfig(host="127.0.0.1", port=broker.port, base_topic="gw"),
+        state,
+        state_dir=tmp_path / "state",
+    )
+    task = asyncio.create_task(sink.run())
+    try:
+        async with asyncio.timeout(10):
+            while not state.mqtt.connected:  # noqa: ASYNC110 - the sink's task sets it
+                await asyncio.sleep(0.01)
+        await asyncio.sleep(0.2)  # the status message acknowledged: nothing in flight
+        broker.stop()
+        stopped = asyncio.get_running_loop().time()
+        async with asyncio.timeout(10):
+            while state.mqtt.connected:  # noqa: ASYNC110 - the sink's task clears it
+                await asyncio.sleep(0.01)
+        seen_after = asyncio.get_running_loop().time() - stopped
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    assert seen_after < 1.0  # the PUBACK timeout, the only other way to notice, is 4 s
+    assert state.mqtt.last_error is not None
+
+
 async def test_refused_credentials_are_reported_and_polling_goes_on(tmp_path: Path) -> None:
     directory = tmp_path / "broker"
     directory.mkdir()

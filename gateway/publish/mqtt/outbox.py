@@ -106,7 +106,7 @@ class Outbox:
         some 550 messages a second out of a gateway polling 480 devices: each PUBACK waited
         its turn in a busy event loop.
 
-        The loop wakes on a new message as well as on an acknowledgement (a publish's end
+        The loop wakes on a new message as well as on an acknowledgement (a PUBACK
         sets the same event), so a cycle handed over while the window waits for a PUBACK
         goes out at once, not after it. A publish carries no timer of its own: the oldest
         unacknowledged one is given :data:`CLIENT_TIMEOUT_S`, as aiomqtt gave each. The
