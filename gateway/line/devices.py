@@ -142,7 +142,7 @@ class DeviceState:
     unreadable: set[str] = field(default_factory=set)
     undecodable: set[str] = field(default_factory=set)  # points whose registers did not decode
     missed_deadlines: int = 0
-    fresh: set[str] = field(default_factory=set)  # not polled since (re)start: no lag yet
+    fresh: set[str] = field(default_factory=set)  # periodic, not polled since (re)start: no lag yet
     lag_s: float = 0.0
     lag_reported: bool = False
     late_hint_given: bool = False  # an answer after its timeout was explained in the log
