@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Final
 
 from gateway.profiles import PollGroup
@@ -18,6 +19,42 @@ if TYPE_CHECKING:
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
 # Polled in the time process values leave free (the schedule's "slow" class).
 SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
+
+
+@dataclass(frozen=True, slots=True)
+class _Resolved:
+    """What a device's target derives from its profile and its intervals alone."""
+
+    profile: Profile  # held so that its ``id()``, part of the key, is not reused
+    intervals: Mapping[str, float | None]
+    slow_points: frozenset[str]
+    unit_tables: Mapping[str, Mapping[int, str]]
+
+
+# One entry per profile and interval settings, shared by every device that has them: at 16
+# buses of 16 sensors, a map, a set and a table per device cost megabytes for a handful of
+# distinct contents. Keyed by the profile's identity (profiles are not hashable, and two
+# loaded with one id need not agree) and the intervals in their order, which is the order
+# points are read in. Few entries (the configured combinations), so it is never pruned.
+_RESOLVED: dict[tuple[int, tuple[tuple[str, float | None], ...]], _Resolved] = {}
+
+
+def _resolved(profile: Profile, intervals: Mapping[str, float | None]) -> _Resolved:
+    """The shared, read-only structures of a device with this profile and these intervals."""
+    key = (id(profile), tuple(intervals.items()))
+    found = _RESOLVED.get(key)
+    if found is None:
+        slow = frozenset(n for n in intervals if profile.point(n).group in SLOW_GROUPS)
+        selectors = {p.unit_from for p in profile.points if p.unit_from is not None}
+        tables = {name: profile.point(name).enum_units for name in selectors}
+        found = _RESOLVED[key] = _Resolved(
+            profile=profile,
+            # A copy, read-only: the caller's dict may change, and every device shares it.
+            intervals=MappingProxyType(dict(intervals)),
+            slow_points=slow,
+            unit_tables=MappingProxyType(tables),
+        )
+    return found
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -56,13 +93,16 @@ class DeviceTarget:
     phase_s: float | None = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """Resolve the slow points and the unit registers from the profile."""
+        """Resolve the slow points and the unit registers from the profile.
+
+        The intervals, the slow points and the unit tables are those every device of the
+        same profile and intervals shares (read-only), not a copy per device.
+        """
         profile = self.profile
-        slow = frozenset(n for n in self.intervals if profile.point(n).group in SLOW_GROUPS)
-        object.__setattr__(self, "slow_points", slow)
-        selectors = {p.unit_from for p in profile.points if p.unit_from is not None}
-        tables = {name: profile.point(name).enum_units for name in selectors}
-        object.__setattr__(self, "unit_tables", tables)
+        shared = _resolved(profile, self.intervals)
+        object.__setattr__(self, "intervals", shared.intervals)
+        object.__setattr__(self, "slow_points", shared.slow_points)
+        object.__setattr__(self, "unit_tables", shared.unit_tables)
         learn = profile.timing.min_response_time_point
         object.__setattr__(
             self, "min_response_point", profile.point(learn) if learn is not None else None
@@ -102,7 +142,7 @@ class DeviceState:
     unreadable: set[str] = field(default_factory=set)
     undecodable: set[str] = field(default_factory=set)  # points whose registers did not decode
     missed_deadlines: int = 0
-    fresh: set[str] = field(default_factory=set)  # not polled since (re)start: no lag yet
+    fresh: set[str] = field(default_factory=set)  # periodic, not polled since (re)start: no lag yet
     lag_s: float = 0.0
     lag_reported: bool = False
     late_hint_given: bool = False  # an answer after its timeout was explained in the log

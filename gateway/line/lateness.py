@@ -16,8 +16,10 @@ from __future__ import annotations
 import asyncio
 import time
 import weakref
+from array import array
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
+from itertools import chain
 from typing import TYPE_CHECKING, Final
 
 if TYPE_CHECKING:
@@ -155,16 +157,36 @@ class Lateness:
         """Marks of ``line``'s busy time; the loop's ``watch`` is found when first needed."""
         self.line = line
         self.watch = watch
-        self._marks: deque[tuple[float, float]] = deque(maxlen=HISTORY)  # (when, busy_s)
+        # The marks (when, busy_s) as two rings of plain doubles, HISTORY long, not a deque
+        # of tuples: a line marks every poll, some 40 times a second, and 4096 tuples of two
+        # floats held about half a MiB per line (8 MiB at 16 buses) once full, a few
+        # minutes after the start; 64 KiB as doubles.
+        self._when = array("d")
+        self._busy = array("d")
+        self._oldest = 0  # once full: the index of the oldest mark, the next overwritten
 
     def mark(self, now: float) -> None:
         """The line's busy time now (the worker marks every poll)."""
-        self._marks.append((now, self.line.stats.busy_s))
+        busy = self.line.stats.busy_s
+        if len(self._when) < HISTORY:
+            self._when.append(now)
+            self._busy.append(busy)
+            return
+        oldest = self._oldest
+        self._when[oldest] = now
+        self._busy[oldest] = busy
+        self._oldest = (oldest + 1) % HISTORY
 
     def busy_since(self, start: float) -> float:
         """Seconds the line carried transactions from about ``start`` until now."""
-        before = self._marks[0][1] if self._marks else self.line.stats.busy_s
-        for when, busy in self._marks:
+        n = self._oldest
+        whens, busies = self._when, self._busy
+        before = busies[n] if whens else self.line.stats.busy_s
+        # Oldest first: from the oldest mark to the end, then from the start of the ring.
+        marks = chain(
+            zip(whens[n:], busies[n:], strict=True), zip(whens[:n], busies[:n], strict=True)
+        )
+        for when, busy in marks:
             if when > start:
                 break
             before = busy
