@@ -48,8 +48,8 @@ class _Published:
 
 # The state document's serialiser. orjson, not the standard library's json, on purpose:
 # the document carries every point of the device at every cycle (an H10's 289 points, some
-# 20 KB), and json took about 200 µs to encode it where orjson takes 17 µs
-# (bench/README.md, "state document"). Its text is compact (no spaces after ``:`` and
+# 20 KB), and json took about 200 µs to encode it where orjson takes 17 µs (bench/README.md,
+# "Issue 23's targets, the night's session"). Its text is compact (no spaces after ``:`` and
 # ``,``), UTF-8, and a float that is not a number (none reaches it: a value that does not
 # decode is a fault) would be ``null``, where json wrote the invalid ``NaN``.
 _encode_json = orjson.dumps
@@ -85,9 +85,14 @@ class _DocumentLayout:
     ) -> _DocumentLayout:
         order = tuple(sorted(samples))
         point_intervals = tuple(intervals.get(point) for point in order)
-        pick = operator.itemgetter(*order)
-        # itemgetter of one key gives the item itself, not a tuple of one.
-        rows = pick if len(order) > 1 else (lambda found: (pick(found),))
+        rows: Callable[[Mapping[str, Sample]], Sequence[Sample]]
+        if len(order) > 1:
+            rows = operator.itemgetter(*order)
+        elif order:  # itemgetter of one key gives the item itself, not a tuple of one
+            only = order[0]
+            rows = lambda found: (found[only],)  # noqa: E731 - one of three shapes
+        else:  # none recorded yet: itemgetter takes no empty list of keys
+            rows = lambda _: ()  # noqa: E731
         return cls(
             order=order,
             intervals=point_intervals,
