@@ -116,6 +116,9 @@ class Outbox:
         wake = self._wake
         loop = asyncio.get_running_loop()
         wake_on_puback(client, wake)
+        # The session's publish and its end, looked up once, not at every turn.
+        publish = _direct_publish(client)
+        disconnected = client._disconnected  # noqa: SLF001 - see _direct_publish
         while True:
             if len(self.store) and not window:
                 self.connected = False  # newer messages queue on disk behind the backlog
@@ -124,9 +127,9 @@ class Outbox:
                 self.connected = True
                 self.update_status()
             wake.clear()
-            self._retire(window, client)
+            self._retire(window, disconnected)
             if len(window) < WINDOW and len(self._live) > len(window):
-                self._fill(client, window, loop.time())
+                self._fill(publish, window, loop.time())
             if not window:
                 self.update_status()
                 await wake.wait()
@@ -157,7 +160,7 @@ class Outbox:
             self.status.published += len(batch)
             self.update_status()
 
-    def _retire(self, window: _Window, client: aiomqtt.Client) -> None:
+    def _retire(self, window: _Window, disconnected: asyncio.Future[None]) -> None:
         """The acknowledged head of the window leaves it, and the live queue, in order."""
         live = self._live
         status = self.status
@@ -165,14 +168,16 @@ class Outbox:
             window.popleft()
             live.popleft()
             status.published += 1
-        disconnected = client._disconnected  # noqa: SLF001 - see _direct_publish
         if disconnected.done():
-            raise aiomqtt.MqttError("Disconnected from the broker") from _why_ended(disconnected)
+            cause = _why_ended(disconnected)
+            said = f" ({cause})" if cause is not None else ""
+            raise aiomqtt.MqttError(f"the broker closed the connection{said}") from cause
 
-    def _fill(self, client: aiomqtt.Client, window: _Window, now: float) -> None:
+    def _fill(
+        self, publish: Callable[[str, bytes, int, bool], _InFlight], window: _Window, now: float
+    ) -> None:
         """Start the live messages behind the window until it is full."""
         live = self._live
-        publish = _direct_publish(client)
         while len(window) < WINDOW and len(live) > len(window):
             message = live[len(window)]
             window.append(
