@@ -253,6 +253,78 @@ async def test_a_lost_broker_is_seen_at_once_with_nothing_to_send(
     assert state.mqtt.last_error is not None
 
 
+async def _remaining_length(reader: asyncio.StreamReader) -> int:
+    """MQTT's variable-length integer (MQTT 3.1.1, 2.2.3)."""
+    value, shift = 0, 0
+    while True:
+        byte = (await reader.readexactly(1))[0]
+        value |= (byte & 0x7F) << shift
+        if not byte & 0x80:
+            return value
+        shift += 7
+
+
+async def test_a_broker_that_stops_acknowledging_ends_the_session_and_keeps_the_messages(
+    tmp_path: Path,
+) -> None:
+    """A half-open broker: it takes the connection and acknowledges ``online``, then
+    swallows every publish without a PUBACK. The session ends at the oldest publish's 4 s
+    timeout, and what was handed over stays queued on disk, none lost."""
+
+    sessions: list[asyncio.StreamWriter] = []
+
+    async def swallowing_broker(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        sessions.append(writer)
+        with contextlib.suppress(asyncio.IncompleteReadError, ConnectionError):
+            while True:
+                kind = (await reader.readexactly(1))[0]
+                body = await reader.readexactly(await _remaining_length(reader))
+                if kind >> 4 == 1:  # CONNECT: CONNACK, session not present, accepted
+                    writer.write(b"\x20\x02\x00\x00")
+                elif kind >> 4 == 3 and (kind >> 1) & 3:  # PUBLISH at QoS 1
+                    topic_length = int.from_bytes(body[:2], "big")
+                    if body[2 : 2 + topic_length].endswith(b"/status"):
+                        packet_id = body[2 + topic_length : 4 + topic_length]
+                        writer.write(b"\x40\x02" + packet_id)  # PUBACK: only ``online``
+                await writer.drain()
+
+    server = await asyncio.start_server(swallowing_broker, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    state = GatewayState()
+    state.add_device(
+        DeviceInfo(bus="line1", name="basin", profile="reiss-m0c", address=10, intervals={})
+    )
+    sink = MqttSink(
+        MqttConfig(host="127.0.0.1", port=port, base_topic="gw"), state, state_dir=tmp_path
+    )
+    task = asyncio.create_task(sink.run())
+    try:
+        async with asyncio.timeout(10):
+            while not state.mqtt.connected:  # noqa: ASYNC110 - the sink's task sets it
+                await asyncio.sleep(0.01)
+        cycle = [sample("basin", "reiss-m0c", "concentration", 0.25, unit="mg/l")]
+        await StateSink(state).publish(cycle)  # the state the document shows, as in the app
+        await sink.publish(cycle)  # a value and a state document, never acknowledged
+        handed_over = asyncio.get_running_loop().time()
+        async with asyncio.timeout(10):
+            while state.mqtt.connected:  # noqa: ASYNC110 - the sink's task clears it
+                await asyncio.sleep(0.01)
+        ended_after = asyncio.get_running_loop().time() - handed_over
+        assert state.mqtt.queue_depth == 2  # both on disk, to be sent again
+        assert state.mqtt.published == 0
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+        for writer in sessions:
+            writer.close()
+        server.close()
+        await server.wait_closed()
+    assert 3.5 < ended_after < 6.0  # the oldest publish's CLIENT_TIMEOUT_S (4 s)
+    assert state.mqtt.last_error is not None
+    assert "timed out" in state.mqtt.last_error
+
+
 async def test_refused_credentials_are_reported_and_polling_goes_on(tmp_path: Path) -> None:
     directory = tmp_path / "broker"
     directory.mkdir()

@@ -559,6 +559,36 @@ def test_stop_is_bounded_and_idempotent(state: GatewayState) -> None:
         fetch(f"http://127.0.0.1:{port}/metrics")
 
 
+def test_silent_and_garbage_clients_neither_block_scrapes_nor_the_stop(
+    state: GatewayState,
+) -> None:
+    """Half-open connections, a burst of them and garbage: scrapes go on, stop stays bounded.
+
+    The server sleeps between connections (no polling loop), so each must be taken as it
+    comes: a client that connects and says nothing holds its own thread only.
+    """
+    server = MetricsServer(state, host="127.0.0.1", port=0)
+    server.start()
+    silent = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(50)]
+    try:
+        with socket.create_connection(("127.0.0.1", server.port)) as garbage:
+            garbage.sendall(b"\x00\xff NOT HTTP\r\n\r\n")
+            garbage.settimeout(5)
+            answer = b"".join(iter(lambda: garbage.recv(4096), b""))  # until it closes
+            # Not HTTP/1.x, so http.server answers as to HTTP/0.9: the error page alone.
+            assert b"Error code: 400" in answer
+        for _ in range(3):
+            started = time.monotonic()
+            assert fetch(f"http://127.0.0.1:{server.port}/healthz").status in (200, 503)
+            assert time.monotonic() - started < 1.0
+        started = time.monotonic()
+        server.stop()
+        assert time.monotonic() - started < 1.0  # the silent clients' threads are daemons
+    finally:
+        for client in silent:
+            client.close()
+
+
 def test_a_failing_scrape_answers_500_and_the_server_keeps_serving(
     server: MetricsServer, state: GatewayState
 ) -> None:
