@@ -12,6 +12,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from gateway.care.rules import rules_for
 from gateway.config import Cadence, PublishSettings
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.control.link import DeviceLink
@@ -117,7 +118,14 @@ def build_workers(
         )
         if state is not None:
             state.add_line(bus.name, worker.line.stats, worker.health)
-            for target in targets:
+            for device, target in zip(on_bus, targets, strict=True):
+                state.care.add_device(
+                    bus=bus.name,
+                    device=target.name,
+                    profile=target.profile,
+                    rules=rules_for(config, device),
+                    polled=target.intervals,
+                )
                 state.add_device(
                     DeviceInfo(
                         bus=bus.name,

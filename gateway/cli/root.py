@@ -47,6 +47,7 @@ LAZY_COMMANDS: Final = {
     "set-clock": "gateway.cli.operations",
     "measure": "gateway.cli.operations",
     "calibration-log": "gateway.cli.operations",
+    "care": "gateway.cli.care",
 }
 
 

@@ -117,6 +117,24 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
     mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
     yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
     yield from _check_sparkplug_deadbands(data.get("sparkplug"), devices)
+    yield from _check_care_profiles(data.get("care"))
+
+
+def _check_care_profiles(care: object) -> Iterator[tuple[KeyPath, str]]:
+    """``care.profiles`` names profiles or families that exist."""
+    if not isinstance(care, dict) or not isinstance(profiles := care.get("profiles"), dict):
+        return
+    known = builtin_profiles()
+    families = {profile.family for profile in known.values()}
+    for name in profiles:
+        if name not in known and name not in families:
+            yield (
+                ("care", "profiles", name),
+                (
+                    f"unknown profile or family {name!r}; profiles: "
+                    f"{', '.join(sorted(known))}; families: {', '.join(sorted(families))}"
+                ),
+            )
 
 
 def _check_ports(buses: Sequence[_Entry[BusConfig]]) -> Iterator[tuple[KeyPath, str]]:

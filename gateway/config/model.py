@@ -44,6 +44,7 @@ from pydantic_settings import (
     SettingsConfigDict,
 )
 
+from gateway.config.care import CareConfig, CareSettings
 from gateway.config.flash_policy import FlashPolicy
 from gateway.config.network import MBAP_URL_SCHEME, TcpSettings, tcp_for_network_port
 from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
@@ -344,6 +345,8 @@ class DeviceConfig(_Model):
     flash_write_budget: Annotated[int, Field(ge=0, le=1000)] = DEFAULT_FLASH_WRITE_BUDGET
     # The serial number the sensor must report (README: pinning serial numbers); None: any.
     serial_number: Annotated[str | int, BeforeValidator(_serial_number)] | None = None
+    # Sensor care: this device's calibration interval and limits (README: Sensor care).
+    care: CareSettings | None = None
 
     def get_profile(self) -> Profile:
         """The device's register map (a :class:`ConfigError` for an unknown profile id)."""
@@ -635,6 +638,7 @@ class GatewayConfig(BaseSettings):
     feeds: list[FeedConfig] = []
     shared_bus: SharedBusConfig = SharedBusConfig()
     sparkplug: SparkplugConfig = SparkplugConfig()
+    care: CareConfig = CareConfig()
     # Where the gateway keeps what must survive a restart (the MQTT queue, write counters);
     # None: $STATE_DIRECTORY (systemd), else ./state.
     state_dir: Path | None = None

@@ -27,6 +27,7 @@ from gateway.errors import (
     FrameError,
     GatewayError,
 )
+from gateway.profiles.effects import touched_by_write
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -241,6 +242,10 @@ class ForeignQueue:
                 wait = state.profile.post_write_wait(request.address, request.count)
                 state.not_before = max(state.not_before, now + wait)
                 self.schedule.reread(state, request.address, request.count, now)
+                for address, count in touched_by_write(
+                    state.profile, request.address, request.count
+                ):
+                    self.schedule.reread(state, address, count, now)
             # The line's busy time (request to answer or timeout; counted in the line's
             # busy time too), and for the share the silent gap before it as well.
             busy = line.stats.busy_s - busy_before

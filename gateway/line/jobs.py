@@ -26,7 +26,7 @@ from gateway.line.plan import require_own
 from gateway.wire import frames
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Callable, Mapping, Sequence
 
     from gateway.line.devices import DeviceState
     from gateway.line.samples import Sample
@@ -77,6 +77,8 @@ class JobQueue:
         self._jobs: list[LineJob] = []  # writes and on-demand reads, in submission order
         self._broadcasts: list[tuple[frames.Request, asyncio.Future[None]]] = []
         self._wake = wake
+        # Called after each write that succeeded (the worker reads its effects again).
+        self.on_written: Callable[[DeviceState, frames.Request], None] | None = None
 
     def state(self, device: str) -> DeviceState:
         """The device of that name on this line, or a :class:`GatewayError`."""
@@ -203,6 +205,8 @@ class JobQueue:
         except BusClosedError as exc:
             job.done.set_exception(exc)
             raise
+        if self.on_written is not None:
+            self.on_written(state, request)
         job.done.set_result(response)
 
     async def _run_a_broadcast(self, now: float) -> bool:

@@ -33,6 +33,7 @@ from gateway.line.port_access import PortReason
 from gateway.line.samples import DeviceEvent
 from gateway.line.schedule import Schedule
 from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
+from gateway.profiles.effects import touched_by_write
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
@@ -92,6 +93,7 @@ class BusWorker:
         self.jobs = JobQueue(
             bus=name, devices=self.devices, transactions=self.transactions, wake=self._wake
         )
+        self.jobs.on_written = self._written
         # Pinned serial numbers: nothing published for, or written to, another sensor.
         self.identity = IdentityGuard(
             bus=name,
@@ -307,6 +309,12 @@ class BusWorker:
 
     def _state(self, device: str) -> DeviceState:
         return self.jobs.state(device)
+
+    def _written(self, state: DeviceState, request: frames.Request) -> None:
+        """After a write: what it changes besides itself is read again at once (a calibration)."""
+        now = time.monotonic()
+        for address, count in touched_by_write(state.profile, request.address, request.count):
+            self.schedule.reread(state, address, count, now)
 
     # --- queued work ------------------------------------------------------------------
 

@@ -177,6 +177,102 @@ def discovery_messages(
     return messages
 
 
+# Sensor care's entities (README: Sensor care), all read from the retained care document
+# ``{base}/{device}/care``, all in the diagnostic category: what the sensor needs, not what
+# it measures. Key -> (component, config without the topics).
+CARE_TOPIC_SUFFIX: Final = "care"
+_CARE_ENTITIES: Final[Mapping[str, tuple[str, Mapping[str, object]]]] = MappingProxyType(
+    {
+        "care_state": (
+            "sensor",
+            {
+                "name": "Care state",
+                "device_class": "enum",
+                "options": ["ok", "due_soon", "due", "unknown", "maintenance"],
+                "value_template": "{{ value_json.state }}",
+            },
+        ),
+        "calibration_due": (
+            "binary_sensor",
+            {
+                "name": "Calibration due",
+                "device_class": "problem",
+                "value_template": (
+                    "{{ 'ON' if value_json.state in ['due', 'maintenance'] else 'OFF' }}"
+                ),
+            },
+        ),
+        "calibration_due_date": (
+            "sensor",
+            {
+                "name": "Calibration due date",
+                "device_class": "timestamp",
+                "value_template": "{{ value_json.due if value_json.due else 'None' }}",
+            },
+        ),
+        "slope_ratio": (
+            "sensor",
+            {
+                "name": "Slope of nominal",
+                "unit_of_measurement": "%",
+                "state_class": "measurement",
+                "value_template": (
+                    "{{ (value_json.slope_ratio * 100) | round(1) "
+                    "if value_json.slope_ratio is not none else 'None' }}"
+                ),
+            },
+        ),
+    }
+)
+
+
+def care_discovery_messages(
+    *,
+    prefix: str = DEFAULT_PREFIX,
+    base_topic: str,
+    gateway_id: str,
+    device: str,
+    profile: Profile,
+    identity: Mapping[str, object],
+    slope: bool,
+    qos: int = 1,
+) -> list[Message]:
+    """Retained discovery configs of a device's care entities (``slope``: tecLine/Reiss)."""
+    node = _node_id(prefix=prefix, gateway_id=gateway_id, device=device)
+    messages = []
+    for key, (component, entity) in _CARE_ENTITIES.items():
+        if key == "slope_ratio" and not slope:
+            continue
+        object_id = f"{device}_{key}"
+        config = dict(entity) | {
+            "state_topic": f"{base_topic}/{device}/{CARE_TOPIC_SUFFIX}",
+            "entity_category": "diagnostic",
+            "availability": [
+                {
+                    "topic": f"{base_topic}/status",
+                    "payload_available": "online",
+                    "payload_not_available": "offline",
+                }
+            ],
+            "device": _device_block(device=device, node=node, profile=profile, identity=identity),
+            "origin": dict(ORIGIN),
+            "qos": qos,
+            "unique_id": f"{node}_{key}",
+            "object_id": object_id,
+            "default_entity_id": f"{component}.{object_id}",
+        }
+        payload = json.dumps(config, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+        messages.append(
+            Message(
+                topic=f"{prefix}/{component}/{node}/{key}/config",
+                payload=payload.encode(),
+                qos=qos,
+                retain=True,
+            )
+        )
+    return messages
+
+
 def removal_messages(
     *,
     prefix: str = DEFAULT_PREFIX,
@@ -297,8 +393,10 @@ def _config_topic(prefix: str, entity: _Entity, node: str) -> str:
 
 
 __all__ = [
+    "CARE_TOPIC_SUFFIX",
     "DEFAULT_PREFIX",
     "ORIGIN",
+    "care_discovery_messages",
     "discovery_messages",
     "entity_name",
     "is_problem",

@@ -15,6 +15,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
+from gateway.care import CareBook
 from gateway.line.samples import Quality
 
 if TYPE_CHECKING:
@@ -267,6 +268,8 @@ class GatewayState:
     shared_bus: SharedBusStatus = field(default_factory=SharedBusStatus)
     sparkplug: SparkplugStatus = field(default_factory=SparkplugStatus)
     web: WebStatus = field(default_factory=WebStatus)
+    # Shared, not copied by a snapshot: it keeps its own lock (sensor care, README).
+    care: CareBook = field(default_factory=CareBook)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: _Samples = field(default_factory=dict)  # the latest sample of each point
@@ -379,6 +382,7 @@ class GatewayState:
                     lockouts=self.web.lockouts,
                     locked_until=dict(self.web.locked_until),
                 ),
+                care=self.care,
                 started=self.started,
             )
             copy._by_device = {device: dict(points) for device, points in self._by_device.items()}
@@ -405,8 +409,9 @@ class StateSink:
         self.state = state
 
     async def publish(self, samples: Sequence[Sample]) -> None:
-        """Record the samples of one poll cycle."""
+        """Record the samples of one poll cycle; care takes its records from them."""
         self.state.record(samples)
+        self.state.care.observe(samples)
 
     async def device_event(self, event: DeviceEvent) -> None:
         """Record a change of availability."""

@@ -24,7 +24,11 @@ import orjson
 from gateway.config import PublishMode, PublishSettings
 from gateway.line.samples import Quality, hex_registers, json_value
 from gateway.profiles import get_profile
-from gateway.publish.discovery import discovery_messages
+from gateway.publish.discovery import (
+    CARE_TOPIC_SUFFIX,
+    care_discovery_messages,
+    discovery_messages,
+)
 from gateway.publish.message import Message
 from gateway.publish.state import STALE_FACTOR, STALE_MARGIN_S
 from gateway.wire.codec import BitfieldValue
@@ -136,6 +140,7 @@ class Topics:
         self._sequence: dict[str, int] = {}  # state documents per device since the start
         # Each device's points in the document's order with their intervals, made once.
         self._layouts: dict[str, _DocumentLayout] = {}
+        self._care_sent: dict[str, int] = {}  # each device's care version last sent
 
     def cycle(self, samples: Sequence[Sample]) -> list[Message]:
         """One device's poll cycle as messages, in the order they go out.
@@ -153,7 +158,48 @@ class Topics:
         if self.settings.discovery.enabled and (first.bus, first.device) not in self._discovered:
             self._discovered.add((first.bus, first.device))
             messages.extend(self._discovery(first.bus, first.device))
+        self._care(first.bus, first.device, messages)
         return messages
+
+    def _care(self, bus: str, device: str, messages: list[Message]) -> None:
+        """The device's care document (retained), when its content changed since the last.
+
+        The first one also announces the care entities to Home Assistant (if enabled).
+        """
+        care = self.state.care
+        version = care.version(device)
+        if version == self._care_sent.get(device, 0):
+            return
+        report = care.report(device)
+        if report is None:
+            return
+        first = device not in self._care_sent
+        self._care_sent[device] = version
+        payload = orjson.dumps(report.as_dict())
+        messages.append(
+            Message(
+                topic=f"{self.base}/{device}/{CARE_TOPIC_SUFFIX}",
+                payload=payload,
+                qos=self.settings.qos,
+                retain=True,
+            )
+        )
+        if first and self.settings.discovery.enabled:
+            mine = self.state.device_samples(bus, device)
+            messages.extend(
+                care_discovery_messages(
+                    prefix=self.settings.discovery.prefix,
+                    base_topic=self.base,
+                    gateway_id=self.client_id,
+                    device=device,
+                    profile=get_profile(report.profile),
+                    identity={
+                        p: s.value for p, s in mine.items() if s.group == "identity" and s.good
+                    },
+                    slope=report.slope_limit is not None,
+                    qos=self.settings.qos,
+                )
+            )
 
     def availability(self, event: DeviceEvent) -> Message:
         """A device's ``online``/``offline`` (retained)."""

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 from prometheus_client.metrics_core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
+from gateway.publish.prometheus.care import care_families
 from gateway.publish.prometheus.health import device_families, line_families
 from gateway.publish.prometheus.identity import identity_families
 from gateway.publish.prometheus.shared_bus import shared_bus_families
@@ -61,6 +62,7 @@ class GatewayCollector(Collector):
         yield from value_families(snapshot, now)
         yield from device_families(snapshot, health)
         yield from identity_families(health)
+        yield from care_families(snapshot)
         yield from line_families(snapshot, health, now)
         yield from mqtt_families(snapshot)
         yield from sparkplug_families(snapshot)

@@ -1,4 +1,4 @@
-"""The HTTP server: ``/metrics`` from the collector's registry, and ``/healthz``."""
+"""The HTTP server: ``/metrics`` from the collector's registry, ``/healthz`` and ``/care``."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from prometheus_client import CollectorRegistry
 from prometheus_client.exposition import CONTENT_TYPE_PLAIN_0_0_4, generate_latest
 from prometheus_client.registry import Collector
 
+from gateway.care import care_order
 from gateway.errors import PublishError
 from gateway.line.port import ErrorKind
 from gateway.publish.prometheus.collector import GatewayCollector
@@ -253,7 +254,7 @@ class _Server6(_Server):
 
 
 class _Handler(BaseHTTPRequestHandler):
-    """``GET /metrics``, ``GET /healthz``; anything else is 404."""
+    """``GET /metrics``, ``GET /healthz``, ``GET /care``; anything else is 404."""
 
     server: _Server
     server_version = "rs485-gateway"
@@ -286,7 +287,11 @@ class _Handler(BaseHTTPRequestHandler):
             healthy, report = health_report(self.server.state)
             status = HTTPStatus.OK if healthy else HTTPStatus.SERVICE_UNAVAILABLE
             return status, "application/json", [json.dumps(report).encode()]
-        text = f"{path} not found: GET /metrics or /healthz\n"
+        if path == "/care":
+            # Sensor care's documents, most urgent first: what `gateway care` shows.
+            body = [report.as_dict() for report in care_order(self.server.state.care.reports())]
+            return HTTPStatus.OK, "application/json", [json.dumps(body).encode()]
+        text = f"{path} not found: GET /metrics, /healthz or /care\n"
         return HTTPStatus.NOT_FOUND, "text/plain; charset=utf-8", [text.encode()]
 
     def log_message(self, format: str, *args: object) -> None:  # noqa: A002 - the base's name

@@ -1,0 +1,166 @@
+"""What each sensor family needs, from its manual, and the settings that override it.
+
+Each default carries its source; where a manual is silent the comment says the number is
+ours. The config (``care:`` at the top, per profile or family, per device) overrides any of
+them (:func:`resolve`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from enum import StrEnum
+from typing import TYPE_CHECKING, Final
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from gateway.config import DeviceConfig, GatewayConfig
+    from gateway.config.care import CareSettings
+    from gateway.profiles import Profile
+
+
+class CareKind(StrEnum):
+    """Which records a family keeps, so which rules apply."""
+
+    AMPEROMETRIC = "amperometric"  # tecLine, Reiss: active calibration, history of 5
+    OPTICAL_HYGIENIC = "optical_hygienic"  # O-DO H10/H20: logbook of 10, counters, cap
+    OPTICAL = "optical"  # O-DO S10: operating time and cap status bits only
+
+
+KIND_OF_FAMILY: Final[Mapping[str, CareKind]] = {
+    "jumo-tecline": CareKind.AMPEROMETRIC,
+    "reiss-m0c-m3c": CareKind.AMPEROMETRIC,
+    "jumo-digiline-odo-h10-h20": CareKind.OPTICAL_HYGIENIC,
+    "jumo-digiline-odo-s10": CareKind.OPTICAL,
+}
+
+# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than
+# 30 % of the nominal slope (value at address 0x030A), follow the maintenance instructions".
+# The Reiss manual (5.2) sends the reader to its operating manual; the cells are the same.
+SLOPE_LIMIT: Final = 0.30
+
+# X_Span is "nA per unit" of 0x0200 (tecLine annex 7.1), the nominal slope 0x030A is in nA/ppm
+# (annex 7.5.1: "22 nA/ppm"). ppm per one unit of each 0x0200 code, for a dilute aqueous
+# solution (1 l = 1 kg, so mg/l = ppm); our conversion, the manuals do not give one.
+PPM_PER_UNIT: Final[Mapping[str, float]] = {
+    "percent": 10_000.0,  # 1 % = 10 g/kg
+    "permille": 1_000.0,  # 1 ‰ = 1 g/kg
+    "g_per_l": 1_000.0,
+    "ppm": 1.0,
+    "mg_per_l": 1.0,
+    "ppb": 0.001,
+    "ug_per_l": 0.001,  # Reiss code 6, µg/l
+}
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CareRules:
+    """The rules in force for one device, every value decided."""
+
+    kind: CareKind
+    calibration_interval_days: float | None  # None: no calibration record to time it from
+    interval_source: str
+    due_soon_days: float
+    slope_limit: float
+    min_fit_r2: float
+    projection_warn_days: float
+    cap_usage_warn: float
+    cip_cycles_limit: int | None = None
+    sip_cycles_limit: int | None = None
+    hours_outside_temperature_limit: float | None = None
+
+
+_COMMON: Final = {
+    "slope_limit": SLOPE_LIMIT,
+    # Ours: SENCOM-style fits are trusted from about r² 0.8; below it the points scatter
+    # more than they trend, and a date would be made up.
+    "min_fit_r2": 0.8,
+    # Ours: two weeks is enough to order a membrane cap and electrolyte.
+    "projection_warn_days": 14.0,
+    # Ours: a new H10/H20 cap is due soon at 90 % of the measurement counter's maximum
+    # (6.2.9: at 100 % the sensor sets "counter overflow", error bit 7 of 0x2005).
+    "cap_usage_warn": 0.9,
+}
+
+DEFAULTS: Final[Mapping[CareKind, CareRules]] = {
+    CareKind.AMPEROMETRIC: CareRules(
+        kind=CareKind.AMPEROMETRIC,
+        calibration_interval_days=7.0,
+        interval_source="tecLine manual annex 7.3.4: check the calibration ideally weekly",
+        due_soon_days=1.0,  # ours: a weekly check reported a day ahead
+        **_COMMON,  # type: ignore[arg-type]
+    ),
+    CareKind.OPTICAL_HYGIENIC: CareRules(
+        kind=CareKind.OPTICAL_HYGIENIC,
+        calibration_interval_days=30.0,
+        interval_source="gateway default: the H10/H20 manual gives no calibration interval",
+        due_soon_days=7.0,  # ours
+        **_COMMON,  # type: ignore[arg-type]
+    ),
+    CareKind.OPTICAL: CareRules(
+        kind=CareKind.OPTICAL,
+        calibration_interval_days=None,
+        interval_source="the S10 keeps no calibration record that Modbus can read",
+        due_soon_days=7.0,
+        **_COMMON,  # type: ignore[arg-type]
+    ),
+}
+
+_SETTABLE: Final = (
+    "calibration_interval_days",
+    "due_soon_days",
+    "slope_limit",
+    "min_fit_r2",
+    "projection_warn_days",
+    "cap_usage_warn",
+    "cip_cycles_limit",
+    "sip_cycles_limit",
+    "hours_outside_temperature_limit",
+)
+assert set(_SETTABLE) <= {f.name for f in fields(CareRules)}  # noqa: S101 - a typo guard
+
+
+def care_kind(profile: Profile) -> CareKind | None:
+    """The records a profile's family keeps; None for a family care knows nothing of."""
+    return KIND_OF_FAMILY.get(profile.family)
+
+
+def resolve(
+    profile: Profile, layers: Sequence[tuple[str, CareSettings | None]]
+) -> CareRules | None:
+    """The rules of a device: the family's defaults, then each layer that sets a key.
+
+    ``layers`` go from the widest (the top-level ``care:``) to the narrowest (the
+    device's own), each named for ``interval_source``. None: care is off for it (an
+    ``enabled: false`` that no narrower layer turns on again), or its family has no rules.
+    """
+    kind = care_kind(profile)
+    if kind is None:
+        return None
+    rules = DEFAULTS[kind]
+    enabled = True
+    for name, settings in layers:
+        if settings is None:
+            continue
+        if settings.enabled is not None:
+            enabled = settings.enabled
+        changes = {key: value for key in _SETTABLE if (value := getattr(settings, key)) is not None}
+        if "calibration_interval_days" in changes:
+            changes["interval_source"] = f"configured: {name}"
+        rules = replace(rules, **changes)
+    return rules if enabled else None
+
+
+def rules_for(config: GatewayConfig, device: DeviceConfig) -> CareRules | None:
+    """The rules of a configured device: top-level ``care:``, its family, profile, its own."""
+    profile = device.get_profile()
+    by_profile = config.care.profiles
+    return resolve(
+        profile,
+        [
+            ("care", config.care),
+            (f"care.profiles.{profile.family}", by_profile.get(profile.family)),
+            (f"care.profiles.{profile.id}", by_profile.get(profile.id)),
+            (f"devices.{device.name}.care", device.care),
+        ],
+    )
