@@ -248,18 +248,24 @@ def _history_consistent(
         )
         return False
     newest = history[0]
-    same = (
-        newest.stamp == active.stamp
-        and math.isclose(newest.x_span, active.x_span, rel_tol=_SAME)
-        and math.isclose(newest.x_zero, active.x_zero, rel_tol=_SAME, abs_tol=1e-6)
-    )
-    if not same:
+    if newest.stamp != active.stamp:
         draft.add(
             CareState.UNKNOWN,
-            "the active calibration is not history entry 0, as the sensor keeps it "
-            "(tecLine annex 7.2): a calibration was left half written; calibrate again",
+            "the date stamp of the active calibration (0x020A) is not that of history entry "
+            "0, as the sensor keeps them (tecLine annex 7.2); calibrate again",
         )
         return False
+    same = math.isclose(newest.x_span, active.x_span, rel_tol=_SAME) and math.isclose(
+        newest.x_zero, active.x_zero, rel_tol=_SAME, abs_tol=1e-6
+    )
+    if not same:
+        # X_Zero/X_Span written, the date stamp not yet: annex 7.2 activates a calibration
+        # only when its stamp is written, so history entry 0 is still the one in force.
+        draft.add(
+            CareState.OK,
+            "a new X_Zero/X_Span is written but not active: write its date stamp (0x020A) "
+            "to activate it (tecLine annex 7.2)",
+        )
     filled = [entry for entry in history if entry.stamp is not None]
     if [entry.index for entry in filled] != list(range(len(filled))):
         draft.add(
