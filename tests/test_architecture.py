@@ -17,7 +17,19 @@ PACKAGE = Path(__file__).parent.parent / "gateway"
 # The floors, low to high: a module may import its own floor and the floors it lists.
 # The simulator stands beside the gateway, on the wire and the profiles only; the command
 # line is the one floor that starts it.
-_ORDER = ("root", "wire", "profiles", "config", "line", "care", "publish", "control", "web", "app", "cli")
+_ORDER = (
+    "root",
+    "wire",
+    "profiles",
+    "config",
+    "line",
+    "care",
+    "publish",
+    "control",
+    "web",
+    "app",
+    "cli",
+)
 MAY_IMPORT: dict[str, frozenset[str]] = {
     floor: frozenset(_ORDER[:rank]) for rank, floor in enumerate(_ORDER)
 }

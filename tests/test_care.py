@@ -16,13 +16,15 @@ import pytest
 
 from gateway.care import CareState, Records, assess, care_order, care_points, resolve
 from gateway.care.rules import CareKind, rules_for
-from gateway.config import parse_config
+from gateway.config import check_config, parse_config
 from gateway.config.care import CareSettings
 from gateway.profiles import get_profile
 from gateway.wire import codec
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from gateway.care import CareReport
 
 NOW = datetime(2026, 11, 27, 12, 0, tzinfo=UTC)
@@ -175,7 +177,7 @@ def test_a_sensor_never_calibrated_says_so() -> None:
 def test_a_stamp_in_the_future_is_unknown_not_a_date() -> None:
     """The annex's last representable stamp, 4212312359 = 2042-12-31 23:59, read back."""
     stamp = codec.decode(codec.Format(dtype=codec.DataType.YYMMDDHHMM, count=2), [0xFB12, 0xC927])
-    assert stamp == datetime(2042, 12, 31, 23, 59)  # noqa: DTZ001 - the sensor's zone-less stamp
+    assert stamp == datetime(2042, 12, 31, 23, 59)
     values = history([0.9], NOW) | {"calibration_stamp": stamp, "history_0_stamp": stamp}
     report = tecline(values)
     assert report.state is CareState.UNKNOWN
@@ -370,7 +372,10 @@ def s10(**bits: bool) -> CareReport:
     flags = tuple(
         (name, bits.get(name, False)) for name in ("cap_missing", "cap_replacement_recommended")
     )
-    values = {"operating_seconds": 864_000, "status": BitfieldValue(raw=0, flags=flags)}
+    values: dict[str, codec.Decoded] = {
+        "operating_seconds": 864_000,
+        "status": BitfieldValue(raw=0, flags=flags),
+    }
     return assess(Records(values=values), rules, device="s", bus="b", profile=S10.id, now=NOW)
 
 
@@ -430,3 +435,26 @@ def test_the_narrowest_setting_wins() -> None:
     assert rules_c.calibration_interval_days == 2
     assert rules_c.interval_source == "configured: devices.c.care"
     assert rules_for(config, d) is None
+
+
+def test_check_config_names_an_unknown_care_key_and_its_line(tmp_path: Path) -> None:
+    path = tmp_path / "plant.yaml"
+    path.write_text(
+        "buses: [{name: b, port: /dev/null}]\n"
+        "devices:\n"
+        "  - name: a\n"
+        "    bus: b\n"
+        "    address: 1\n"
+        "    profile: jumo-tecline-cl2\n"
+        "    care:\n"
+        "      calibration_interval: 3\n"
+        "care:\n"
+        "  profiles:\n"
+        "    jumo-tecline-cl3: {due_soon_days: 1}\n",
+        encoding="utf-8",
+    )
+    problems = check_config(path, environ={})
+    found = {(p.key, p.line) for p in problems}
+    assert ("devices[0].care.calibration_interval", 8) in found
+    assert ("care.profiles.jumo-tecline-cl3", 11) in found
+    assert len(problems) == 2

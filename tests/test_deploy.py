@@ -179,7 +179,8 @@ def test_alert_rules_use_documented_metrics_only() -> None:
 
 def test_alerts_have_severity_and_summary() -> None:
     for rule in rules():
-        assert rule["labels"]["severity"] in {"warning", "critical"}, rule["alert"]
+        # info: sensor care's early notices (a slope limit ahead, records unclear).
+        assert rule["labels"]["severity"] in {"info", "warning", "critical"}, rule["alert"]
         assert rule["annotations"]["summary"], rule["alert"]
 
 
@@ -256,6 +257,12 @@ def test_dashboard_shows_what_operators_watch() -> None:
         "gateway_poll_lag_seconds",
         "gateway_mqtt_queue_depth",
         "gateway_mqtt_dropped_total",
+        "gateway_care_state",
+        "gateway_last_calibration_timestamp_seconds",
+        "gateway_calibration_due_timestamp_seconds",
+        "gateway_slope_ratio",
+        "gateway_slope_limit_projected_timestamp_seconds",
+        "gateway_cap_usage_ratio",
     }
 
 

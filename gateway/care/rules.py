@@ -52,6 +52,16 @@ PPM_PER_UNIT: Final[Mapping[str, float]] = {
     "ug_per_l": 0.001,  # Reiss code 6, µg/l
 }
 
+# The guided calibration care asks for, by the records a family keeps (the procedure ids of
+# the calibration catalogue, which every front end offers). Amperometric cells: the slope
+# against a reference sample (tecLine annex 7.3.4, the weekly check). O-DO H10/H20: the end
+# value in the reference medium; the zero point in an oxygen-free medium is the rarer one.
+# The S10 offers no guided calibration over Modbus.
+CALIBRATION_PROCEDURE: Final[Mapping[CareKind, str]] = {
+    CareKind.AMPEROMETRIC: "slope",
+    CareKind.OPTICAL_HYGIENIC: "oxygen_end_value",
+}
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class CareRules:

@@ -47,18 +47,51 @@ from gateway.wire.timing import LineFormat
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
+# Every sensor has a past (the simulator's ``aging``, as in config/simulator-plant.yaml):
+# eight weeks in service, calibrated two days ago. One of each kind needs care: the S10
+# recommends a new cap, the H10 has used 90 % of its cap's measurements, the tecLine cell
+# is overdue for calibration with its slope at 44 % of nominal and falling.
+_HEALTHY_OXYGEN: dict[str, Any] = {
+    "weeks_in_service": 8,
+    "last_calibration_days": 2,
+    "measurements_per_week": 20000,
+}
+_HEALTHY_CELL: dict[str, Any] = {
+    "weeks_in_service": 8,
+    "last_calibration_days": 2,
+    "slope_decay_per_week": 0.01,
+}
 DEMO_SENSORS: list[dict[str, Any]] = [
-    {"profile": "jumo-digiline-odo-s10", "address": 1},
-    {"profile": "jumo-digiline-odo-h10", "address": 2},
+    {
+        "profile": "jumo-digiline-odo-s10",
+        "address": 1,
+        "aging": {**_HEALTHY_OXYGEN, "cap_replacement_recommended": True},
+    },
+    {
+        "profile": "jumo-digiline-odo-h10",
+        "address": 2,
+        "aging": {**_HEALTHY_OXYGEN, "measurements_per_week": 112500},
+    },
     # One sensor in fault, to show a fault is published as a fault and never as 2e37.
     {
         "profile": "jumo-digiline-odo-h20",
         "address": 3,
         "values": {"oxygen": {"fault": "overrange"}},
+        "aging": _HEALTHY_OXYGEN,
     },
-    {"profile": "jumo-tecline-cl2", "address": 20},
-    {"profile": "reiss-m0c", "address": 10},
-    {"profile": "reiss-m3c", "address": 30},
+    {
+        "profile": "jumo-tecline-cl2",
+        "address": 20,
+        "aging": {
+            "weeks_in_service": 8,
+            "calibration_interval_days": 7,
+            "last_calibration_days": 9,
+            "slope_start": 0.8,
+            "slope_decay_per_week": 0.06,
+        },
+    },
+    {"profile": "reiss-m0c", "address": 10, "aging": _HEALTHY_CELL},
+    {"profile": "reiss-m3c", "address": 30, "aging": _HEALTHY_CELL},
 ]
 DEVICE_NAMES = {
     1: "aeration_oxygen",

@@ -501,6 +501,26 @@ SparkplugId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(
 Deadband = Annotated[float, Field(ge=0)]
 
 
+# What a Sparkplug host may get of a device besides the poll groups' points: the care
+# report the gateway keeps of it (README: Sensor care), its metrics under ``care/``.
+CARE_GROUP: Final = "care"
+_SPARKPLUG_GROUPS: Final = (*(g.value for g in PollGroup), CARE_GROUP)
+
+
+def _sparkplug_group(value: object) -> object:
+    """A poll group (:class:`PollGroup`) or ``care``; anything else named, with the choices."""
+    if value == CARE_GROUP or isinstance(value, PollGroup):
+        return value
+    if isinstance(value, str) and value in _SPARKPLUG_GROUPS:
+        return PollGroup(value)
+    choices = ", ".join(_SPARKPLUG_GROUPS)
+    raise ValueError(f"{value!r} is not a Sparkplug group: one of {choices}")
+
+
+SparkplugGroup = Annotated[PollGroup | Literal["care"], BeforeValidator(_sparkplug_group)]
+SparkplugGroups = Annotated[list[SparkplugGroup], Field(min_length=1)]
+
+
 class SparkplugConfig(_Model):
     """Sparkplug B: the gateway as an edge node, beside the plain topics (README: Sparkplug B).
 
@@ -512,7 +532,8 @@ class SparkplugConfig(_Model):
     ``groups`` are the poll groups whose points are metrics (``device_groups`` per device):
     process values and status by default, what a host expects of a sensor. Diagnostics,
     configuration and identity are polled all the same, but each adds to every DBIRTH (an
-    H10 with every group is 312 metrics), so a host gets them only when asked for.
+    H10 with every group is 312 metrics), so a host gets them only when asked for; so is
+    ``care``, the sensor care report of each device (``care/state``, ``care/due``, ...).
     ``birth_wait_s`` bounds how long a device's DBIRTH waits for the unit registers its
     metrics take their unit from (tecLine, Reiss): one birth with its units rather than a
     birth without them and another a second later.
@@ -525,8 +546,8 @@ class SparkplugConfig(_Model):
     client_id: str | None = None  # None: spb-<group>-<edge node>
     deadband: Deadband = 0.0
     deadbands: dict[str, dict[str, Deadband]] = {}  # device -> point -> deadband
-    groups: Annotated[list[PollGroup], Field(min_length=1)] = [PollGroup.PROCESS, PollGroup.STATUS]
-    device_groups: dict[str, Annotated[list[PollGroup], Field(min_length=1)]] = {}
+    groups: SparkplugGroups = [PollGroup.PROCESS, PollGroup.STATUS]
+    device_groups: dict[str, SparkplugGroups] = {}
     birth_wait_s: Annotated[float, Field(ge=0, le=600)] = 10.0
     queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
 

@@ -2,7 +2,8 @@
 
 A behaviour fills in a plausible nameplate at start, moves process values on ``tick``
 (unless the device is static or a point is held), and reacts to writes as the manuals
-describe. Where a manual is silent the choice is named in a comment.
+describe. Where a manual is silent the choice is named in a comment. With an ``aging:``
+block a behaviour also lays out the records of a sensor in service (:mod:`.aging`) at start.
 """
 
 from __future__ import annotations
@@ -13,15 +14,26 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING
 
+from gateway.simulator import aging as ages
 from gateway.wire import codec
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from gateway.profiles import Point
+    from gateway.simulator.aging import Aged, AgingSettings
     from gateway.simulator.device import Behaviour, SimulatedDevice
+
+    WallClock = Callable[[], datetime]  # an aware datetime: the simulator's wall-clock now
 
 STANDARD_PRESSURE_HPA = 1013.25
 OXYGEN_FRACTION = 0.2095  # of dry air
 SINGLE_MEASUREMENT_S = 0.3  # H10/H20: not documented; long enough to observe bit 1
+IN_SERVICE_SLOPE = 0.95  # of nominal: the real slope of a cell without an aging block
+
+
+def _utc_now() -> datetime:
+    return datetime.now(tz=UTC)
 
 
 def saturation_mg_per_l(temperature_c: float, salinity: float = 0.0) -> float:
@@ -62,11 +74,14 @@ class _Digiline:
     device_name: str
     sensor_type: int
     sub_type: int
-    started_wall: datetime = field(default_factory=lambda: datetime.now(tz=UTC))
+    clock: WallClock = _utc_now
+    started_wall: datetime = field(default_factory=_utc_now)
     started: float = 0.0
+    operating_base_s: int = ages.OPERATING_SECONDS_AT_START
 
     def nameplate(self, device: SimulatedDevice, now: float) -> None:
         self.started = now
+        self.started_wall = self.clock().astimezone(UTC)
         self.process.started = now
         device.put("device_name", self.device_name)
         device.put("software_version", "312.01.02")
@@ -82,7 +97,7 @@ class _Digiline:
         device.put("float_format", 0)
 
     def operating_seconds(self, device: SimulatedDevice, now: float) -> None:
-        device.put("operating_seconds", 3_600_000 + int(now - self.started))
+        device.put("operating_seconds", self.operating_base_s + int(now - self.started))
 
     def wall(self, now: float) -> datetime:
         return self.started_wall + timedelta(seconds=now - self.started)
@@ -94,6 +109,7 @@ class S10Behaviour:
 
     common: _Digiline
     clock_offset_s: float = 0.0  # sensor clock minus simulator clock, set by writes
+    aging: AgingSettings | None = None
 
     def start(self, device: SimulatedDevice, now: float) -> None:
         self.common.nameplate(device, now)
@@ -103,6 +119,9 @@ class S10Behaviour:
         device.put("compensation_temperature", 20.0)
         device.put("compensation_salinity", 0.0)
         device.put("compensation_pressure", STANDARD_PRESSURE_HPA)
+        if self.aging is not None:
+            self.common.operating_base_s = ages.operating_seconds(self.aging)
+            apply_aged(device, ages.s10_values(self.aging, now=self.common.started_wall))
         self.tick(device, now)
 
     def compensation(self, device: SimulatedDevice) -> tuple[float, float, float]:
@@ -164,6 +183,7 @@ class H10Behaviour:
     common: _Digiline
     measuring_until: float | None = None
     next_measurement: float = 0.0
+    aging: AgingSettings | None = None
 
     def start(self, device: SimulatedDevice, now: float) -> None:
         self.common.nameplate(device, now)
@@ -184,7 +204,13 @@ class H10Behaviour:
         device.put("measurement_status", {"continuous_measurement": True})
         device.put("cap_serial_number", f"CAP{device.address:06d}")
         device.put("cap_part_number", "00123456")
+        if self.aging is not None:
+            self.common.operating_base_s = ages.operating_seconds(self.aging)
         self.measure(device, now)
+        if self.aging is not None:  # after the first measurement: its counter as configured
+            aged = ages.h10_values(self.aging, now=self.common.started_wall, profile=device.profile)
+            apply_aged(device, aged)
+            self.common.operating_seconds(device, now)
 
     def measure(self, device: SimulatedDevice, now: float) -> None:
         """One oxygen and temperature measurement, as after the interval or a trigger."""
@@ -200,6 +226,7 @@ class H10Behaviour:
         device.put("oxygen", self.oxygen(device))
         if _label(device.get("measurement_counter_control")) == "active":
             device.put("measurement_counter", int(_num(device.get("measurement_counter"), 0)) + 1)
+            _flag_counter_overflow(device)
         self._set_status_bit(device, "new_values", state=True)
 
     def oxygen(self, device: SimulatedDevice) -> float:
@@ -274,6 +301,7 @@ class H10Behaviour:
         ):
             device.put("measurement_counter", 0)
             device.put("measurement_counter_control", "active")
+            _flag_counter_overflow(device)
         if "zero_point_calibration_trigger" in names:
             self._calibrate(device, now, end_value=False)
         if "end_value_calibration_trigger" in names:
@@ -351,9 +379,14 @@ class AmperometricBehaviour:
     process: _Process
     nominal_slope: float
     true_concentration: float = 0.5
+    aging: AgingSettings | None = None
+    clock: WallClock = _utc_now
+    started_wall: datetime = field(default_factory=_utc_now)
+    aged_since: datetime | None = None  # the first calibration, from which the slope falls
 
     def start(self, device: SimulatedDevice, now: float) -> None:
         self.process.started = now
+        self.started_wall = self.clock().astimezone(UTC)
         profile = device.profile
         device.put("hardware_version", 1130)
         device.put("firmware_version", 1503)
@@ -368,7 +401,21 @@ class AmperometricBehaviour:
         device.put("x_zero", 0.0)
         device.put("x_span", self.nominal_slope)
         # modbus_address, baud_rate and parity_stop_bits: the device reports its line.
+        if self.aging is not None:
+            wall = self.started_wall
+            self.aged_since = ages.first_calibration(self.aging, wall)
+            aged = ages.amperometric_values(
+                self.aging, now=wall, profile=profile, nominal_slope=self.nominal_slope
+            )
+            apply_aged(device, aged)
         self.tick(device, now)
+
+    def slope_fraction(self, now: float) -> float:
+        """The cell's real slope as a fraction of nominal: falling at real time when aged."""
+        if self.aging is None or self.aged_since is None:
+            return IN_SERVICE_SLOPE
+        wall = self.started_wall + timedelta(seconds=now - self.process.started)
+        return ages.real_slope_fraction(self.aging, first=self.aged_since, at=wall)
 
     def tick(self, device: SimulatedDevice, now: float) -> None:
         concentration = self.true_concentration
@@ -378,8 +425,9 @@ class AmperometricBehaviour:
             concentration += 0.05 * math.sin(2 * math.pi * t / 180) + self.process.rng.gauss(
                 0, 0.001
             )
-        # The cell's real slope is a little below nominal, as on a sensor in service.
-        device.put("cell_current", round(concentration * self.nominal_slope * 0.95, 4))
+        # The cell's real slope is below nominal, as on a sensor in service.
+        slope = self.slope_fraction(now)
+        device.put("cell_current", round(concentration * self.nominal_slope * slope, 4))
         device.put("temperature", round(self.process.temperature_c, 3))
         current = _num(device.get("cell_current"), 0.0)
         zero = _num(device.get("x_zero"), 0.0)
@@ -411,6 +459,31 @@ class AmperometricBehaviour:
             ("stamp", "calibration_stamp"),
         ):
             _copy(device, source, f"history_0_{part}")
+
+
+def apply_aged(device: SimulatedDevice, aged: Aged) -> None:
+    """Put an aged sensor's values, and merge its bits into the bit fields' current words."""
+    for name, value in aged.values.items():
+        device.put(name, value)
+    for name, bits in aged.flags.items():
+        point = device.profile.point(name)
+        current = device.get(name)
+        raw = current.raw if isinstance(current, codec.BitfieldValue) else 0
+        changes: dict[object, object] = dict(bits.items())
+        device.put(name, codec.with_bits(point.format, raw, changes))
+
+
+def _flag_counter_overflow(device: SimulatedDevice) -> None:
+    """H10/H20 6.2.9: reaching the maximum 0x2095 sets error register bit 7 (and below, not)."""
+    current = device.get("error_register")
+    if not isinstance(current, codec.BitfieldValue):
+        return
+    counter = int(_num(device.get("measurement_counter"), 0))
+    overflow = ages.counter_overflows(counter, int(_num(device.get("measurement_counter_max"), 0)))
+    if dict(current.flags).get("measurement_counter_overflow") != overflow:
+        point = device.profile.point("error_register")
+        bits: dict[object, object] = {"measurement_counter_overflow": overflow}
+        device.put("error_register", codec.with_bits(point.format, current.raw, bits))
 
 
 def _raw(device: SimulatedDevice, name: str) -> tuple[int, ...]:
@@ -446,18 +519,37 @@ def _code(value: codec.Decoded) -> int:
 _NOMINAL_SLOPES = {"cl2": 22.0, "tc": 7.5, "cl2-om": 22.0}  # tecLine annex 7.5 examples
 
 
-def behaviour_for(profile_id: str, family: str, *, seed: int) -> Behaviour:
-    """The behaviour of a profile's family, seeded for repeatable runs."""
+def behaviour_for(
+    profile_id: str,
+    family: str,
+    *,
+    seed: int,
+    aging: AgingSettings | None = None,
+    clock: WallClock | None = None,
+) -> Behaviour:
+    """The behaviour of a profile's family, seeded for repeatable runs.
+
+    ``aging`` lays out the records of a sensor in service at start; ``clock`` is the
+    simulator's wall clock (an aware ``datetime``), read once at start.
+    """
     process = _Process(rng=random.Random(seed))
+    clock = clock or _utc_now
     if family == "jumo-digiline-odo-s10":
-        return S10Behaviour(
-            common=_Digiline(process=process, device_name="ODO S10", sensor_type=4, sub_type=0)
+        s10 = _Digiline(
+            process=process, device_name="ODO S10", sensor_type=4, sub_type=0, clock=clock
         )
+        return S10Behaviour(common=s10, aging=aging)
     if family == "jumo-digiline-odo-h10-h20":
         h20 = profile_id.endswith("h20")
         name = "ODO H20" if h20 else "ODO H10"
-        return H10Behaviour(
-            common=_Digiline(process=process, device_name=name, sensor_type=3, sub_type=int(h20))
+        common = _Digiline(
+            process=process, device_name=name, sensor_type=3, sub_type=int(h20), clock=clock
         )
+        return H10Behaviour(common=common, aging=aging)
     variant = profile_id.removeprefix("jumo-tecline-").removeprefix("reiss-")
-    return AmperometricBehaviour(process=process, nominal_slope=_NOMINAL_SLOPES.get(variant, 10.0))
+    return AmperometricBehaviour(
+        process=process,
+        nominal_slope=_NOMINAL_SLOPES.get(variant, 10.0),
+        aging=aging,
+        clock=clock,
+    )

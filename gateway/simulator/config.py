@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import get_profile
+from gateway.simulator.aging import AgingSettings  # noqa: TC001 - pydantic resolves it at run time
 from gateway.simulator.behaviour import behaviour_for
 from gateway.simulator.bus import FaultPlan, SimulatedBus
 from gateway.simulator.device import SimulatedDevice
@@ -16,6 +17,8 @@ from gateway.wire.codec import Fault
 from gateway.wire.timing import LineFormat
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+    from datetime import datetime
     from pathlib import Path
 
 
@@ -52,6 +55,8 @@ class DeviceSettings(_Model):
     registers: dict[
         Annotated[int, Field(ge=0, le=0xFFFF)], Annotated[int, Field(ge=0, le=0xFFFF)]
     ] = {}
+    # A sensor with a past: its records laid out as after this time in service (aging.py).
+    aging: AgingSettings | None = None
 
 
 class LineSettings(_Model):
@@ -121,8 +126,14 @@ def _value(raw: object) -> object:
     return raw
 
 
-def build_bus(settings: SimulationSettings) -> SimulatedBus:
-    """Devices with their behaviours and fault plans, checked against their profiles."""
+def build_bus(
+    settings: SimulationSettings, *, clock: Callable[[], datetime] | None = None
+) -> SimulatedBus:
+    """Devices with their behaviours and fault plans, checked against their profiles.
+
+    ``clock`` is the simulator's wall clock (an aware ``datetime``; default: now), from which
+    an aged device dates its records at start: tests pass a fixed one.
+    """
     devices: dict[int, SimulatedDevice] = {}
     faults: dict[int, FaultPlan] = {}
     for index, entry in enumerate(settings.devices):
@@ -135,7 +146,13 @@ def build_bus(settings: SimulationSettings) -> SimulatedBus:
         device = SimulatedDevice(
             profile=profile,
             address=entry.address,
-            behaviour=behaviour_for(profile.id, profile.family, seed=settings.seed + entry.address),
+            behaviour=behaviour_for(
+                profile.id,
+                profile.family,
+                seed=settings.seed + entry.address,
+                aging=entry.aging,
+                clock=clock,
+            ),
             processing_s=entry.processing_ms / 1000,
             animate=entry.animate,
             initial={name: _value(value) for name, value in entry.values.items()},

@@ -1,7 +1,7 @@
 """What the page shows, as JSON, read from the state without I/O.
 
 The lines and devices with their live values, one device's register map, the bus health
-figures.
+figures (sensor care's documents are :mod:`~gateway.web.care`'s).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Final
 from gateway.line.samples import Quality, json_value
 from gateway.profiles.model import PollGroup, Storage
 from gateway.publish.prometheus.health import ERROR_KINDS
+from gateway.web.care import care_version
 from gateway.wire.codec import BitfieldValue
 
 if TYPE_CHECKING:
@@ -159,6 +160,7 @@ def overview(state: GatewayState, paused: Mapping[str, str] | None = None) -> di
         },
         "lines": lines,
         "devices": devices,
+        "care_version": care_version(state),  # the page asks /api/care again when it changes
     }
 
 

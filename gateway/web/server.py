@@ -9,6 +9,8 @@ its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser 
     POST /api/logout
     GET  /api/state                      R  lines and devices with live values, bus health
     GET  /api/events                     R  the same, as server-sent events, every second
+    GET  /api/care                       R  sensor care: every device's document, most urgent
+                                            first, with the calibration it asks for
     GET  /api/devices/{device}           R  identity, register map, procedures
     POST /api/devices/{device}/points/{point}  W  {value}: a write through SafeWriter
     POST /api/devices/{device}/read      W  every point read now (queued ahead of polls)
@@ -53,6 +55,7 @@ from gateway.web.auth import (
     is_loopback,
 )
 from gateway.web.calibration import CalibrationRun, Calibrations, procedures_for
+from gateway.web.care import care_documents
 from gateway.web.live import overview, register_map, sample_view
 
 if TYPE_CHECKING:
@@ -143,6 +146,7 @@ class WebServer:
                 post("/api/logout", self._logout),
                 get("/api/state", self._reader(self._state)),
                 get("/api/events", self._reader(self._events)),
+                get("/api/care", self._reader(self._care)),
                 get("/api/devices/{device}", self._reader(self._device)),
                 post("/api/devices/{device}/points/{point}", self._writer(self._write)),
                 post("/api/devices/{device}/read", self._writer(self._read_all)),
@@ -419,6 +423,9 @@ class WebServer:
                     async with asyncio.timeout(self.event_interval_s):
                         await self._closing.wait()
         return response
+
+    async def _care(self, _request: web.Request) -> web.StreamResponse:
+        return web.json_response(care_documents(self.state))
 
     async def _device(self, request: web.Request) -> web.StreamResponse:
         name = request.match_info["device"]

@@ -5,7 +5,10 @@ the points it polls of the poll groups the host gets (``sparkplug.groups``: proc
 and status by default), named as the profile names them; a bit field is its word (UInt) and
 each named bit a Boolean metric ``{point}/{bit}``; an enumeration is its code (UInt) and its
 label a String metric ``{point}/label`` beside it, a tag of its own that a host shows and
-historises as it is; ``Write/Result`` carries the outcome of the last DCMD. Aliases are
+historises as it is; ``Write/Result`` carries the outcome of the last DCMD. With the group
+``care`` (no poll group: the care report the gateway keeps of the device), the report's
+metrics under ``care/`` (:data:`CARE_METRICS`), those of a figure only where the family has
+it (the slope of tecLine and Reiss, the cap of the O-DO H10/H20). Aliases are
 numbered in config order, so they stay the same from one start to the next as long as the
 config does; they are unique across the edge node (Sparkplug 3.0,
 ``tck-id-payloads-alias-uniqueness``). The node's own metrics (``bdSeq``, ``Node
@@ -18,6 +21,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
+from gateway.care import CareKind, care_kind
+from gateway.config.model import CARE_GROUP
 from gateway.profiles.model import PollGroup
 from gateway.publish.sparkplug.payloads import DATATYPE_OF, SpType
 from gateway.wire import codec
@@ -35,14 +40,74 @@ FIRST_DEVICE_ALIAS: Final = 16  # below: kept free for node metrics
 # What a host gets unless the config says otherwise: the measured values and the status
 # words, as a SCADA tag list of a sensor has them.
 DEFAULT_GROUPS: Final = frozenset({PollGroup.PROCESS, PollGroup.STATUS})
+CARE_FOLDER: Final = "care"  # the care report's metrics: care/state, care/due, ...
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class CareMetric:
+    """One figure of the care report as a metric ``care/{name}``; ``kinds``: where it is.
+
+    ``name`` is also what the reporter reads of the report (``reports.CARE_VALUES``).
+    """
+
+    name: str
+    datatype: SpType
+    description: str
+    kinds: frozenset[CareKind] | None = None  # None: every family care knows
+
+
+_AMPEROMETRIC: Final = frozenset({CareKind.AMPEROMETRIC})  # tecLine, Reiss: a slope
+# The care report's metrics, in the order of a birth. Dates are DateTime (ms since the
+# epoch), null when the report has none, as every missing figure is.
+CARE_METRICS: Final = (
+    CareMetric(
+        name="state",
+        datatype=SpType.STRING,
+        description="sensor care: ok, due_soon, due, unknown or maintenance",
+    ),
+    CareMetric(
+        name="reasons",
+        datatype=SpType.STRING,
+        description="sensor care: the reasons, the most urgent first, joined with '; '",
+    ),
+    CareMetric(
+        name="last_calibration",
+        datatype=SpType.DATETIME,
+        description="sensor care: the last calibration",
+    ),
+    CareMetric(
+        name="due",
+        datatype=SpType.DATETIME,
+        description="sensor care: when the next calibration is due",
+    ),
+    CareMetric(
+        name="slope_ratio",
+        datatype=SpType.DOUBLE,
+        description="sensor care: the active slope as a fraction of the nominal slope",
+        kinds=_AMPEROMETRIC,
+    ),
+    CareMetric(
+        name="slope_limit_projected",
+        datatype=SpType.DATETIME,
+        description="sensor care: when the falling slope is projected to cross its limit",
+        kinds=_AMPEROMETRIC,  # fitted over the calibration history of the slope
+    ),
+    CareMetric(
+        name="cap_usage",
+        datatype=SpType.DOUBLE,
+        description="sensor care: the measurement counter as a fraction of its maximum (cap)",
+        kinds=frozenset({CareKind.OPTICAL_HYGIENIC}),  # O-DO H10/H20
+    ),
+)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class MetricSpec:
     """One metric of a device: what its birth says of it, and what it is made from.
 
-    ``point`` is ``None`` for ``Write/Result``; ``bit`` names the bit of a bit field that
-    a Boolean metric carries; ``label`` marks the String metric of an enumeration's label.
+    ``point`` is ``None`` for ``Write/Result`` and the care metrics; ``bit`` names the bit
+    of a bit field that a Boolean metric carries; ``label`` marks the String metric of an
+    enumeration's label; ``care`` names the figure of the care report a care metric carries.
     """
 
     name: str
@@ -54,6 +119,7 @@ class MetricSpec:
     description: str = ""
     deadband: float = 0.0
     label: bool = False
+    care: str | None = None
 
     @property
     def writable(self) -> bool:
@@ -78,6 +144,7 @@ class DeviceMetrics:
     of_point: dict[str, MetricSpec] = field(default_factory=dict)
     bits_of: dict[str, list[MetricSpec]] = field(default_factory=dict)
     label_of: dict[str, MetricSpec] = field(default_factory=dict)
+    care: list[MetricSpec] = field(default_factory=list)
     result: MetricSpec | None = None
 
     def add(self, spec: MetricSpec) -> None:
@@ -107,7 +174,7 @@ class Catalogue:
 
         ``deadband`` applies to every Float metric without one of its own in ``deadbands``
         (device -> point -> deadband). Only points of ``groups`` (a device's own in
-        ``device_groups``) are metrics.
+        ``device_groups``) are metrics; ``care`` among them adds the care report's.
         """
         deadbands = deadbands or {}
         device_groups = device_groups or {}
@@ -161,6 +228,8 @@ class Catalogue:
                     alias += 1
                     metrics.add(label)
                     metrics.label_of[point.name] = label
+            if CARE_GROUP in wanted:
+                alias = _add_care(metrics, profile, alias)
             metrics.result = MetricSpec(
                 name=WRITE_RESULT,
                 alias=alias,
@@ -172,3 +241,25 @@ class Catalogue:
             metrics.add(metrics.result)
             catalogue.devices[name] = metrics
         return catalogue
+
+
+def _add_care(metrics: DeviceMetrics, profile: Profile, alias: int) -> int:
+    """The care report's metrics of a family care knows (none for others); the next alias."""
+    kind = care_kind(profile)
+    if kind is None:
+        return alias
+    for care in CARE_METRICS:
+        if care.kinds is not None and kind not in care.kinds:
+            continue
+        spec = MetricSpec(
+            name=f"{CARE_FOLDER}/{care.name}",
+            alias=alias,
+            datatype=care.datatype,
+            point=None,
+            description=care.description,
+            care=care.name,
+        )
+        alias += 1
+        metrics.add(spec)
+        metrics.care.append(spec)
+    return alias

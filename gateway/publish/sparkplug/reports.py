@@ -18,6 +18,13 @@ The ``Quality`` property has one meaning per code (the three codes Sparkplug 3.0
   ``fault`` names it (``overrange``, ``undecodable``, ...); never the fault float;
 - 500 (stale): no current reading: not read yet (in a birth), or its read failed (null).
 
+The care metrics (group ``care``) are not samples: they are the device's care report as
+the state's care book holds it (:class:`CareSource`). A cycle compares the book's version
+of the device with the one last reported, and only when it changed reads the report and
+reports the care metrics that differ, in the same DDATA as the values (stale nulls before
+the first report). A birth carries them only for a device the book follows (care is not
+switched off for it).
+
 Payloads are built without ``seq``; the session adds it as they go out.
 """
 
@@ -25,7 +32,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Final, Protocol
 
 from gateway.line.samples import Quality
 from gateway.publish.message import Message
@@ -42,8 +49,10 @@ from gateway.publish.sparkplug.payloads import (
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterable, Sequence
+    from collections.abc import Callable, Iterable, Mapping, Sequence
+    from datetime import datetime
 
+    from gateway.care import CareReport
     from gateway.line.samples import Sample
     from gateway.publish.sparkplug.catalogue import Catalogue, DeviceMetrics, MetricSpec
     from gateway.publish.sparkplug.topics import SparkplugTopics
@@ -56,6 +65,42 @@ _QUALITY_OF = {
     Quality.COMMS_ERROR: QUALITY_STALE,
 }
 BIRTH_WAIT_S = 10.0  # sparkplug.birth_wait_s: the unit registers are read in the first cycle
+
+
+class CareSource(Protocol):
+    """Where the care reports come from: :class:`gateway.care.CareBook` (``state.care``)."""
+
+    def report(self, device: str) -> CareReport | None:
+        """The device's latest report; None before the first."""
+
+    def version(self, device: str) -> int:
+        """Changes whenever the content of the device's report does."""
+
+    def tracked(self, device: str) -> bool:
+        """Whether care follows the device."""
+
+
+def _ms(when: datetime | None) -> int | None:
+    return None if when is None else payloads.epoch_ms(when)
+
+
+def _ratio(value: float | None) -> float | None:
+    """A ratio to 4 places, as the care document has it (a finer change is no news)."""
+    return None if value is None else round(value, 4)
+
+
+# What each care metric (catalogue.CARE_METRICS, by name) reads of the report.
+CARE_VALUES: Final[Mapping[str, Callable[[CareReport], Scalar | None]]] = {
+    "state": lambda report: report.state.value,
+    "reasons": lambda report: "; ".join(report.reasons),
+    "last_calibration": lambda report: _ms(report.last_calibration),
+    "due": lambda report: _ms(report.due),
+    "slope_ratio": lambda report: _ratio(report.slope_ratio),
+    "slope_limit_projected": lambda report: (
+        None if report.projection is None else payloads.epoch_ms(report.projection.at)
+    ),
+    "cap_usage": lambda report: _ratio(report.cap_usage),
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,16 +134,21 @@ class Reporter:
         *,
         birth_wait_s: float = BIRTH_WAIT_S,
         clock: Callable[[], float] = time.monotonic,
+        care: CareSource | None = None,
     ) -> None:
         """Report the metrics of ``catalogue`` on ``topics``.
 
         A birth waits for its units at most ``birth_wait_s`` after the device's first
-        answer, on ``clock`` (monotonic seconds).
+        answer, on ``clock`` (monotonic seconds). The care metrics come from ``care``
+        (None: no care metric is reported).
         """
         self.catalogue = catalogue
         self.topics = topics
         self.birth_wait_s = birth_wait_s
         self._clock = clock
+        self.care = care
+        # The care book's version of each device whose care metrics are recorded.
+        self._care_versions: dict[str, int] = {}
         self.born: set[str] = set()
         # Announced offline, and not online again since: nothing of them is reported.
         self.dead: set[str] = set()
@@ -144,10 +194,14 @@ class Reporter:
     def dbirth(self, device: str, now_ms: int) -> Message:
         """A device's birth: every metric with name, alias, type, unit, description, value."""
         metrics = self.catalogue.devices[device]
+        self._care_changes(metrics, now_ms)
+        cared = self.care is not None and self.care.tracked(device)
         last = self._last[device]
         units = self._units[device] = {}
         payload = payloads.new_payload(now_ms)
         for spec in metrics.metrics:
+            if spec.care is not None and not cared:
+                continue
             reported = last.get(spec.alias)
             metric = payload.metrics.add()
             metric.name = spec.name
@@ -179,6 +233,7 @@ class Reporter:
         What it reported is forgotten: its next birth carries only what it answers then.
         """
         self._last[device] = {}
+        self._care_versions.pop(device, None)
         self._waiting_since.pop(device, None)
         if device in self.catalogue.devices:
             self.dead.add(device)
@@ -209,7 +264,7 @@ class Reporter:
             return []
         if device not in self.born:
             return self._unborn_cycle(metrics, samples, live=live, now_ms=now_ms)
-        changed = self._changes(metrics, samples)
+        changed = self._changes(metrics, samples) + self._care_changes(metrics, now_ms)
         if live and self._unit_changed(device, changed):
             # A unit is a property of the birth: a new one (a unit register changed on the
             # sensor, or read only after the wait) is told by a new DBIRTH.
@@ -316,6 +371,30 @@ class Reporter:
             for target, reported in self._readings(metrics, spec, sample):
                 if _differs(target, last.get(target.alias), reported):
                     changed.append(self.record(metrics.device, target, reported))
+        return changed
+
+    def _care_changes(
+        self, metrics: DeviceMetrics, now_ms: int
+    ) -> list[tuple[MetricSpec, Reported, int | None]]:
+        """The care metrics that differ, recorded, once the book's version moved."""
+        device = metrics.device
+        if not metrics.care or self.care is None or not self.care.tracked(device):
+            return []
+        version = self.care.version(device)
+        if self._care_versions.get(device) == version:
+            return []
+        self._care_versions[device] = version
+        report = self.care.report(device)
+        last = self._last[device]
+        changed = []
+        for spec in metrics.care:
+            if report is None:  # not assessed yet: no current reading
+                reported = Reported(None, QUALITY_STALE, now_ms)
+            else:
+                value = CARE_VALUES[spec.care or ""](report)
+                reported = Reported(value, QUALITY_GOOD, payloads.epoch_ms(report.assessed_at))
+            if _differs(spec, last.get(spec.alias), reported):
+                changed.append(self.record(device, spec, reported))
         return changed
 
     @staticmethod

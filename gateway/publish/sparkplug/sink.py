@@ -5,7 +5,9 @@ metrics (:mod:`~gateway.publish.sparkplug.catalogue`), the reporter that remembe
 host was told (:mod:`~gateway.publish.sparkplug.reports`) and the session with the broker
 (:mod:`~gateway.publish.sparkplug.session`), and joins them: a cycle is handed to the
 session without waiting, a device going offline is a DDEATH (and dead until it is online
-again), its first cycle with an answer after that a DBIRTH.
+again), its first cycle with an answer after that a DBIRTH. The care metrics (group
+``care``) come from the state's care book, which the state's sink fills before this one
+sees the cycle.
 """
 
 from __future__ import annotations
@@ -64,7 +66,12 @@ class SparkplugSink:
             groups=settings.groups,
             device_groups=settings.device_groups,
         )
-        self.reporter = Reporter(self.catalogue, self.topics, birth_wait_s=settings.birth_wait_s)
+        self.reporter = Reporter(
+            self.catalogue,
+            self.topics,
+            birth_wait_s=settings.birth_wait_s,
+            care=state.care if state is not None else None,
+        )
         store = MessageStore(state_dir / QUEUE_FILE, max_messages=settings.queue_max)
         self.session = SparkplugSession(
             broker,

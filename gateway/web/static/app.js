@@ -1,5 +1,5 @@
-// The gateway's page: live values, a device's register map, bus health, guided calibration
-// and a scan of an idle line. Hand-written, no build step; data is always put in the page
+// The gateway's page: live values, sensor care, a device's register map, bus health, guided
+// calibration and a scan of an idle line. Hand-written, no build step; data is always put in the page
 // as text (textContent), never as HTML.
 "use strict";
 
@@ -253,6 +253,106 @@ function livePage() {
   show(el("h1", { text: "Live values" }), body);
   onState = render;
   if (latest) render(latest);
+}
+
+// --- sensor care -----------------------------------------------------------------------------
+
+const CARE_WORDS = { ok: "ok", due_soon: "due soon", due: "due", maintenance: "maintenance", unknown: "unknown" };
+const WEEKDAYS = ["Sun", "Mon", "Tue", "Wed", "Thu", "Fri", "Sat"];
+const MONTHS = ["Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec"];
+
+// A date as an operator reads it, in this browser's time zone: "Tue 3 Dec" (the year only
+// when it is not this one), never broken across two lines.
+function day(iso) {
+  const d = new Date(iso);
+  const year = d.getFullYear() === new Date().getFullYear() ? "" : ` ${d.getFullYear()}`;
+  const text = `${WEEKDAYS[d.getDay()]} ${d.getDate()} ${MONTHS[d.getMonth()]}${year}`;
+  return el("span", { class: "nowrap", title: d.toLocaleString(), text });
+}
+
+function percent(ratio) {
+  return el("span", { class: "nowrap", text: `${Math.round(100 * ratio)} %` });
+}
+
+// The figures in plain words: when to calibrate, the slope and where it is going, the cap.
+function careFigures(doc) {
+  const parts = [];
+  if (doc.due) {
+    const every = doc.interval_days === 7 ? "weekly" : `every ${doc.interval_days} days`;
+    const late = doc.assessed_at !== null && new Date(doc.due) <= new Date(doc.assessed_at);
+    parts.push(late ? "Calibration due since " : "Calibrate by ", day(doc.due));
+    if (doc.last_calibration) parts.push(" (last ", day(doc.last_calibration), `, ${every}). `);
+    else parts.push(". ");
+  } else if (doc.last_calibration) {
+    parts.push("Last calibrated ", day(doc.last_calibration), ". ");
+  }
+  if (doc.slope_ratio !== null && doc.slope_ratio !== undefined) {
+    parts.push("Slope ", percent(doc.slope_ratio), " of nominal");
+    const week = doc.slope_trend ? doc.slope_trend.per_week : null;
+    if (week !== null && Math.abs(week) >= 0.005) parts.push(` and ${week < 0 ? "falling" : "rising"} `, percent(Math.abs(week)), " a week");
+    else if (week !== null) parts.push(", steady");
+    if (doc.projection) parts.push(": membrane and electrolyte about ", day(doc.projection.at), " at this rate");
+    else if (doc.slope_limit !== null && doc.slope_ratio < doc.slope_limit) parts.push(", below the ", percent(doc.slope_limit), " limit");
+    parts.push(". ");
+  }
+  if (doc.cap_usage !== null && doc.cap_usage !== undefined) parts.push("Cap ", percent(doc.cap_usage), " used.");
+  return parts.length ? el("p", { class: "care-figures" }, parts) : null;
+}
+
+function careCard(doc) {
+  const offer = doc.calibration;
+  const urgent = ["due", "due_soon", "maintenance"].includes(doc.state);
+  return el(
+    "section",
+    { class: `card care care-${doc.state}`, "data-device": doc.device, "data-state": doc.state, "aria-label": doc.device },
+    el(
+      "header",
+      {},
+      el("h2", {}, el("a", { href: `#/device/${encodeURIComponent(doc.device)}` }, breakable(doc.device))),
+      el("span", { class: `badge care-badge care-${doc.state}`, text: CARE_WORDS[doc.state] || doc.state }),
+    ),
+    el("p", { class: "meta" }, `${doc.profile} · ${doc.bus}`),
+    el("ul", { class: "reasons" }, doc.reasons.map((reason) => el("li", { text: reason }))),
+    careFigures(doc),
+    offer
+      ? el("p", { class: "actions" }, el("a", {
+        class: urgent ? "button primary" : "button",
+        href: `#/calibrate/${encodeURIComponent(doc.device)}/${offer.procedure}`,
+        "data-calibrate": offer.procedure,
+        text: `Calibrate: ${offer.title}`,
+      }))
+      : null,
+  );
+}
+
+function carePage() {
+  const body = el("div", { id: "care", "aria-live": "polite" });
+  let shown = null; // the care_version of the documents shown
+  let asked = 0;
+  const load = async () => {
+    const ask = ++asked;
+    try {
+      const docs = await api("GET", "/api/care");
+      if (ask !== asked) return; // a newer answer is on its way
+      body.replaceChildren(docs.length
+        ? el("div", { class: "grid" }, docs.map(careCard))
+        : el("p", { class: "meta", text: "Care follows no device here (care is off, or no family it knows is configured)." }));
+    } catch (error) {
+      body.replaceChildren(el("p", { class: "error", text: error.message }));
+    }
+  };
+  show(
+    el("h1", { text: "Sensor care" }),
+    el("p", { class: "meta", text: "What each sensor needs and when, most urgent first, from the records the sensors keep." }),
+    body,
+  );
+  onState = (state) => {
+    if (state.care_version === shown) return;
+    shown = state.care_version;
+    load();
+  };
+  if (latest) onState(latest); else load();
+  timer = setInterval(load, 30000); // dates move on by themselves: "due soon" becomes "due"
 }
 
 // --- bus health ------------------------------------------------------------------------------
@@ -759,6 +859,7 @@ function route() {
   }
   switch (parts[0]) {
     case "login": loginPage(); break;
+    case "care": carePage(); break;
     case "health": healthPage(); break;
     case "device": devicePage(parts[1]); break;
     case "calibrate": calibratePage(parts[1], parts[2]); break;
