@@ -28,7 +28,7 @@ from gateway.profiles import PollGroup, get_profile
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import codec
 from tests.mqtt_broker import Broker, free_port, recording
-from tests.rigs import link_rig
+from tests.rigs import link_rig, run_gateway, simulate_process
 from tests.test_app import scrape
 
 if TYPE_CHECKING:
@@ -260,3 +260,47 @@ async def test_the_gateways_own_calibration_write_makes_the_history_read_again_a
     assert first == 1
     assert [s.value for s in read_again] == [stamp]
     assert spans[-1].value == pytest.approx(0.9 * NOMINAL)
+
+
+AGED_PLANT = """\
+line: {baudrate: 19200, parity: E, stopbits: 1}
+devices:
+  - profile: jumo-tecline-cl2
+    address: 20
+    animate: false
+    aging: {weeks_in_service: 8, last_calibration_days: 9, slope_start: 0.8, slope_decay_per_week: 0.06}
+  - profile: jumo-digiline-odo-s10
+    address: 1
+    animate: false
+    aging: {cap_replacement_recommended: true}
+"""
+
+
+def test_gateway_care_reads_the_sensors_when_no_gateway_runs(tmp_path: Path) -> None:
+    """`gateway care --json` with nothing on the metrics port: it reads the records itself.
+
+    The aged tecLine: calibrated weekly for 8 weeks from 80 % of nominal, 6 % less a week,
+    the last 9 days ago: 0.80 - 6 x 0.06 = 0.44 of nominal, overdue; the S10 asks for a cap.
+    """
+    with simulate_process(tmp_path, AGED_PLANT) as (port, _):
+        config = tmp_path / "plant.yaml"
+        config.write_text(
+            f"buses: [{{name: line1, port: {port}, baudrate: 19200, parity: E}}]\n"
+            "devices:\n"
+            "  - {name: pool, bus: line1, address: 20, profile: jumo-tecline-cl2}\n"
+            "  - {name: aeration, bus: line1, address: 1, profile: jumo-digiline-odo-s10}\n"
+            f"prometheus: {{host: 127.0.0.1, port: {free_port()}}}\n",
+            encoding="utf-8",
+        )
+        result = run_gateway("care", "--config", str(config), "--json", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    documents = json.loads(result.stdout)
+    assert [(d["device"], d["state"]) for d in documents] == [
+        ("aeration", "maintenance"),
+        ("pool", "due"),
+    ]
+    pool = documents[1]
+    assert pool["slope_ratio"] == pytest.approx(0.44, abs=1e-4)
+    assert pool["slope_trend"]["per_week"] == pytest.approx(-0.06, abs=1e-4)
+    assert pool["projection"]["confidence"] == "high"
+    assert any("replacing its cap" in reason for reason in documents[0]["reasons"])

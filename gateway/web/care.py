@@ -20,7 +20,6 @@ from gateway.profiles import get_profile
 from gateway.web.calibration import BY_ID
 
 if TYPE_CHECKING:
-
     from gateway.care import CareReport
     from gateway.profiles import Profile
     from gateway.publish.state import DeviceInfo, GatewayState

@@ -32,6 +32,7 @@ machinery in :mod:`~gateway.control.calibration.steps`, the tecLine/Reiss proced
 :mod:`~gateway.control.calibration.oxygen`. Import from here.
 """
 
+from gateway.care.rules import PPM_PER_UNIT
 from gateway.control.calibration.amperometric import (
     calibrate_slope,
     calibrate_zero_point,
@@ -48,7 +49,6 @@ from gateway.control.calibration.rules import (
     CHEMICAL_CHECK_TOLERANCE,
     HISTORY_ENTRIES,
     OPTICAL_OXYGEN_POINTS,
-    PPM_PER_UNIT,
     SLOPE_WARNING_FRACTION,
     HistoryEffect,
     HistoryEntry,

@@ -11,17 +11,16 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import TYPE_CHECKING, Final
 
+from gateway.care.rules import PPM_PER_UNIT, SLOPE_LIMIT
 from gateway.errors import CommandRejectedError
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Sequence
     from datetime import datetime
 
 
-# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than 30 %
-
-# of the nominal slope (value at address 0x030A), follow the maintenance instructions".
-SLOPE_WARNING_FRACTION: Final = 0.30
+# tecLine annex 7.3.4's 30 % of the nominal slope: the limit sensor care judges by too.
+SLOPE_WARNING_FRACTION: Final = SLOPE_LIMIT
 # tecLine annex 7.2 / Reiss 5.1: history entries 0 (newest, copy of the current one) to 4.
 HISTORY_ENTRIES: Final = 5
 # tecLine annex 7.3.3 / Reiss 5.2.3 "chemical check": the sensor's and the analysed
@@ -32,19 +31,6 @@ _FLOAT32_REL_TOL: Final = 1e-6
 # H10/H20 registers the sensor fills from the same measurement (203F and the logbook phase):
 # compared with a little room, as the manual does not say they are bit-identical.
 SAME_MEASUREMENT_REL_TOL: Final = 1e-4
-
-# X_Span is "nA per unit" of 0x0200 (tecLine annex 7.1), the nominal slope 0x030A is in nA/ppm
-# (annex 7.5.1: "22 nA/ppm"). ppm per one unit of each 0x0200 code, for a dilute aqueous
-# solution (1 l = 1 kg, so mg/l = ppm); our conversion, the manuals do not give one.
-PPM_PER_UNIT: Final[Mapping[str, float]] = {
-    "percent": 10_000.0,  # 1 % = 10 g/kg
-    "permille": 1_000.0,  # 1 ‰ = 1 g/kg
-    "g_per_l": 1_000.0,
-    "ppm": 1.0,
-    "mg_per_l": 1.0,
-    "ppb": 0.001,
-    "ug_per_l": 0.001,  # Reiss code 6, µg/l
-}
 
 AMPEROMETRIC_POINTS: Final = frozenset(
     {"cell_current", "x_zero", "x_span", "calibration_stamp", "nominal_slope", "unit"}
