@@ -14,10 +14,19 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.care import CareState, Records, assess, care_order, care_points, resolve
+from gateway.care import (
+    CareBook,
+    CareState,
+    Records,
+    assess,
+    care_order,
+    care_points,
+    resolve,
+)
 from gateway.care.rules import CareKind, rules_for
 from gateway.config import check_config, parse_config
 from gateway.config.care import CareSettings
+from gateway.line.samples import Quality, Sample
 from gateway.profiles import get_profile
 from gateway.wire import codec
 from gateway.wire.codec import BitfieldValue, EnumValue
@@ -458,3 +467,54 @@ def test_check_config_names_an_unknown_care_key_and_its_line(tmp_path: Path) -> 
     assert ("devices[0].care.calibration_interval", 8) in found
     assert ("care.profiles.jumo-tecline-cl3", 11) in found
     assert len(problems) == 2
+
+
+def _samples(values: dict[str, Any], *, at: float) -> list[Sample]:
+    return [
+        Sample(
+            bus="b",
+            device="pool",
+            profile=TECLINE.id,
+            point=name,
+            value=value,
+            fault=None,
+            unit=None,
+            quality=Quality.GOOD,
+            monotonic=at,
+            time=NOW,
+            group="diagnostics",
+        )
+        for name, value in values.items()
+    ]
+
+
+def test_the_book_assesses_on_a_change_and_once_a_minute_otherwise() -> None:
+    """Status words come every poll: the same records are not assessed again within a minute,
+    but a changed one at once, and time alone again after a minute (a calibration falls due)."""
+    clock = [NOW]
+    book = CareBook(clock=lambda: clock[0], zone=UTC)
+    rules = resolve(TECLINE, [])
+    points = care_points(TECLINE, CareKind.AMPEROMETRIC)
+    book.add_device(bus="b", device="pool", profile=TECLINE, rules=rules, polled=points)
+    values = history([0.9], NOW - timedelta(days=6, hours=23))
+    values |= {"serial_number": "0104714601", "part_number": "00705172"}
+    book.observe(_samples({k: v for k, v in values.items() if k != "unit"}, at=0.0))
+    assert book.report("pool") is None  # the unit not read yet: no verdict
+    book.observe(_samples(values, at=1.0))
+    first = book.report("pool")
+    assert first is not None
+    assert first.state is CareState.DUE_SOON
+    assert book.version("pool") == 1
+    clock[0] = NOW + timedelta(hours=2)  # now overdue, but nothing changed
+    book.observe(_samples(values, at=2.0))
+    assert book.report("pool") is first
+    book.observe(_samples(values, at=61.0))  # a minute on: time alone is assessed
+    due = book.report("pool")
+    assert due is not None
+    assert due.state is CareState.DUE
+    assert book.version("pool") == 2
+    book.observe(_samples(values | {"nominal_slope": 2 * NOMINAL}, at=62.0))  # a change
+    changed = book.report("pool")
+    assert changed is not None
+    assert changed.slope_ratio == pytest.approx(0.45)
+    assert book.version("pool") == 3

@@ -11,6 +11,7 @@ it. Publishers compare :meth:`CareBook.version` with the one they last sent.
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -31,6 +32,9 @@ if TYPE_CHECKING:
     from gateway.wire import codec
 
 NOT_POLLED = "not polled: switched off in the config"
+# Records that did not change are assessed again at most this often, for what time alone
+# changes (a calibration falling due); a change is assessed at once.
+REASSESS_S = 60.0
 
 
 @dataclass(slots=True)
@@ -44,6 +48,7 @@ class _Device:
     unreadable: dict[str, str] = field(default_factory=dict)
     report: CareReport | None = None
     version: int = 0
+    assessed: float = -math.inf  # monotonic time of the last assessment
 
 
 class CareBook:
@@ -97,28 +102,40 @@ class CareBook:
         if tracked is None:
             return
         points = tracked.points
-        seen = False
+        changed = False
+        now = samples[0].monotonic
         for sample in samples:
-            if sample.point not in points:
-                continue
-            seen = True
-            self._keep(tracked, sample)
-        if seen and len(tracked.values) + len(tracked.unreadable) >= len(points):
+            if sample.point in points:
+                changed = self._keep(tracked, sample) or changed
+        if not changed and now - tracked.assessed < REASSESS_S:
+            return  # status words come every poll: assessed on a change, or once a minute
+        if len(tracked.values) + len(tracked.unreadable) >= len(points):
+            tracked.assessed = now
             self._assess(tracked)
 
     @staticmethod
-    def _keep(tracked: _Device, sample: Sample) -> None:
+    def _keep(tracked: _Device, sample: Sample) -> bool:
+        """Keep one record; whether it changed what care knows."""
         name = sample.point
         if sample.quality is Quality.GOOD:
+            if name in tracked.values and tracked.values[name] == sample.value:
+                return False
             tracked.values[name] = sample.value
             tracked.unreadable.pop(name, None)
-        elif sample.quality is Quality.FAULT:
+            return True
+        if sample.quality is Quality.FAULT:
+            reason = f"the sensor sent {sample.fault or 'a fault'}"
+            if tracked.unreadable.get(name) == reason:
+                return False
             tracked.values.pop(name, None)
-            tracked.unreadable[name] = f"the sensor sent {sample.fault or 'a fault'}"
-        elif name not in tracked.values:
+            tracked.unreadable[name] = reason
+            return True
+        if name in tracked.values or name in tracked.unreadable:
             # No answer: what was read before still stands (the device's availability
             # says it is offline); only a record never read is missing.
-            tracked.unreadable[name] = "no answer from the sensor"
+            return False
+        tracked.unreadable[name] = "no answer from the sensor"
+        return True
 
     def _assess(self, tracked: _Device) -> None:
         report = assess(
