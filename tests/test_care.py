@@ -518,3 +518,24 @@ def test_the_book_assesses_on_a_change_and_once_a_minute_otherwise() -> None:
     assert changed is not None
     assert changed.slope_ratio == pytest.approx(0.45)
     assert book.version("pool") == 3
+
+
+def test_a_status_bit_care_does_not_judge_does_not_make_it_assess_again() -> None:
+    """The S10's "oxygen invalid" changes nothing care judges; "cap replacement" does."""
+    book = CareBook(clock=lambda: NOW)
+    rules = resolve(S10, [])
+    book.add_device(bus="b", device="pool", profile=S10, rules=rules, polled=["status"])
+
+    def status(**bits: bool) -> BitfieldValue:
+        names = ("oxygen_invalid", "cap_missing", "cap_replacement_recommended")
+        flags = tuple((name, bits.get(name, False)) for name in names)
+        return BitfieldValue(raw=0, flags=flags)
+
+    book.observe(_samples({"status": status()}, at=0.0))
+    first = book.report("pool")
+    book.observe(_samples({"status": status(oxygen_invalid=True)}, at=1.0))
+    assert book.report("pool") is first
+    book.observe(_samples({"status": status(cap_replacement_recommended=True)}, at=2.0))
+    changed = book.report("pool")
+    assert changed is not None
+    assert changed.state is CareState.MAINTENANCE

@@ -18,7 +18,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
 from gateway.care.assess import assess
-from gateway.care.records import Records, care_points
+from gateway.care.records import Records, care_points, same_record
 from gateway.line.samples import Quality
 
 if TYPE_CHECKING:
@@ -118,7 +118,7 @@ class CareBook:
         """Keep one record; whether it changed what care knows."""
         name = sample.point
         if sample.quality is Quality.GOOD:
-            if name in tracked.values and tracked.values[name] == sample.value:
+            if name in tracked.values and same_record(name, tracked.values[name], sample.value):
                 return False
             tracked.values[name] = sample.value
             tracked.unreadable.pop(name, None)

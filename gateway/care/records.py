@@ -48,6 +48,14 @@ _CURRENT: Final[Mapping[CareKind, tuple[str, ...]]] = {
     ),
     CareKind.OPTICAL: ("operating_seconds", "commissioning_date", "status"),
 }
+# The bits of the status and error words that care judges; the others (such as the H10's
+# "new values", which changes with every measurement) do not make it assess again.
+CARE_BITS: Final[Mapping[str, frozenset[str]]] = {
+    "status": frozenset(
+        {"cap_missing", "cap_replacement_recommended", "measurement_count_exceeded"}
+    ),
+    "error_register": frozenset({"measurement_counter_overflow"}),
+}
 # Shown in the care document when the profile has them; the verdict does not need them.
 OPTIONAL: Final = frozenset({"cap_serial_number", "cap_part_number", "commissioning_date"})
 
@@ -66,6 +74,15 @@ def care_points(profile: Profile, kind: CareKind) -> tuple[str, ...]:
         ]
     names += [name for name in sorted(OPTIONAL) if profile.has_point(name) and name not in names]
     return tuple(names)
+
+
+def same_record(name: str, before: codec.Decoded, after: codec.Decoded) -> bool:
+    """Whether a new value of a record changes nothing care judges."""
+    bits = CARE_BITS.get(name)
+    if bits is not None and isinstance(before, BitfieldValue) and isinstance(after, BitfieldValue):
+        old, new = dict(before.flags), dict(after.flags)
+        return all(old.get(bit) == new.get(bit) for bit in bits)
+    return before == after
 
 
 @dataclass(frozen=True, slots=True)
