@@ -80,39 +80,45 @@ class CareRules:
     hours_outside_temperature_limit: float | None = None
 
 
-_COMMON: Final = {
-    "slope_limit": SLOPE_LIMIT,
-    # Ours: SENCOM-style fits are trusted from about r² 0.8; below it the points scatter
-    # more than they trend, and a date would be made up.
-    "min_fit_r2": 0.8,
-    # Ours: two weeks is enough to order a membrane cap and electrolyte.
-    "projection_warn_days": 14.0,
-    # Ours: a new H10/H20 cap is due soon at 90 % of the measurement counter's maximum
-    # (6.2.9: at 100 % the sensor sets "counter overflow", error bit 7 of 0x2005).
-    "cap_usage_warn": 0.9,
-}
+def _defaults(
+    kind: CareKind, interval_days: float | None, source: str, *, due_soon_days: float
+) -> CareRules:
+    """A family's rules: its interval, and the limits every family shares."""
+    return CareRules(
+        kind=kind,
+        calibration_interval_days=interval_days,
+        interval_source=source,
+        due_soon_days=due_soon_days,
+        slope_limit=SLOPE_LIMIT,
+        # Ours: SENCOM-style fits are trusted from about r² 0.8; below it the points
+        # scatter more than they trend, and a date would be made up.
+        min_fit_r2=0.8,
+        # Ours: two weeks is enough to order a membrane cap and electrolyte.
+        projection_warn_days=14.0,
+        # Ours: a new H10/H20 cap is due soon at 90 % of the measurement counter's maximum
+        # (6.2.9: at 100 % the sensor sets "counter overflow", error bit 7 of 0x2005).
+        cap_usage_warn=0.9,
+    )
+
 
 DEFAULTS: Final[Mapping[CareKind, CareRules]] = {
-    CareKind.AMPEROMETRIC: CareRules(
-        kind=CareKind.AMPEROMETRIC,
-        calibration_interval_days=7.0,
-        interval_source="tecLine manual annex 7.3.4: check the calibration ideally weekly",
+    CareKind.AMPEROMETRIC: _defaults(
+        CareKind.AMPEROMETRIC,
+        7.0,
+        "tecLine manual annex 7.3.4: check the calibration ideally weekly",
         due_soon_days=1.0,  # ours: a weekly check reported a day ahead
-        **_COMMON,  # type: ignore[arg-type]
     ),
-    CareKind.OPTICAL_HYGIENIC: CareRules(
-        kind=CareKind.OPTICAL_HYGIENIC,
-        calibration_interval_days=30.0,
-        interval_source="gateway default: the H10/H20 manual gives no calibration interval",
+    CareKind.OPTICAL_HYGIENIC: _defaults(
+        CareKind.OPTICAL_HYGIENIC,
+        30.0,
+        "gateway default: the H10/H20 manual gives no calibration interval",
         due_soon_days=7.0,  # ours
-        **_COMMON,  # type: ignore[arg-type]
     ),
-    CareKind.OPTICAL: CareRules(
-        kind=CareKind.OPTICAL,
-        calibration_interval_days=None,
-        interval_source="the S10 keeps no calibration record that Modbus can read",
+    CareKind.OPTICAL: _defaults(
+        CareKind.OPTICAL,
+        None,
+        "the S10 keeps no calibration record that Modbus can read",
         due_soon_days=7.0,
-        **_COMMON,  # type: ignore[arg-type]
     ),
 }
 
