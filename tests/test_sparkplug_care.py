@@ -33,7 +33,7 @@ from tests.sinks.test_sparkplug import SpRecorder, sp_recording
 from tests.sparkplug_decoder import DecodedMetric, DecodedPayload, decode
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Iterator
+    from collections.abc import AsyncIterator
     from pathlib import Path
 
     from gateway.line.samples import Sample
@@ -272,16 +272,6 @@ def test_births_carry_nulls_before_the_first_report_and_none_for_a_device_care_s
 
 
 # --- through a real broker ---------------------------------------------------------------
-
-
-@pytest.fixture
-def broker(tmp_path: Path) -> Iterator[Broker]:
-    directory = tmp_path / "broker"
-    directory.mkdir()
-    running = Broker(directory)
-    running.start()
-    yield running
-    running.stop()
 
 
 @contextlib.asynccontextmanager

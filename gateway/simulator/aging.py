@@ -301,19 +301,27 @@ def logbook(
 _LOGBOOK_VALUES = ("phase", "temperature", "calibration_mode", "oxygen", "pressure", "value_6")
 
 
+def entry_values(number: int, entry: LogbookEntry) -> dict[str, object]:
+    """The points of logbook entry ``number`` (1: newest) holding ``entry``, by name."""
+    prefix = f"logbook_{number}_"
+    values: dict[str, object] = {
+        f"{prefix}entry_type": entry.entry_type,
+        f"{prefix}manual_change": "calibration",
+        f"{prefix}rating": entry.rating,
+        f"{prefix}operating_seconds": entry.operating_seconds,
+        f"{prefix}date": entry.date,
+        f"{prefix}sensor_replacement_counter": entry.sensor_replacement_counter,
+    }
+    for name, value, unit in zip(_LOGBOOK_VALUES, entry.values, entry.units, strict=True):
+        values[f"{prefix}{name}"] = value
+        values[f"{prefix}{name}_unit"] = unit
+    return values
+
+
 def _logbook_values(entries: tuple[LogbookEntry, ...]) -> dict[str, object]:
     values: dict[str, object] = {}
     for number, entry in enumerate(entries, start=1):
-        prefix = f"logbook_{number}_"
-        values[f"{prefix}entry_type"] = entry.entry_type
-        values[f"{prefix}manual_change"] = "calibration"
-        values[f"{prefix}rating"] = entry.rating
-        values[f"{prefix}operating_seconds"] = entry.operating_seconds
-        values[f"{prefix}date"] = entry.date
-        values[f"{prefix}sensor_replacement_counter"] = entry.sensor_replacement_counter
-        for name, value, unit in zip(_LOGBOOK_VALUES, entry.values, entry.units, strict=True):
-            values[f"{prefix}{name}"] = value
-            values[f"{prefix}{name}_unit"] = unit
+        values |= entry_values(number, entry)
     return values
 
 

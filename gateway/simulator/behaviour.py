@@ -340,8 +340,8 @@ class H10Behaviour:
         now: float,
         *,
         entry_type: int,
-        values: tuple[float, ...],
-        units: tuple[str, ...],
+        values: tuple[float, float, float, float, float, float],
+        units: tuple[str, str, str, str, str, str],
     ) -> None:
         """Newest entry first; older ones move down and the tenth is dropped.
 
@@ -357,19 +357,19 @@ class H10Behaviour:
         date = device.get("calibration_date")
         if not isinstance(date, datetime):
             date = self.common.wall(now).replace(microsecond=0)
-        fields = ("phase", "temperature", "calibration_mode", "oxygen", "pressure", "value_6")
-        device.put("logbook_1_entry_type", entry_type)
-        device.put("logbook_1_manual_change", "calibration")
-        device.put("logbook_1_rating", "ok")
-        device.put("logbook_1_operating_seconds", _num(device.get("operating_seconds"), 0))
-        device.put("logbook_1_date", date)
-        device.put(
-            "logbook_1_sensor_replacement_counter",
-            min(255, int(_num(device.get("sensor_replacement_counter"), 0))),
+        entry = ages.LogbookEntry(
+            entry_type=entry_type,
+            date=date,
+            operating_seconds=int(_num(device.get("operating_seconds"), 0)),
+            sensor_replacement_counter=min(
+                255, int(_num(device.get("sensor_replacement_counter"), 0))
+            ),
+            rating="ok",
+            values=values,
+            units=units,
         )
-        for name, value, unit in zip(fields, values, units, strict=True):
-            device.put(f"logbook_1_{name}", value)
-            device.put(f"logbook_1_{name}_unit", unit)
+        for name, value in ages.entry_values(1, entry).items():
+            device.put(name, value)
 
 
 @dataclass(slots=True)

@@ -15,13 +15,11 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.care import CareState, care_kind, care_order
 from gateway.care.rules import CALIBRATION_PROCEDURE
-from gateway.errors import ConfigError
 from gateway.profiles import get_profile
 from gateway.web.calibration import BY_ID
 
 if TYPE_CHECKING:
     from gateway.care import CareReport
-    from gateway.profiles import Profile
     from gateway.publish.state import DeviceInfo, GatewayState
 
 NOT_READ: Final = "records not read yet"
@@ -41,14 +39,6 @@ _UNREAD_FIGURES: Final = (
 )
 
 
-def _profile(profile_id: str) -> Profile | None:
-    """The device's register map; None for an id the gateway does not know."""
-    try:
-        return get_profile(profile_id)
-    except ConfigError:
-        return None
-
-
 def calibration_offer(profile_id: str) -> dict[str, str] | None:
     """The calibration care asks for on a device of this profile, if the device offers it.
 
@@ -56,10 +46,10 @@ def calibration_offer(profile_id: str) -> dict[str, str] | None:
     has it (``gateway.app.build_writers``), so the link leads to the calibration the page's
     own calibration flow (``#/calibrate/DEVICE/PROCEDURE``) runs for that device.
     """
-    profile = _profile(profile_id)
-    kind = care_kind(profile) if profile is not None else None
+    profile = get_profile(profile_id)
+    kind = care_kind(profile)
     procedure = BY_ID.get(CALIBRATION_PROCEDURE.get(kind, "")) if kind is not None else None
-    if profile is None or procedure is None or not procedure.applies_to(profile):
+    if procedure is None or not procedure.applies_to(profile):
         return None
     return {"procedure": procedure.id, "title": procedure.title}
 
@@ -73,8 +63,7 @@ def _document(report: CareReport) -> dict[str, object]:
 
 
 def _unread(info: DeviceInfo) -> dict[str, object]:
-    profile = _profile(info.profile)
-    kind = care_kind(profile) if profile is not None else None
+    kind = care_kind(get_profile(info.profile))
     return {
         "device": info.name,
         "bus": info.bus,
