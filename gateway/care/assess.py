@@ -128,7 +128,11 @@ def _missing(records: Records, names: Sequence[str], draft: _Draft, what: str) -
     missing = records.missing(names)
     if not missing:
         return False
-    listed = ", ".join(f"{name} ({reason})" for name, reason in sorted(missing.items()))
+    by_reason: dict[str, list[str]] = {}
+    for name, reason in sorted(missing.items()):
+        by_reason.setdefault(reason, []).append(name)
+    # One reason once, with every record it stands for (a closed port is one reason).
+    listed = "; ".join(f"{', '.join(names)} ({reason})" for reason, names in by_reason.items())
     draft.add(CareState.UNKNOWN, f"{what} could not be read: {listed}")
     return True
 

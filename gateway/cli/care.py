@@ -87,7 +87,7 @@ async def _read_one(config: GatewayConfig, device: DeviceConfig) -> tuple[CareRe
         ) as link:
             read = await link.read(*names)
     except GatewayError as exc:
-        unreadable = dict.fromkeys(names, f"no answer ({exc})")
+        unreadable = dict.fromkeys(names, str(exc))
     else:
         for name, value in read.items():
             if isinstance(value, codec.Fault):
@@ -172,7 +172,13 @@ def care(
         reports, answered = asyncio.run(_read_all(settings))
         documents = [report.as_dict() for report in reports]
         if reports and not answered:
-            err.print("no sensor could be read; is the bus connected?", markup=False)
+            ports = ", ".join(bus.port for bus in settings.buses)
+            err.print(
+                f"no sensor answered on {ports}, and no gateway answered on its metrics port "
+                f"{settings.prometheus.port}: start the gateway service, or check the wiring, "
+                "the line format and the addresses (each reason above says what the line did)",
+                markup=False,
+            )
             _show(documents, source, as_json=as_json)
             raise typer.Exit(code=1)
     _show(documents, source, as_json=as_json)
