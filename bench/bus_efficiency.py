@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 from bench.bare_master import measure_bare, wake_cost
 from gateway.line.devices import DeviceTarget
 from gateway.line.plan import CostModel, plan_reads
-from gateway.line.port import Line
+from gateway.line.serial_line import SerialLine
 from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
@@ -54,8 +54,8 @@ if TYPE_CHECKING:
     from typing import Any
 
     from gateway.line.plan import ReadBlock
-    from gateway.line.port import LineStats
     from gateway.line.samples import DeviceEvent, Sample
+    from gateway.line.stats import LineStats
     from gateway.profiles import Point
 
 PLANT = [
@@ -167,7 +167,7 @@ async def measure(
 ) -> dict[str, float]:
     """Poll the plant on ``port`` for ``seconds`` after a warm-up (line stats to ``keep_stats``)."""
     sink = CountingSink()
-    line = Line(port=str(port), line=line_format)
+    line = SerialLine(port=str(port), line=line_format)
     worker = BusWorker(name="bench", line=line, devices=targets(0.001), sinks=[sink])
     task = asyncio.create_task(worker.run())
     await asyncio.sleep(2.0)  # identity reads and warm-up are not measured

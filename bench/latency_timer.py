@@ -38,7 +38,7 @@ from gateway.wire.timing import LineFormat
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
-    from gateway.line.port import LineStats
+    from gateway.line.stats import LineStats
 
 FORMATS = ("9600-E-1", "19200-N-1", "38400-E-1", "115200-N-1")
 # None: no shim, the simulator's pty itself; 0: the shim passing bytes at once (what the

@@ -262,11 +262,12 @@ def _web_page(
     from gateway.web import LineScans, WebServer  # noqa: PLC0415
 
     formats = {bus.name: bus.line for bus in config.buses}
+    options = {bus.name: port_options(bus, config.shared_bus) for bus in config.buses}
     return WebServer(
         config.web,
         state,
         writers,
-        scans=LineScans(workers, formats),
+        scans=LineScans(workers, formats, options=options),
     )
 
 

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from gateway.control.link import DeviceLink
 from gateway.line.devices import DeviceTarget
-from gateway.line.port import Line
+from gateway.line.serial_line import SerialLine
 from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator, Sequence
     from pathlib import Path
 
+    from gateway.line.boundary import Line
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.simulator.device import SimulatedDevice, WriteRecord
 
@@ -105,7 +106,7 @@ async def rig(
     port = tmp_path / "ttyRS485"
     server.open_pty(port)
     sink = ListSink()
-    bus_line = Line(port=str(port), line=LineFormat(**line))
+    bus_line = SerialLine(port=str(port), line=LineFormat(**line))
     worker = BusWorker(name="line1", line=bus_line, devices=targets, sinks=[sink], **worker_options)
     try:
         yield Rig(server=server, worker=worker, sink=sink, line=bus_line)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from gateway.line.echo import EchoMode
-from gateway.line.port import Line
+from gateway.line.serial_line import SerialLine
 from gateway.line.worker import BusWorker
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.shim import LineShim
@@ -36,7 +36,7 @@ class Shimmed:
     server: SimulatorServer
     shim: LineShim
     worker: BusWorker
-    line: Line
+    line: SerialLine
     sink: ListSink
 
     def state(self, device: str) -> DeviceState:
@@ -91,7 +91,7 @@ async def shimmed(
         noise_interval_s=noise_interval_s,
     )
     shim.open()
-    bus_line = Line(
+    bus_line = SerialLine(
         port=str(tmp_path / "ttyUSB0"), line=LineFormat(**line), bus="line1", echo=echo_mode
     )
     sink = ListSink()

@@ -59,7 +59,7 @@ FLOOR_OF = {
 # port_access beside it: how the port is opened (exclusively, its RS485 mode, the USB
 # adapter's low-latency mode) needs pyserial's Serial before the port has a transport.
 PORT_LIBRARIES = ("serial", "serial_asyncio_fast", "pymodbus.client")
-PORT_OWNERS = frozenset({"gateway.line.port", "gateway.line.port_access"})
+PORT_OWNERS = frozenset({"gateway.line.serial_line", "gateway.line.port_access"})
 
 
 def _module_name(path: Path) -> str:

@@ -19,7 +19,8 @@ import pytest
 import serial
 
 from gateway.errors import BusClosedError
-from gateway.line.port import ErrorKind, Line
+from gateway.line.serial_line import SerialLine
+from gateway.line.stats import ErrorKind
 from gateway.wire import frames
 from gateway.wire.timing import LineFormat
 from tests import unretrieved
@@ -36,13 +37,13 @@ def answer(device: int, registers: tuple[int, ...]) -> bytes:
 
 
 @contextlib.asynccontextmanager
-async def hand_wired(tmp_path: Path) -> AsyncIterator[tuple[Line, int]]:
+async def hand_wired(tmp_path: Path) -> AsyncIterator[tuple[SerialLine, int]]:
     """A line open on a pty whose other end (the file descriptor yielded) the test writes."""
     master, slave = os.openpty()
     tty.setraw(slave)
     port = tmp_path / "ttyHAND"
     port.symlink_to(os.ttyname(slave))
-    line = Line(port=str(port), line=LINE)
+    line = SerialLine(port=str(port), line=LINE)
     await line.open()
     try:
         yield line, master
@@ -123,7 +124,7 @@ async def test_closing_a_line_whose_port_went_away_leaves_no_failed_task(tmp_pat
     """
     with unretrieved.guard():
         async with hand_wired(tmp_path) as (line, master):
-            receiver = line._receiver
+            receiver = line._inbox
             assert receiver is not None
             os.close(master)  # unplugged
             await asyncio.wait_for(receiver.lost.wait(), timeout=2)
@@ -163,7 +164,7 @@ async def test_a_pseudo_terminal_bound_at_another_path_opens_with_parity(
     The path alone said "not a pty"; ``tcsetattr`` then raised ``termios.error`` (no
     OSError), which ended the whole gateway instead of the bus's retry.
     """
-    line = Line(
+    line = SerialLine(
         port=str(pty_bound_elsewhere), line=LineFormat(baudrate=9600, parity="E", stopbits=1)
     )
     await line.open()

@@ -19,7 +19,7 @@ from gateway.app import run
 from gateway.config import parse_config
 from gateway.errors import BusTimeoutError, EchoMismatchError
 from gateway.line.echo import AUTO_DECISION_READS, EchoMode
-from gateway.line.port import ErrorKind
+from gateway.line.stats import ErrorKind
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.shim import FTDI_LATENCY_S, LineShim

@@ -1,4 +1,4 @@
-"""Fuzzing :class:`gateway.line.port.Line` on a real pseudo-terminal: any answer, any timing.
+"""Fuzzing :class:`gateway.line.serial_line.SerialLine` on a real pseudo-terminal: any answer, any timing.
 
 The device end of the pty plays a sensor that answers each request with a random script:
 garbage, the right answer, a mutated one, another device's answer, an exception, a late
@@ -39,7 +39,9 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
-from gateway.line.port import ErrorKind, Exchange, Line, LineStats
+from gateway.line.boundary import Exchange
+from gateway.line.serial_line import SerialLine
+from gateway.line.stats import ErrorKind, LineStats
 from gateway.wire import frames
 from gateway.wire.timing import LineFormat
 from tests.fuzzing import fuzz, good_answers, mutations, requests
@@ -101,10 +103,10 @@ class DeviceEnd:
 
 
 @contextlib.asynccontextmanager
-async def wired_line() -> AsyncIterator[tuple[Line, DeviceEnd]]:
-    """A :class:`Line` opened on one end of a pty, the device end on the other."""
+async def wired_line() -> AsyncIterator[tuple[SerialLine, DeviceEnd]]:
+    """A :class:`SerialLine` opened on one end of a pty, the device end on the other."""
     device = DeviceEnd()
-    line = Line(port=device.port, line=FORMAT)
+    line = SerialLine(port=device.port, line=FORMAT)
     try:
         await line.open()
         yield line, device
@@ -233,7 +235,9 @@ class Counts:
         )
 
 
-async def run_script(line: Line, device: DeviceEnd, script: Script) -> Exchange | GatewayError:
+async def run_script(
+    line: SerialLine, device: DeviceEnd, script: Script
+) -> Exchange | GatewayError:
     """Send the request, play the script from the device end, return what ``transact`` did.
 
     The script plays to its end even when the transaction is over, so what comes late is
@@ -263,7 +267,7 @@ async def run_script(line: Line, device: DeviceEnd, script: Script) -> Exchange 
 
 
 def check_counted(
-    script: Script, outcome: Exchange | GatewayError, before: Counts, line: Line
+    script: Script, outcome: Exchange | GatewayError, before: Counts, line: SerialLine
 ) -> None:
     """The outcome is counted once under its kind; a success is a frame really sent."""
     stats, device = line.stats, script.request.device
@@ -282,12 +286,12 @@ def check_counted(
         assert exception in script.sent
 
 
-def check_consumed(script: Script, outcome: Exchange | GatewayError, line: Line) -> None:
+def check_consumed(script: Script, outcome: Exchange | GatewayError, line: SerialLine) -> None:
     """After an answer or an exception, only bytes sent after that frame are left to flush.
 
     (After any other failure the buffer is cleared: only bytes that came later are left.)
     """
-    left = bytes(line._receiver.buffer) if line._receiver else b""
+    left = bytes(line._inbox.buffer) if line._inbox else b""
     if isinstance(outcome, DeviceExceptionError):
         decided = frames.EXCEPTION_FRAME_LENGTH
     elif isinstance(outcome, Exchange):
@@ -302,7 +306,7 @@ def check_consumed(script: Script, outcome: Exchange | GatewayError, line: Line)
     assert len(left) <= len(script.sent) - decided
 
 
-def check_answered(script: Script, outcome: Exchange | GatewayError, line: Line) -> None:
+def check_answered(script: Script, outcome: Exchange | GatewayError, line: SerialLine) -> None:
     """A clean reply's outcome is its answer (or its exception), and nothing is left over."""
     if script.answer[1] & frames.EXCEPTION_FLAG:
         assert isinstance(outcome, DeviceExceptionError)
@@ -312,12 +316,12 @@ def check_answered(script: Script, outcome: Exchange | GatewayError, line: Line)
         assert outcome.response == frames.parse_response(
             script.request, script.answer, byte_count_16bit=script.quirk
         )
-    assert not line._receiver or not line._receiver.buffer, "the answer was left to flush"
+    assert not line._inbox or not line._inbox.buffer, "the answer was left to flush"
 
 
-async def check_resynchronised(line: Line, device: DeviceEnd, script: Script) -> None:
+async def check_resynchronised(line: SerialLine, device: DeviceEnd, script: Script) -> None:
     """A clean answer right after is accepted; leftovers are counted once, as noise or stale."""
-    left_over = bool(line._receiver and line._receiver.buffer)
+    left_over = bool(line._inbox and line._inbox.buffer)
     before = Counts.of(line.stats)
     clean = Script(
         request=script.request,

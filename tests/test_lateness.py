@@ -15,8 +15,8 @@ import time
 from typing import TYPE_CHECKING
 
 from gateway.line.lateness import Lateness, LoopWatch
-from gateway.line.port import Line
 from gateway.line.schedule import Late
+from gateway.line.serial_line import SerialLine
 from gateway.wire.timing import LineFormat
 from tests.rigs import rig, target
 
@@ -31,8 +31,8 @@ if TYPE_CHECKING:
 SHARED_BUS = "answering other masters on the shared bus"
 
 
-def _line() -> Line:
-    return Line(port="/dev/null", line=LineFormat(baudrate=9600, parity="E", stopbits=1))
+def _line() -> SerialLine:
+    return SerialLine(port="/dev/null", line=LineFormat(baudrate=9600, parity="E", stopbits=1))
 
 
 async def test_a_line_busy_all_along_cannot_keep_up() -> None:

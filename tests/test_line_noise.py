@@ -15,7 +15,8 @@ import pytest
 
 from gateway.errors import LineNoiseError
 from gateway.line.devices import DeviceTarget
-from gateway.line.port import QUIET_WAIT_FRAMES, QUIET_WAIT_MIN_S, ErrorKind
+from gateway.line.rtu import QUIET_WAIT_FRAMES, QUIET_WAIT_MIN_S
+from gateway.line.stats import ErrorKind
 from gateway.profiles import get_profile
 from gateway.publish.prometheus import health_report
 from gateway.publish.state import GatewayState

@@ -22,10 +22,11 @@ from gateway.config.network import TcpSettings
 from gateway.control.link import DeviceLink
 from gateway.errors import BusTimeoutError, ConverterPathError
 from gateway.line.factory import build_line
-from gateway.line.mbap import MbapLine
-from gateway.line.port import ErrorKind, Line
+from gateway.line.modbus_tcp import ModbusTcpLine
+from gateway.line.rtu_over_tcp import RtuOverTcpLine
 from gateway.line.samples import Quality
-from gateway.line.tcp import SocketLine
+from gateway.line.serial_line import SerialLine
+from gateway.line.stats import ErrorKind
 from gateway.line.worker import BusWorker
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames, mbap
@@ -76,13 +77,13 @@ def static(devices: list[dict[str, Any]]) -> list[dict[str, Any]]:
 @pytest.mark.parametrize(
     ("port", "kind"),
     [
-        ("tcp://10.0.0.5:502", MbapLine),
-        ("socket://10.0.0.5:4001", SocketLine),
-        ("/dev/ttyUSB0", Line),
-        ("rfc2217://10.0.0.5:4001", Line),
+        ("tcp://10.0.0.5:502", ModbusTcpLine),
+        ("socket://10.0.0.5:4001", RtuOverTcpLine),
+        ("/dev/ttyUSB0", SerialLine),
+        ("rfc2217://10.0.0.5:4001", SerialLine),
     ],
 )
-def test_the_port_picks_the_line(port: str, kind: type[Line]) -> None:
+def test_the_port_picks_the_line(port: str, kind: type[object]) -> None:
     line = build_line(port=port, line=LineFormat())
     assert type(line) is kind
     assert line.port == port
@@ -122,7 +123,6 @@ async def test_a_plant_polled_over_modbus_tcp_reads_the_simulated_registers() ->
 async def test_no_inter_frame_gap_on_the_socket_but_the_converter_keeps_it() -> None:
     """The gateway sends at once; the converter's serial side still has its 3.5 characters."""
     async with mbap_rig(static(PLANT[:2]), plant_targets(interval=0.05)[:2]) as r:
-        r.line.gap_lateness_s = []
         await r.run_for(1.0)
         records = r.frames()
     required = LineFormat(**LINE).frame_gap_s(0.002)
@@ -284,7 +284,7 @@ async def test_keepalive_and_the_user_timeout_reach_the_socket(framing: str) -> 
     port = await server.open_tcp("127.0.0.1", 0, framing=framing)
     scheme = "tcp" if framing == "tcp" else "socket"
     line = build_line(port=f"{scheme}://127.0.0.1:{port}", line=LineFormat(**LINE), tcp=SESSION)
-    assert isinstance(line, SocketLine | MbapLine)
+    assert isinstance(line, RtuOverTcpLine | ModbusTcpLine)
     try:
         await line.open()
         sock = line.tcp_socket()
@@ -375,7 +375,7 @@ async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_device
     settings = TcpSettings(silent_requests=3)
     scheme = "tcp" if framing == "tcp" else "socket"
     line = build_line(port=f"{scheme}://127.0.0.1:{port}", line=LineFormat(**LINE), tcp=settings)
-    assert isinstance(line, MbapLine | SocketLine)
+    assert isinstance(line, ModbusTcpLine | RtuOverTcpLine)
     sink = ListSink()
     targets = [
         target(name, profile, address, interval=0.2, probe_max_s=0.5)

@@ -28,7 +28,6 @@ import pytest
 
 from gateway.config import ConfigProblems, Rs485Config, parse_config
 from gateway.errors import PortUnavailableError
-from gateway.line.port import Line, LineStats
 from gateway.line.port_access import (
     PortOptions,
     PortReason,
@@ -42,6 +41,8 @@ from gateway.line.port_access import (
     rs485_settings,
     usb_serial_of,
 )
+from gateway.line.serial_line import SerialLine
+from gateway.line.stats import LineStats
 from gateway.publish.prometheus import GatewayCollector, MetricsServer
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -175,7 +176,7 @@ def test_rs485_on_a_url_and_two_buses_on_one_port_are_refused() -> None:
 
 async def test_a_pty_refuses_the_rs485_mode_as_documented(tmp_path: Path) -> None:
     async with simulated_port(tmp_path) as port:
-        line = Line(port=str(port), line=FORMAT, options=PortOptions(rs485=Rs485Config()))
+        line = SerialLine(port=str(port), line=FORMAT, options=PortOptions(rs485=Rs485Config()))
         with pytest.raises(PortUnavailableError) as caught:
             await line.open()
         assert caught.value.reason == PortReason.NO_RS485
@@ -191,7 +192,7 @@ async def test_a_pty_refuses_the_rs485_mode_as_documented(tmp_path: Path) -> Non
         assert not line.is_open
         assert line.stats.port_problem == "no_rs485_mode"
         # The refusal closed the port and released its lock: it opens without the mode.
-        plain = Line(port=str(port), line=FORMAT)
+        plain = SerialLine(port=str(port), line=FORMAT)
         await plain.open()
         await plain.close()
 
@@ -201,9 +202,9 @@ async def test_a_pty_refuses_the_rs485_mode_as_documented(tmp_path: Path) -> Non
 
 async def test_a_second_open_of_a_port_is_refused_and_a_close_releases_it(tmp_path: Path) -> None:
     async with simulated_port(tmp_path) as port:
-        first = Line(port=str(port), line=FORMAT)
+        first = SerialLine(port=str(port), line=FORMAT)
         await first.open()
-        second = Line(port=str(port), line=FORMAT)
+        second = SerialLine(port=str(port), line=FORMAT)
         with pytest.raises(PortUnavailableError) as caught:
             await second.open()
         assert caught.value.reason == PortReason.IN_USE
@@ -236,12 +237,12 @@ def _run_as_nobody(script: str) -> str:
 OPEN_SCRIPT = """
 import asyncio, json, sys
 from gateway.errors import PortUnavailableError
-from gateway.line.port import Line
+from gateway.line.serial_line import SerialLine
 from gateway.wire.timing import LineFormat
 
 async def main():
     try:
-        await Line(port=sys.argv[1], line=LineFormat()).open()
+        await SerialLine(port=sys.argv[1], line=LineFormat()).open()
     except PortUnavailableError as exc:
         print(json.dumps({"reason": exc.reason, "holder": exc.holder, "message": str(exc)}))
 
@@ -266,7 +267,7 @@ async def test_an_unprivileged_gateway_is_kept_out_by_the_lock(tmp_path: Path) -
     async with simulated_port(tmp_path) as port:
         node = port.resolve()
         node.chmod(0o666)  # so that only the lock, not the mode, can refuse the open
-        line = Line(port=str(port), line=FORMAT)
+        line = SerialLine(port=str(port), line=FORMAT)
         await line.open()
         try:
             raw = await asyncio.to_thread(
@@ -351,7 +352,7 @@ def test_lock_holders_are_read_from_proc_locks(tmp_path: Path) -> None:
 
 async def test_a_missing_port_lists_the_by_id_names_that_exist(tmp_path: Path) -> None:
     roots = fake_tree(tmp_path)
-    line = Line(port="/dev/ttyUSB7", line=FORMAT, options=PortOptions(roots=roots))
+    line = SerialLine(port="/dev/ttyUSB7", line=FORMAT, options=PortOptions(roots=roots))
     with pytest.raises(PortUnavailableError) as caught:
         await line.open()
     assert caught.value.reason == PortReason.MISSING
@@ -362,7 +363,7 @@ async def test_a_missing_port_lists_the_by_id_names_that_exist(tmp_path: Path) -
     )
     empty = SystemRoots(dev=tmp_path / "empty", proc=Path("/proc"))
     with pytest.raises(PortUnavailableError) as caught:
-        await Line(port="/dev/ttyUSB7", line=FORMAT, options=PortOptions(roots=empty)).open()
+        await SerialLine(port="/dev/ttyUSB7", line=FORMAT, options=PortOptions(roots=empty)).open()
     assert str(caught.value) == (
         "cannot open /dev/ttyUSB7: it does not exist; no serial adapter is connected "
         "(nothing in /dev/serial/by-id): check the cable and the adapter, and `dmesg` for "
@@ -435,7 +436,7 @@ async def test_an_ftdi_port_exports_its_latency_timer_and_warns_once(
         # The pty stands in for the adapter's node: named ttyUSB0, as the fake sysfs knows it.
         port = tmp_path / "ttyUSB0"
         port.symlink_to(pty.resolve())
-        line = Line(port=str(port), line=FORMAT, options=PortOptions(roots=roots))
+        line = SerialLine(port=str(port), line=FORMAT, options=PortOptions(roots=roots))
         with caplog.at_level(logging.DEBUG, logger="gateway.line.port_access"):
             for _ in range(2):
                 await line.open()
@@ -474,7 +475,9 @@ def _healthz(port: int) -> tuple[int, dict[str, Any]]:
 async def test_healthz_and_the_metrics_say_why_a_port_is_not_open(tmp_path: Path) -> None:
     roots = fake_tree(tmp_path)
     stats = LineStats()
-    line = Line(port="/dev/ttyUSB7", line=FORMAT, stats=stats, options=PortOptions(roots=roots))
+    line = SerialLine(
+        port="/dev/ttyUSB7", line=FORMAT, stats=stats, options=PortOptions(roots=roots)
+    )
     with pytest.raises(PortUnavailableError):
         await line.open()
     state = GatewayState()

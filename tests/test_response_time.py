@@ -10,7 +10,7 @@ import logging
 import re
 from typing import TYPE_CHECKING
 
-from gateway.line.port import ErrorKind
+from gateway.line.stats import ErrorKind
 from tests.rigs import rig, target
 
 if TYPE_CHECKING:

@@ -19,7 +19,6 @@ import pytest
 
 from gateway.config import check_config, load_config
 from gateway.errors import BusClosedError, ConfigError
-from gateway.line.port import Line
 from gateway.line.scan import (
     FoundDevice,
     ScanReport,
@@ -29,6 +28,7 @@ from gateway.line.scan import (
     scan_formats,
     supported_formats,
 )
+from gateway.line.serial_line import SerialLine
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
@@ -338,9 +338,9 @@ def test_supported_formats_come_from_the_profiles() -> None:
 async def test_all_formats_reopens_the_line_for_each(tmp_path: Path) -> None:
     opened: list[LineFormat] = []
 
-    def recording_line(*, port: str, line: LineFormat) -> Line:
+    def recording_line(*, port: str, line: LineFormat) -> SerialLine:
         opened.append(line)
-        return Line(port=port, line=line)
+        return SerialLine(port=port, line=line)
 
     # A pty carries every format, but not every speed: an answer at 115200 baud comes
     # sooner than a 2400-baud line could carry it, and the gateway rightly refuses it (it

@@ -1,4 +1,4 @@
-"""The line class of a bus, picked from its port: serial, RTU over TCP, or Modbus TCP.
+"""The line of a bus, picked from its port: serial, RTU over TCP, or Modbus TCP.
 
 Every place that opens a bus (the gateway, the command line's reads and writes, the scan)
 builds its line here, so a ``tcp://`` port is a Modbus TCP session wherever a port can be
@@ -12,14 +12,15 @@ from urllib.parse import urlsplit
 
 from gateway.config.network import DEFAULT_TCP, MBAP_URL_SCHEME, RTU_OVER_TCP_SCHEME
 from gateway.line.echo import EchoMode
-from gateway.line.mbap import MbapLine
-from gateway.line.port import Line
-from gateway.line.tcp import SocketLine
+from gateway.line.modbus_tcp import ModbusTcpLine
+from gateway.line.rtu_over_tcp import RtuOverTcpLine
+from gateway.line.serial_line import SerialLine
 
 if TYPE_CHECKING:
     from gateway.config.network import TcpSettings
-    from gateway.line.port import LineStats
+    from gateway.line.boundary import Line
     from gateway.line.port_access import PortOptions
+    from gateway.line.stats import LineStats
     from gateway.wire.timing import LineFormat
 
 
@@ -33,7 +34,7 @@ def build_line(
     echo: EchoMode = EchoMode.AUTO,
     options: PortOptions | None = None,
 ) -> Line:
-    """The :class:`Line` for ``port``: ``tcp://`` Modbus TCP, ``socket://`` RTU over TCP.
+    """The :class:`~gateway.line.boundary.Line` for ``port``: ``tcp://``, ``socket://`` or serial.
 
     ``tcp`` (the bus's ``tcp:`` settings; ``None``: the defaults) applies to the two network
     kinds; the config refuses it on any other port. ``echo`` applies to what carries RTU
@@ -45,7 +46,7 @@ def build_line(
     scheme = urlsplit(port).scheme if "://" in port else ""
     settings = tcp if tcp is not None else DEFAULT_TCP
     if scheme == MBAP_URL_SCHEME:
-        return MbapLine(port=port, line=line, stats=stats, tcp=settings, bus=bus)
+        return ModbusTcpLine(port=port, line=line, stats=stats, tcp=settings, bus=bus)
     if scheme == RTU_OVER_TCP_SCHEME:
-        return SocketLine(port=port, line=line, stats=stats, tcp=settings, bus=bus, echo=echo)
-    return Line(port=port, line=line, stats=stats, bus=bus, echo=echo, options=options)
+        return RtuOverTcpLine(port=port, line=line, stats=stats, tcp=settings, bus=bus, echo=echo)
+    return SerialLine(port=port, line=line, stats=stats, bus=bus, echo=echo, options=options)

@@ -23,7 +23,7 @@ from itertools import chain
 from typing import TYPE_CHECKING, Final
 
 if TYPE_CHECKING:
-    from gateway.line.port import Line
+    from gateway.line.boundary import Line
     from gateway.line.schedule import Late
 
 TICK_S: Final = 0.05  # the watch's timer; 20 wakes a second cost ~1 ms of CPU

@@ -36,11 +36,11 @@ from gateway.wire import codec, frames
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
+    from gateway.line.boundary import Line
     from gateway.line.decode import Decoder
     from gateway.line.devices import DeviceState, DeviceTarget
     from gateway.line.health import Availability
     from gateway.line.plan import ReadBlock
-    from gateway.line.port import Line
     from gateway.line.samples import Sample
     from gateway.profiles import Point
 

@@ -38,10 +38,10 @@ from gateway.profiles.effects import touched_by_write
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
 
+    from gateway.line.boundary import Line
     from gateway.line.devices import DeviceTarget
     from gateway.line.health import DeviceHealth
     from gateway.line.plan import ReadBlock
-    from gateway.line.port import Line
     from gateway.line.samples import Sample, Sink
     from gateway.profiles import Profile
     from gateway.profiles.model import Point

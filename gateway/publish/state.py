@@ -24,8 +24,8 @@ if TYPE_CHECKING:
 
     from gateway.line.foreign import ForeignStats
     from gateway.line.health import DeviceHealth
-    from gateway.line.port import LineStats
     from gateway.line.samples import DeviceEvent, Sample
+    from gateway.line.stats import LineStats
 
 STALE_FACTOR = 2.0  # a value is stale when older than two intervals (plus a timeout)
 STALE_MARGIN_S = 1.0

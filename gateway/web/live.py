@@ -20,8 +20,8 @@ if TYPE_CHECKING:
     from collections.abc import Collection, Mapping
 
     from gateway.line.health import DeviceHealth
-    from gateway.line.port import LineStats
     from gateway.line.samples import Sample
+    from gateway.line.stats import LineStats
     from gateway.profiles import Profile
     from gateway.publish.state import DeviceInfo, GatewayState
 

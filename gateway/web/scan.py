@@ -20,6 +20,7 @@ from gateway.line.scan import parse_addresses, scan
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
+    from gateway.line.port_access import PortOptions
     from gateway.line.worker import BusWorker
     from gateway.wire.timing import LineFormat
 
@@ -64,11 +65,17 @@ class LineScans:
         workers: Sequence[BusWorker],
         formats: Mapping[str, LineFormat],
         *,
+        options: Mapping[str, PortOptions] | None = None,
         timeout_s: float | None = None,
     ) -> None:
-        """Scan the lines of ``workers``, each in its configured format (by bus name)."""
+        """Scan the lines of ``workers``, each in its configured format (by bus name).
+
+        ``options``: how each bus's serial port is opened (its RS485 mode), by bus name, as
+        the bus worker opens it.
+        """
         self.workers = {worker.name: worker for worker in workers}
         self.formats = formats
+        self.options = options or {}
         self.timeout_s = timeout_s
         self.jobs: dict[str, ScanJob] = {}
 
@@ -114,7 +121,7 @@ class LineScans:
                     addresses=job.addresses,
                     timeout_s=self.timeout_s,
                     progress=progress,
-                    options=worker.line.options,
+                    options=self.options.get(job.bus),
                 )
             job.report = report.as_dict()
             job.found = len(report.devices)

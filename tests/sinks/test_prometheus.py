@@ -31,8 +31,8 @@ from gateway.app import run
 from gateway.config import parse_config
 from gateway.errors import PublishError
 from gateway.line.health import DeviceHealth
-from gateway.line.port import LineStats
 from gateway.line.samples import Quality, Sample
+from gateway.line.stats import LineStats
 from gateway.publish.prometheus import MetricsServer, value_naming
 from gateway.publish.state import DeviceInfo, GatewayState, MqttStatus
 from gateway.simulator import SimulatorServer, build_bus, parse_settings

@@ -48,7 +48,7 @@ from gateway.wire.timing import DIGILINE_MIN_GAP_S
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Mapping
 
-    from gateway.line.port import Line
+    from gateway.line.boundary import Line
     from gateway.profiles import Point, Profile
 
 _LOGGER = logging.getLogger(__name__)

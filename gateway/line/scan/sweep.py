@@ -14,7 +14,7 @@ from gateway.line.scan.report import FoundDevice, ScanReport
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
 
-    from gateway.line.port import Line
+    from gateway.line.boundary import Line
     from gateway.line.port_access import PortOptions
     from gateway.wire.timing import LineFormat
 

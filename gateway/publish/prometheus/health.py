@@ -19,14 +19,14 @@ from prometheus_client.metrics_core import (
     Metric,
 )
 
-from gateway.line.port import LATENCY_BUCKETS_S, ErrorKind
+from gateway.line.stats import LATENCY_BUCKETS_S, ErrorKind
 from gateway.publish.prometheus.naming import DEVICE_LABELS, VALUE_LABELS
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 
     from gateway.line.health import DeviceHealth
-    from gateway.line.port import LineStats
+    from gateway.line.stats import LineStats
     from gateway.publish.state import GatewayState
 
 # The failure classes exported (zero included) for every configured device.

@@ -24,7 +24,7 @@ from prometheus_client.registry import Collector
 
 from gateway.care import care_order
 from gateway.errors import PublishError
-from gateway.line.port import ErrorKind
+from gateway.line.stats import ErrorKind
 from gateway.publish.prometheus.collector import GatewayCollector
 from gateway.publish.prometheus.identity import identity_report
 

@@ -17,20 +17,18 @@ side) and 0B (the device did not answer it), are failures like a timeout with th
 names (:class:`~gateway.errors.ConverterError`), never device exceptions that would split
 a read.
 
-The interface is :class:`~gateway.line.port.Line`'s, which it extends so that the bus
-worker, the transactions and the scan take it unchanged; it shares the line's counters,
-format and deadline timer, and replaces the serial I/O with an asyncio TCP connection.
+It stands behind the line's boundary (:class:`gateway.line.boundary.Line`) beside the
+RTU lines and shares nothing with them but the boundary, the counters
+(:mod:`gateway.line.stats`), the inbox of received bytes and the deadline timer.
 """
 
 from __future__ import annotations
 
 import asyncio
-import errno
 import logging
 import math
-import os
 import time
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
 from gateway.config.network import DEFAULT_TCP
@@ -38,73 +36,28 @@ from gateway.errors import (
     BusClosedError,
     BusTimeoutError,
     ConverterError,
-    CrcError,
     DeviceExceptionError,
     FrameError,
     MalformedFrameError,
-    UnexpectedDeviceError,
 )
-from gateway.line.echo import EchoMode
-from gateway.line.port import ErrorKind, Exchange, Line
-from gateway.line.tcp import MS_PER_S, SilenceWatch, configure_socket
+from gateway.line.boundary import Exchange
+from gateway.line.inbox import Inbox
+from gateway.line.stats import ErrorKind, LineStats, failure_kind
+from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect
+from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames, mbap
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from gateway.config.network import TcpSettings
-    from gateway.line.port import LineStats
+    from gateway.line.boundary import LateAnswer, WaitWatch
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
 
-_FRAME_KINDS: Final[dict[type[FrameError], str]] = {
-    CrcError: ErrorKind.CRC,
-    UnexpectedDeviceError: ErrorKind.WRONG_ADDRESS,
-    MalformedFrameError: ErrorKind.MALFORMED,
-}
 
-
-class _Session(asyncio.Protocol):
-    """The bytes of one TCP session, with the time the last ones arrived."""
-
-    def __init__(self) -> None:
-        self.buffer = bytearray()
-        self.last_byte_at = -math.inf
-        self.lost = False
-        self.lost_reason: Exception | None = None
-        self.waiter: asyncio.Future[None] | None = None
-
-    def data_received(self, data: bytes) -> None:
-        self.buffer.extend(data)
-        self.last_byte_at = time.monotonic()
-        self._wake()
-
-    def eof_received(self) -> bool:
-        return False  # the converter closed its side: close ours (connection_lost follows)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.lost, self.lost_reason = True, exc
-        self._wake()
-
-    def _wake(self) -> None:
-        waiter = self.waiter
-        if waiter is not None and not waiter.done():
-            waiter.set_result(None)
-
-    async def wait(self, timeout_s: float) -> None:
-        """Return when bytes arrive, the session ends, or after ``timeout_s``."""
-        loop = asyncio.get_running_loop()
-        waiter = self.waiter = loop.create_future()
-        timer = loop.call_later(timeout_s, self._wake)
-        try:
-            await waiter
-        finally:
-            timer.cancel()
-            self.waiter = None
-
-
-class MbapLine(Line):
+class ModbusTcpLine:
     """One ``tcp://`` bus: Modbus TCP to a serial device server, one transaction at a time."""
 
     def __init__(
@@ -114,19 +67,25 @@ class MbapLine(Line):
         line: LineFormat,
         stats: LineStats | None = None,
         tcp: TcpSettings = DEFAULT_TCP,
-        bus: str = "",
+        bus: str = "",  # noqa: ARG002 - as the other lines take it; nothing here logs by it
     ) -> None:
         """Describe the bus (``line`` is the converter's serial side); :meth:`open` connects.
 
         No echo setting: a Modbus TCP session carries no echo of the serial side's.
         """
-        super().__init__(port=port, line=line, stats=stats, bus=bus, echo=EchoMode.OFF)
+        self.port = port
+        self.format = line
+        self.stats = stats or LineStats()
+        self.late_answer: LateAnswer | None = None  # a transaction id tells late from stale
+        self.wait_watch: WaitWatch | None = None  # no gap to sleep through: never told
+        self.last_frame_end = -math.inf
+        self._timer = DeadlineTimer()
         parts = urlsplit(port)
         self.host = parts.hostname or ""
         self.tcp_port = parts.port or mbap.DEFAULT_PORT
         self.tcp = tcp
         self.watch = SilenceWatch(port=port, limit=tcp.silent_requests)
-        self._session: _Session | None = None
+        self._session: Inbox | None = None
         self._link: asyncio.Transport | None = None
         self._transaction = 0
         self._ready_at = -math.inf
@@ -136,7 +95,7 @@ class MbapLine(Line):
     @property
     def is_open(self) -> bool:
         """Whether the session is up and the converter has not ended it."""
-        return self._session is not None and not self._session.lost
+        return self._session is not None and not self._session.lost.is_set()
 
     def tcp_socket(self) -> asyncio.trsock.TransportSocket | None:
         """The session's socket (for its options), ``None`` while closed."""
@@ -145,23 +104,16 @@ class MbapLine(Line):
 
     async def open(self) -> None:
         """Connect, with keepalive and the user timeout; a failure is a :class:`BusClosedError`."""
-        loop = asyncio.get_running_loop()
-        session = _Session()
-        limit_s = self.tcp.connect_timeout_s
+        session = Inbox()
         try:
-            async with asyncio.timeout(limit_s):
-                link, _ = await loop.create_connection(lambda: session, self.host, self.tcp_port)
-        except TimeoutError as exc:
-            self.stats.port_open = False
-            raise BusClosedError(
-                f"cannot connect to {self.port}: no answer within {limit_s:g} s "
-                "(tcp.connect_timeout_s)"
-            ) from exc
-        except OSError as exc:
-            self.stats.port_open = False
-            raise BusClosedError(f"cannot connect to {self.port}: {_reason(exc)}") from exc
-        configure_socket(link.get_extra_info("socket"), self.tcp)
+            link = await connect(
+                self.port, self.host, self.tcp_port, session, self.tcp, mode="Modbus TCP"
+            )
+        except BusClosedError as exc:
+            self.stats.closed_because(None, str(exc))
+            raise
         self._link, self._session = link, session
+        self.stats.closed_because(None, "")
         self.stats.port_open = True
         now = time.monotonic()
         self.last_frame_end = now
@@ -176,11 +128,11 @@ class MbapLine(Line):
             link.abort()
             await asyncio.sleep(0)
 
-    def _live(self) -> _Session:
+    def _live(self) -> Inbox:
         session = self._session
         if session is None:
             raise BusClosedError(f"{self.port} is not open")
-        if session.lost:
+        if session.lost.is_set():
             self.stats.port_open = False
             reason = session.lost_reason
             why = f"{reason}" if reason is not None else "the converter closed the session"
@@ -251,14 +203,12 @@ class MbapLine(Line):
         Raises what :meth:`Line.transact` raises, and a :class:`ConverterError` for the
         converter's exceptions 0A and 0B; every failure is counted by kind for the device.
         """
-        due = await self.wait_gap(gap_s, not_before=not_before)
+        await self.wait_gap(gap_s, not_before=not_before)
         self.flush_input(request.device)
         self._transaction = (self._transaction + 1) & mbap.MAX_TRANSACTION_ID
         transaction = self._transaction
         assert self._link is not None  # noqa: S101 - _live checked it
         sent_at = time.monotonic()
-        if self.gap_lateness_s is not None:
-            self.gap_lateness_s.append(sent_at - due)
         self._link.write(mbap.from_rtu(transaction, request.frame))
         self.stats.requests[request.device] += 1
         # On the serial side: the converter's gap, then the request on the wire.
@@ -291,7 +241,7 @@ class MbapLine(Line):
             self._failed(sent_at, heard=True)
             raise
         except FrameError as exc:
-            self.stats.errors[request.device, _FRAME_KINDS.get(type(exc), ErrorKind.NOISE)] += 1
+            self.stats.errors[request.device, failure_kind(exc, otherwise=ErrorKind.NOISE)] += 1
             self._failed(sent_at, heard=True)
             raise
         except BusTimeoutError:
@@ -304,11 +254,14 @@ class MbapLine(Line):
             raise
         self._finish(sent_at, line_quiet_at=received_at)
         self.watch.heard()
-        self.stats.responses[request.device] += 1
-        self.stats.observe_latency(request.device, received_at - sent_at)
-        if response.tolerated is not None:
-            self.stats.tolerated[request.device, response.tolerated] += 1
+        self.stats.answered(request.device, received_at - sent_at, response.tolerated)
         return Exchange(response=response, sent_at=sent_at, received_at=received_at)
+
+    def _finish(self, sent_at: float, *, line_quiet_at: float | None = None) -> None:
+        """The session is quiet from the answer (or now, after a failure); its time counted."""
+        end = line_quiet_at if line_quiet_at is not None else time.monotonic()
+        self.last_frame_end = end
+        self.stats.busy_s += end - sent_at
 
     def _failed(self, sent_at: float, *, heard: bool) -> bool:
         """Book a failed transaction; ``True`` when the session is to be reopened (silence)."""
@@ -360,18 +313,6 @@ class MbapLine(Line):
                     raise MalformedFrameError(f"{self.port}: no valid answer of {what}, only noise")
                 raise BusTimeoutError(f"{self.port}: no answer of {what}")
             await session.wait(deadline - now)
-
-
-def _reason(exc: OSError) -> str:
-    """Why a connection failed, in the words a user can act on."""
-    if exc.errno == errno.ECONNREFUSED:
-        return (
-            "connection refused (nothing listens there: check the converter's address, "
-            "its port and that it is in Modbus TCP mode)"
-        )
-    if exc.errno is not None and exc.errno > 0:
-        return os.strerror(exc.errno)
-    return exc.strerror or str(exc)  # a name that does not resolve: the resolver's words
 
 
 def _what(request: frames.Request) -> str:

@@ -1,0 +1,57 @@
+"""The bytes a line has received, with when the last of them arrived, and a wait for more.
+
+Every kind of line reads through one: the RTU lines (a serial device or a socket under an
+asyncio transport) and Modbus TCP. A transaction waits on a bare future that the next
+bytes, the end of the connection or a timer resolve: not an Event behind
+``asyncio.wait_for``, which made a task per wait and cost two turns of the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+
+
+class Inbox(asyncio.Protocol):
+    """Collects bytes from a transport with the time they arrived (the transport's protocol).
+
+    An end of input from the peer (a converter that closes its side) is not answered: the
+    transport closes ours and :meth:`connection_lost` follows.
+    """
+
+    def __init__(self) -> None:
+        """Nothing received yet; not lost."""
+        self.buffer = bytearray()
+        self.last_byte_at = -math.inf
+        self.lost = asyncio.Event()
+        self.lost_reason: Exception | None = None
+        self._waiter: asyncio.Future[None] | None = None
+
+    def data_received(self, data: bytes) -> None:
+        """Keep the bytes, note when they came, wake a waiting transaction."""
+        self.buffer.extend(data)
+        self.last_byte_at = time.monotonic()
+        self._wake()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        """The stream ended (``exc``: why, if it failed); a waiting transaction wakes to it."""
+        self.lost_reason = exc
+        self.lost.set()
+        self._wake()
+
+    def _wake(self) -> None:
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
+
+    async def wait(self, timeout_s: float) -> None:
+        """Return when bytes arrive, the connection ends, or after ``timeout_s``."""
+        loop = asyncio.get_running_loop()
+        waiter = self._waiter = loop.create_future()
+        timer = loop.call_later(timeout_s, self._wake)
+        try:
+            await waiter
+        finally:
+            timer.cancel()
+            self._waiter = None

@@ -1,0 +1,145 @@
+"""A ``socket://`` bus: RTU frames through a serial device server's transparent TCP port.
+
+The converter passes bytes both ways and keeps its own serial side's timing; the frames,
+the gap, the echo and every check of the answer are :class:`~gateway.line.rtu.RtuLine`'s.
+What a network peer adds is this module's: the session opened with keepalive and the user
+timeout (:mod:`gateway.line.tcp_session`), a pause after connecting, the least pause
+between requests, and the end of a session that stays silent. An answer's arrival is not
+judged by the bus's wire time: the format describes the converter's serial side, which
+the gateway cannot see.
+"""
+
+from __future__ import annotations
+
+import array
+import fcntl
+import math
+import termios
+import time
+from typing import TYPE_CHECKING
+from urllib.parse import urlsplit
+
+from gateway.config.network import DEFAULT_TCP
+from gateway.errors import BusClosedError, BusTimeoutError, DeviceExceptionError, FrameError
+from gateway.line.echo import EchoMode
+from gateway.line.rtu import RtuLine
+from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect
+from gateway.wire import frames
+
+if TYPE_CHECKING:
+    import asyncio
+    from asyncio.trsock import TransportSocket
+    from collections.abc import Mapping
+
+    from gateway.config.network import TcpSettings
+    from gateway.line.boundary import Exchange
+    from gateway.line.inbox import Inbox
+    from gateway.line.stats import LineStats
+    from gateway.wire.timing import LineFormat
+
+
+class RtuOverTcpLine(RtuLine):
+    """One ``socket://host:port`` bus: RTU over a TCP session, the session watched."""
+
+    def __init__(
+        self,
+        *,
+        port: str,
+        line: LineFormat,
+        stats: LineStats | None = None,
+        tcp: TcpSettings = DEFAULT_TCP,
+        bus: str = "",
+        echo: EchoMode = EchoMode.AUTO,
+    ) -> None:
+        """Describe the bus (``line`` is the converter's serial side); :meth:`open` connects."""
+        super().__init__(
+            port=port, line=line, stats=stats, bus=bus, echo=echo, judges_by_wire=False
+        )
+        parts = urlsplit(port)
+        self.host = parts.hostname or ""
+        self.tcp_port = parts.port or 0
+        self.tcp = tcp
+        self.watch = SilenceWatch(port=port, limit=tcp.silent_requests)
+        self._ready_at = -math.inf  # no request before the pause after connecting
+
+    async def _connect(self, inbox: Inbox) -> asyncio.Transport:
+        """Connect, keepalive and the user timeout set; then the pause after connecting."""
+        try:
+            transport = await connect(
+                self.port,
+                self.host,
+                self.tcp_port,
+                inbox,
+                self.tcp,
+                mode="transparent (RTU over TCP)",
+            )
+        except BusClosedError as exc:
+            self.stats.closed_because(None, str(exc))
+            raise
+        self._ready_at = time.monotonic() + self.tcp.connect_pause_s
+        return transport
+
+    def tcp_socket(self) -> TransportSocket | None:
+        """The session's socket (for its options), ``None`` while closed."""
+        transport = self._transport
+        return transport.get_extra_info("socket") if transport is not None else None
+
+    def _unread_input(self) -> bool:
+        """Whether the kernel holds received bytes the inbox has not seen (FIONREAD)."""
+        sock = self.tcp_socket()
+        if sock is None:
+            return False
+        waiting = array.array("i", [0])
+        try:
+            fcntl.ioctl(sock.fileno(), termios.FIONREAD, waiting)
+        except (OSError, ValueError):
+            return False  # closed meanwhile: the write or the inbox will say so
+        return waiting[0] > 0
+
+    async def wait_gap(self, gap_s: float, *, not_before: float = 0.0, device: int = 0) -> float:
+        """The line's gap, at least ``tcp.request_pause_ms``, and not within the connect pause."""
+        pause_s = self.tcp.request_pause_ms / MS_PER_S
+        return await super().wait_gap(
+            max(gap_s, pause_s), not_before=max(not_before, self._ready_at), device=device
+        )
+
+    async def transact(
+        self,
+        request: frames.Request,
+        *,
+        timeout_s: float,
+        gap_s: float,
+        not_before: float = 0.0,
+        exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
+        byte_count_16bit: bool = False,
+        turnaround_s: float = 0.0,
+    ) -> Exchange | None:
+        """:meth:`RtuLine.transact`, watched: a session silent for too many requests is reopened."""
+        before = self._last_byte_at()
+        try:
+            exchange = await super().transact(
+                request,
+                timeout_s=timeout_s,
+                gap_s=gap_s,
+                not_before=not_before,
+                byte_count_16bit=byte_count_16bit,
+                exceptions=exceptions,
+                turnaround_s=turnaround_s,
+            )
+        except BusTimeoutError:
+            if self._last_byte_at() > before:
+                self.watch.heard()
+            elif self.watch.unheard():
+                await self.close()
+                await self.open()  # fails as a closed port does: the worker's backoff
+            raise
+        except (FrameError, DeviceExceptionError):
+            self.watch.heard()  # bytes came: a wrong answer, but from a live peer
+            raise
+        if exchange is not None or self._last_byte_at() > before:
+            self.watch.heard()
+        return exchange
+
+    def _last_byte_at(self) -> float:
+        inbox = self._inbox
+        return inbox.last_byte_at if inbox is not None else -math.inf

@@ -1,0 +1,135 @@
+"""Sessions with serial device servers: connecting, keepalive, user timeout, silence.
+
+A converter on the network can vanish without a word (powered off, a cable pulled, a
+firewall that forgets the connection); Linux keeps such a session for some 15 minutes of
+retransmissions, or for ever while nothing is sent. TCP keepalive ends it while the line
+is idle and TCP_USER_TIMEOUT while requests go unacknowledged (tcp(7)), both within the
+bounds of ``buses[].tcp``. A converter that stays connected but answers nothing (its
+serial side hung, a session it no longer serves) is found by :class:`SilenceWatch`:
+requests in a row without a byte back end the session, which is opened again at once.
+
+Both network lines use this module: :class:`gateway.line.rtu_over_tcp.RtuOverTcpLine`
+(``socket://``, RTU frames through the converter) and
+:class:`gateway.line.modbus_tcp.ModbusTcpLine` (``tcp://``, Modbus TCP).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import os
+import socket
+import time
+from typing import TYPE_CHECKING, Final
+
+from gateway.errors import BusClosedError
+
+if TYPE_CHECKING:
+    from asyncio.trsock import TransportSocket
+
+    from gateway.config.network import TcpSettings
+    from gateway.line.inbox import Inbox
+
+_LOGGER = logging.getLogger(__name__)
+
+MS_PER_S: Final = 1000  # TCP_USER_TIMEOUT is in milliseconds (tcp(7))
+
+
+async def connect(
+    url: str, host: str, port: int, inbox: Inbox, settings: TcpSettings, *, mode: str
+) -> asyncio.Transport:
+    """A session to ``host:port`` with ``inbox`` as its protocol, keepalive and user timeout set.
+
+    A failure is a :class:`BusClosedError` in a user's words; ``mode`` names the converter's
+    mode its port must be in ("Modbus TCP", "transparent (RTU over TCP)").
+    """
+    loop = asyncio.get_running_loop()
+    limit_s = settings.connect_timeout_s
+    try:
+        async with asyncio.timeout(limit_s):
+            transport, _ = await loop.create_connection(lambda: inbox, host, port)
+    except TimeoutError as exc:
+        raise BusClosedError(
+            f"cannot connect to {url}: no answer within {limit_s:g} s (tcp.connect_timeout_s)"
+        ) from exc
+    except OSError as exc:
+        raise BusClosedError(f"cannot connect to {url}: {_reason(exc, mode)}") from exc
+    configure_socket(transport.get_extra_info("socket"), settings)
+    return transport
+
+
+def _reason(exc: OSError, mode: str) -> str:
+    """Why a connection failed, in the words a user can act on."""
+    if exc.errno == errno.ECONNREFUSED:
+        return (
+            "connection refused (nothing listens there: check the converter's address, "
+            f"its port and that it is in {mode} mode)"
+        )
+    if exc.errno is not None and exc.errno > 0:
+        return os.strerror(exc.errno)
+    return exc.strerror or str(exc)  # a name that does not resolve: the resolver's words
+
+
+def configure_socket(sock: socket.socket | TransportSocket, settings: TcpSettings) -> None:
+    """Keepalive and the user timeout on a connected socket (tcp(7), Linux 2.6.37+).
+
+    With requests in flight, their data unacknowledged for ``user_timeout_s`` ends the
+    session; idle, the first unanswered keepalive probe past ``user_timeout_s`` does (the
+    probes start after ``keepalive_s`` and follow every ``keepalive_interval_s``; Linux
+    counts ``keepalive_count`` of them only without a user timeout). Measured on loopback
+    with the peer's packets dropped: 3 s of user timeout ended a busy session after 3.6 s
+    and an idle one after 3.1 s. The kernel reports ETIMEDOUT; the bus reopens on its backoff.
+    """
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPIDLE, settings.keepalive_s)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPINTVL, settings.keepalive_interval_s)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_KEEPCNT, settings.keepalive_count)
+    timeout_ms = round(settings.user_timeout_s * MS_PER_S)
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_USER_TIMEOUT, timeout_ms)
+    # Requests are a few bytes each and wait for their answer: Nagle's delay only adds
+    # latency (asyncio sets it for its own transports; pyserial's socket:// does not).
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class SilenceWatch:
+    """Counts requests in a row that got no byte back; says when the session is to end.
+
+    Logged once per silent stretch: a warning when the limit is first reached, debug for
+    every further reopening while the peer stays silent, info when it answers again.
+    """
+
+    def __init__(self, *, port: str, limit: int) -> None:
+        """Watch ``port``'s session; ``limit`` silent requests end it (0: never)."""
+        self.port = port
+        self.limit = limit
+        self.silent = 0  # requests in a row without a byte back
+        self.reopened = 0  # sessions ended for silence in this stretch
+        self.ended_at: list[float] = []  # monotonic times a session was ended for silence
+
+    def heard(self) -> None:
+        """A byte came back: the session is alive."""
+        if self.reopened:
+            _LOGGER.info(
+                "%s: the peer answers again (after %d silent sessions)", self.port, self.reopened
+            )
+        self.silent = self.reopened = 0
+
+    def unheard(self) -> bool:
+        """A request got no byte back; ``True`` when the session is to be ended now."""
+        self.silent += 1
+        if not self.limit or self.silent < self.limit:
+            return False
+        log = _LOGGER.warning if not self.reopened else _LOGGER.debug
+        log(
+            "%s: no byte back for %d requests in a row: the converter keeps the session "
+            "but answers nothing (or every device behind it is away); reopening the "
+            "session (tcp.silent_requests: %d)",
+            self.port,
+            self.silent,
+            self.limit,
+        )
+        self.silent = 0
+        self.reopened += 1
+        self.ended_at.append(time.monotonic())
+        return True
