@@ -18,7 +18,6 @@ from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.control.link import DeviceLink
 from gateway.control.writes import SafeWriter
 from gateway.line.devices import DeviceTarget
-from gateway.line.echo import EchoMode
 from gateway.line.factory import build_line
 from gateway.line.foreign import SharePolicy
 from gateway.line.port_access import SystemRoots, port_name_advice, port_options
@@ -109,7 +108,7 @@ def build_workers(
                 line=bus.line,
                 tcp=bus.tcp,
                 bus=bus.name,
-                echo=EchoMode(bus.echo),
+                echo=bus.echo,
                 options=port_options(bus, config.shared_bus),
             ),
             devices=targets,
@@ -366,7 +365,7 @@ async def run(
     if config.prometheus.enabled:
         from gateway.publish.prometheus import MetricsServer  # noqa: PLC0415
 
-        metrics = MetricsServer(state, host=config.prometheus.host, port=config.prometheus.port)
+        metrics = MetricsServer.of(state, config.prometheus)
         metrics.start()
     async with contextlib.AsyncExitStack() as stack:
         stack.callback(ledger.close)

@@ -11,7 +11,7 @@ import contextlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from gateway.line.echo import EchoMode
+from gateway.config.echo import EchoMode
 from gateway.line.serial_line import SerialLine
 from gateway.line.worker import BusWorker
 from gateway.simulator import SimulatorServer, build_bus, parse_settings

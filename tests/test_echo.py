@@ -17,8 +17,9 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import run
 from gateway.config import parse_config
+from gateway.config.echo import EchoMode
 from gateway.errors import BusTimeoutError, EchoMismatchError
-from gateway.line.echo import AUTO_DECISION_READS, EchoMode
+from gateway.line.echo import AUTO_DECISION_READS
 from gateway.line.stats import ErrorKind
 from gateway.publish.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings

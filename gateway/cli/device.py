@@ -23,6 +23,7 @@ from rich.markup import escape
 
 from gateway.app import device_target, state_directory
 from gateway.config import DEFAULT_FLASH_WRITE_BUDGET, FlashPolicy, load_config
+from gateway.config.echo import EchoMode
 from gateway.control.flash import LEDGER_FILE, FlashLedger
 from gateway.control.link import DeviceLink, open_link
 from gateway.errors import ConfigError, GatewayError
@@ -90,7 +91,7 @@ class DeviceSpec:
     policy: FlashPolicy  # the configured allow-list, or none without --config
     options: PortOptions = field(default_factory=PortOptions)  # the configured bus's
     state_dir: Path  # where the flash-write ledger is kept
-    echo: str = "auto"  # the bus's echo setting (off, on, auto)
+    echo: EchoMode = EchoMode.AUTO  # the bus's echo setting
     tcp: TcpSettings | None = None  # the bus's tcp: settings (socket:// and tcp:// ports)
 
     def ledger(self) -> FlashLedger:

@@ -45,6 +45,7 @@ from pydantic_settings import (
 )
 
 from gateway.config.care import CareConfig, CareSettings
+from gateway.config.echo import EchoMode, echo_words
 from gateway.config.flash_policy import FlashPolicy
 from gateway.config.network import MBAP_URL_SCHEME, TcpSettings, tcp_for_network_port
 from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
@@ -191,15 +192,6 @@ Retries = Annotated[int, Field(ge=0, le=10)]
 TcpPort = Annotated[int, Field(ge=1, le=65535)]
 
 
-def _on_off(value: object) -> object:
-    """YAML 1.1 reads a bare ``off``/``on`` as false/true: take them as the words meant."""
-    if value is True:
-        return "on"
-    if value is False:
-        return "off"
-    return value
-
-
 class BusConfig(_Model):
     """One RS485 line, owned by one task.
 
@@ -221,7 +213,7 @@ class BusConfig(_Model):
     # Whether the adapter hears its own transmission (no automatic direction control):
     # "on" reads every request back before its answer, "off" expects none, "auto" decides
     # from the first reads and logs the setting that fits (gateway.line.echo).
-    echo: Annotated[Literal["off", "on", "auto"], BeforeValidator(_on_off)] = "auto"
+    echo: Annotated[EchoMode, BeforeValidator(echo_words)] = EchoMode.AUTO
     rs485: Rs485Config | None = None  # the kernel's RS485 mode (a UART or HAT switched by RTS)
     # socket:// and tcp:// only: keepalive, user timeout, silence, pauses (config.network).
     tcp: Annotated[TcpSettings | None, AfterValidator(tcp_for_network_port)] = None

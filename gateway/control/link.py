@@ -21,9 +21,9 @@ from __future__ import annotations
 import contextlib
 from typing import TYPE_CHECKING
 
+from gateway.config.echo import EchoMode
 from gateway.control.commands import require_writable, validate_write
 from gateway.errors import BusError
-from gateway.line.echo import EchoMode
 from gateway.line.factory import build_line
 from gateway.line.samples import Quality
 from gateway.line.worker import BusWorker
@@ -134,7 +134,7 @@ async def open_link(
     line_format: LineFormat,
     target: DeviceTarget,
     *,
-    echo: str = "auto",
+    echo: EchoMode = EchoMode.AUTO,
     options: PortOptions | None = None,
     tcp: TcpSettings | None = None,
 ) -> AsyncIterator[DeviceLink]:
@@ -145,7 +145,7 @@ async def open_link(
     exclusively: with the gateway polling it, this fails at once with a
     :class:`~gateway.errors.PortUnavailableError` that says what to stop.
     """
-    line = build_line(port=port, line=line_format, tcp=tcp, echo=EchoMode(echo), options=options)
+    line = build_line(port=port, line=line_format, tcp=tcp, echo=echo, options=options)
     await line.open()
     try:
         yield DeviceLink(BusWorker(name="cli", line=line, devices=[target]), target.name)

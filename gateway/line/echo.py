@@ -25,21 +25,14 @@ echo. This module decides; :mod:`gateway.line.port` reads the bytes.
 from __future__ import annotations
 
 import logging
-from enum import StrEnum
 from typing import Final
+
+from gateway.config.echo import EchoMode
 
 _LOGGER = logging.getLogger(__name__)
 
 AUTO_DECISION_READS: Final = 3  # agreeing reads before ``auto`` settles
 ECHO_MARGIN_S: Final = 0.05  # USB adapters hand received bytes over up to 16 ms late, and more
-
-
-class EchoMode(StrEnum):
-    """What the bus's adapter does with what it sends (the bus's ``echo`` setting)."""
-
-    OFF = "off"
-    ON = "on"
-    AUTO = "auto"
 
 
 def earliest_answer(

@@ -10,8 +10,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
+from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP, MBAP_URL_SCHEME, RTU_OVER_TCP_SCHEME
-from gateway.line.echo import EchoMode
 from gateway.line.modbus_tcp import ModbusTcpLine
 from gateway.line.rtu_over_tcp import RtuOverTcpLine
 from gateway.line.serial_line import SerialLine

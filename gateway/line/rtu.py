@@ -24,6 +24,7 @@ import time
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, Final
 
+from gateway.config.echo import EchoMode
 from gateway.errors import (
     BusClosedError,
     BusTimeoutError,
@@ -34,7 +35,7 @@ from gateway.errors import (
 )
 from gateway.line.answer import AnswerScan, holds_answer
 from gateway.line.boundary import Exchange, LateAnswer
-from gateway.line.echo import ECHO_MARGIN_S, EchoMode, EchoPolicy, earliest_answer
+from gateway.line.echo import ECHO_MARGIN_S, EchoPolicy, earliest_answer
 from gateway.line.inbox import Inbox
 from gateway.line.stats import ErrorKind, LineStats, failure_kind
 from gateway.line.timer import DeadlineTimer

@@ -19,9 +19,9 @@ import time
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
 
+from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP
 from gateway.errors import BusClosedError, BusTimeoutError, DeviceExceptionError, FrameError
-from gateway.line.echo import EchoMode
 from gateway.line.rtu import RtuLine
 from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect
 from gateway.wire import frames

@@ -26,9 +26,9 @@ from typing import TYPE_CHECKING, Final, cast
 import serial
 import serial_asyncio_fast
 
+from gateway.config.echo import EchoMode
 from gateway.errors import BusClosedError, PortUnavailableError
 from gateway.line import port_access
-from gateway.line.echo import EchoMode
 from gateway.line.rtu import RtuLine
 
 if TYPE_CHECKING:
