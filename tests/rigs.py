@@ -22,6 +22,7 @@ from gateway.line.devices import DeviceTarget
 from gateway.line.serial_line import SerialLine
 from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
+from gateway.publish.host_clock import TRUST_VARIABLE
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
@@ -243,6 +244,8 @@ def run_gateway(
     Whatever the command's outcome, an asyncio exception nobody retrieved fails the test.
     """
     env = {"COLUMNS": str(columns), "PATH": "/usr/bin:/bin", "PYTHONIOENCODING": "utf-8"}
+    if TRUST_VARIABLE in os.environ:  # tests/conftest.py: the test host's clock is trusted
+        env[TRUST_VARIABLE] = os.environ[TRUST_VARIABLE]
     if tz is not None:
         env["TZ"] = tz
     result = subprocess.run(

@@ -110,7 +110,8 @@ async def test_an_undecodable_value_is_a_fault_of_the_value_not_of_the_line(
         "  - {name: aeration, bus: line1, address: 1, profile: jumo-digiline-odo-s10,"
         " poll_interval: 0.3, points: {clock: {interval: 0.3}}}\n"
         f"mqtt: {{host: 127.0.0.1, port: {broker.port}, base_topic: gw}}\n"
-        f"prometheus: {{host: 127.0.0.1, port: {metrics_port}}}\n"
+        # The clock is a setting: Prometheus gets it when the group is asked for.
+        f"prometheus: {{host: 127.0.0.1, port: {metrics_port}, groups: [process, configuration]}}\n"
         f"state_dir: {tmp_path / 'state'}\n",
         environ={},
     )

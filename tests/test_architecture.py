@@ -55,11 +55,14 @@ FLOOR_OF = {
     "gateway.__main__": "entry",
 }
 
-# Only the port touches the serial line (STYLE.md: pure core, I/O at the edges), and
-# port_access beside it: how the port is opened (exclusively, its RS485 mode, the USB
-# adapter's low-latency mode) needs pyserial's Serial before the port has a transport.
+# Only the port touches the serial line (STYLE.md: pure core, I/O at the edges), and two
+# modules beside it that need pyserial's Serial before the port has a transport:
+# port_access (the device opened exclusively, in its RS485 mode) and usb_adapter (the
+# driver asked for low-latency mode). The port's names and why it is not open need none.
 PORT_LIBRARIES = ("serial", "serial_asyncio_fast", "pymodbus.client")
-PORT_OWNERS = frozenset({"gateway.line.serial_line", "gateway.line.port_access"})
+PORT_OWNERS = frozenset(
+    {"gateway.line.serial_line", "gateway.line.port_access", "gateway.line.usb_adapter"}
+)
 
 
 def _module_name(path: Path) -> str:
@@ -201,3 +204,41 @@ def test_only_the_port_touches_the_serial_line() -> None:
         if any(name == lib or name.startswith(f"{lib}.") for lib in PORT_LIBRARIES)
     ]
     assert touching == []
+
+
+# --- docs/ARCHITECTURE.md's table of modules, kept true --------------------------------------
+
+ARCHITECTURE = PACKAGE.parent / "docs" / "ARCHITECTURE.md"
+
+
+def _rows() -> list[list[str]]:
+    """The modules each row of the table names in its first column (``line/rtu``, ...)."""
+    rows = []
+    for line in ARCHITECTURE.read_text(encoding="utf-8").splitlines():
+        if line.startswith("| `"):
+            first = line.split("|")[1]
+            rows.append(first.replace("`", "").replace(",", " ").split())
+    return rows
+
+
+def _documented_modules() -> set[str]:
+    """Every module the table must name: all but packages' ``__init__`` (they re-export)."""
+    return {
+        str(path.relative_to(PACKAGE).with_suffix(""))
+        for path in PACKAGE.rglob("*.py")
+        if path.name != "__init__.py"
+    }
+
+
+def test_every_module_has_one_row_and_every_row_a_module() -> None:
+    named = [module for row in _rows() for module in row]
+    modules = _documented_modules()
+    assert sorted(modules - set(named)) == [], "modules without a row in docs/ARCHITECTURE.md"
+    assert sorted(set(named) - modules) == [], "rows of modules that do not exist"
+    assert sorted({m for m in named if named.count(m) > 1}) == [], "modules with two rows"
+
+
+def test_the_table_reader_reads_rows_of_several_modules() -> None:
+    rows = _rows()
+    assert ["cli/write", "cli/calibrate", "cli/operations"] in rows
+    assert ["line/rtu"] in rows

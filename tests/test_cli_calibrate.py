@@ -10,7 +10,9 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
+from gateway.control.calibration import catalogue
 from gateway.control.flash import FlashLedger
+from gateway.profiles import get_profile
 from tests.rigs import run_gateway, simulate_process, stats_of
 
 if TYPE_CHECKING:
@@ -173,6 +175,7 @@ def test_a_spent_budget_from_the_config_refuses_with_exit_2(
     ("args", "message"),
     [
         (("calibrate", "zero", *CL2, "--mode", "wet"), "--mode is for the H10/H20"),
+        (("calibrate", "zero", *H10, "--samples", "5"), "--samples is for the tecLine/Reiss"),
         (("calibrate", "slope", *H10, "--reference", "8"), "has no slope calibration"),
         (("calibrate", "end-value", *CL2, "--reference", "20"), "has no end-value calibration"),
     ],
@@ -211,3 +214,41 @@ def test_now_is_the_default_stamp(line: tuple[Path, Path], tmp_path: Path) -> No
     assert result.returncode == 0, result.stderr
     stamp = datetime.fromisoformat(json.loads(result.stdout)["values"]["stamp"])
     assert before <= stamp <= datetime.now(UTC).astimezone().replace(tzinfo=None)
+
+
+def test_a_check_without_samples_reads_as_often_as_the_catalogue_says(
+    line: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """The command line applies the catalogue's defaults (the page's twin is in
+    ``tests/test_calibration_catalogue.py``): one reading, as the manuals read the current."""
+    port, stats_path = line
+    result = gateway(
+        tmp_path, "calibrate", "check", "--port", str(port), *CL2, "--reference", "0.5", "--json"
+    )
+    assert result.returncode == 0, result.stderr
+    outcome = json.loads(result.stdout)
+    assert outcome["status"] == "checked"
+    readings = outcome["values"]["cell_current_samples"]
+    assert readings == [76.5] * catalogue.procedure("check").defaults().integer("samples")
+    assert len(readings) == 1
+    assert "cell_current sample 1/1: 76.5 nA" in result.stderr
+    assert writes_to(stats_of(stats_path), 20) == []
+
+
+def test_the_procedures_are_listed_with_their_defaults_and_sources(tmp_path: Path) -> None:
+    result = gateway(tmp_path, "calibrate", "procedures", "--profile", "jumo-tecline-cl2")
+    assert result.returncode == 0, result.stderr
+    text = result.stdout
+    for procedure in catalogue.offered(get_profile("jumo-tecline-cl2")):
+        assert f"gateway calibrate {procedure.command}" in text
+    assert "--samples" in text
+    assert "tecLine annex 7.3.1 steps 2-3" in text
+    assert "gateway calibrate end-value" not in text
+    everything = gateway(tmp_path, "calibrate", "procedures", "--json")
+    listed = json.loads(everything.stdout)
+    assert [p["id"] for p in listed] == [p.id for p in catalogue.PROCEDURES]
+    end_value = next(p for p in listed if p["id"] == "oxygen_end_value")
+    assert end_value["profiles"] == ["jumo-digiline-odo-h10", "jumo-digiline-odo-h20"]
+    refused = gateway(tmp_path, "calibrate", "procedures", "--profile", "no-such-sensor")
+    assert refused.returncode == 2
+    assert "no-such-sensor" in refused.stderr

@@ -597,7 +597,7 @@ def test_unit_is_hardened() -> None:
 
 
 def test_the_udev_rule_sets_ftdi_adapters_to_a_latency_timer_below_the_warning() -> None:
-    from gateway.line.port_access import FTDI_DRIVER, LATENCY_WARN_S, UDEV_RULE  # noqa: PLC0415
+    from gateway.line.usb_adapter import FTDI_DRIVER, LATENCY_WARN_S, UDEV_RULE  # noqa: PLC0415
 
     rule = ROOT / UDEV_RULE  # the file the gateway's warning names
     rules = [
@@ -636,6 +636,24 @@ def test_unit_runs_the_gateway_with_its_config_and_secrets() -> None:
     assert settings["EnvironmentFile"] == ["-/etc/rs485-gateway/env"]
 
 
+def test_unit_reloads_through_gateway_reload_with_the_same_config() -> None:
+    settings = service()
+    (exec_reload,) = settings["ExecReload"]
+    command = shlex.split(exec_reload)
+    assert command == [
+        "/usr/local/bin/gateway",
+        "reload",
+        "--config",
+        "/etc/rs485-gateway/gateway.yaml",
+        "--pid",
+        "$MAINPID",
+    ]
+    (exec_start,) = settings["ExecStart"]
+    assert shlex.split(exec_start)[3] == command[3]  # the file it runs is the one reloaded
+    help_text = run_tool(VENV_BIN / "gateway", "reload", "--help").stdout
+    assert all(option in help_text for option in command if option.startswith("--"))
+
+
 def test_unit_stops_and_restarts_like_the_gateway_expects() -> None:
     settings = service()
     assert settings["KillSignal"] == ["SIGTERM"]
@@ -648,13 +666,15 @@ def test_unit_stops_and_restarts_like_the_gateway_expects() -> None:
 
 
 def verifiable_unit(directory: Path) -> Path:
-    """The unit with ExecStart= on this checkout's gateway, which verify requires to exist."""
+    """The unit with its commands on this checkout's gateway, which verify requires to exist."""
     gateway = VENV_BIN / "gateway"
     assert gateway.is_file()
     text = UNIT.read_text(encoding="utf-8")
-    assert text.count("ExecStart=/usr/local/bin/gateway ") == 1
+    for setting in ("ExecStart", "ExecReload"):
+        assert text.count(f"{setting}=/usr/local/bin/gateway ") == 1
+        text = text.replace(f"{setting}=/usr/local/bin/gateway ", f"{setting}={gateway} ")
     copy = directory / UNIT.name
-    copy.write_text(text.replace("ExecStart=/usr/local/bin/gateway ", f"ExecStart={gateway} "))
+    copy.write_text(text)
     return copy
 
 

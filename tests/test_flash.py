@@ -183,7 +183,7 @@ def test_unwritable_ledger_path_is_a_clear_config_error(tmp_path: Path) -> None:
 
 def test_a_failed_record_rejects_the_command(tmp_path: Path) -> None:
     ledger = FlashLedger(tmp_path / "flash.sqlite")
-    ledger._db.execute("DROP TABLE flash_writes")  # the file lost its table under us
+    ledger._connection().execute("DROP TABLE flash_writes")  # the file lost its table under us
     with pytest.raises(CommandRejectedError, match="cannot be counted"):
         ledger.record("pool", "x_span", DAY)
     ledger.close()

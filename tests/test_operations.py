@@ -76,15 +76,15 @@ def plant_with(address: int, **values: object) -> list[dict[str, object]]:
 def test_operations_follow_the_profiles() -> None:
     expected = {
         "jumo-digiline-odo-s10": ["set_clock"],
-        "jumo-digiline-odo-h10": ["set_clock", "measure", "calibration_log"],
-        "jumo-digiline-odo-h20": ["set_clock", "measure", "calibration_log"],
+        "jumo-digiline-odo-h10": ["set_clock", "measure", "calibration_log", "calibrations"],
+        "jumo-digiline-odo-h20": ["set_clock", "measure", "calibration_log", "calibrations"],
     }
-    assert OPERATION_NAMES == ("set_clock", "measure", "calibration_log")
+    assert OPERATION_NAMES == ("set_clock", "measure", "calibration_log", "calibrations")
     for profile_id, profile in builtin_profiles().items():
-        # every tecLine and Reiss variant has the five-entry history, and nothing else
-        want = expected.get(profile_id, ["calibration_log"])
+        # every tecLine and Reiss variant has the five-entry history and guided calibrations
+        want = expected.get(profile_id, ["calibration_log", "calibrations"])
         assert operations_for(profile) == want, profile_id
-    assert operations_for(get_profile("reiss-m3c")) == ["calibration_log"]
+    assert operations_for(get_profile("reiss-m3c")) == ["calibration_log", "calibrations"]
 
 
 # --- set_clock ------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from gateway.control.shared_bus.pdu import (
     line_request,
     parse_request,
 )
-from gateway.control.shared_bus.policy import client_for, client_policies
+from gateway.control.shared_bus.policy import client_for, client_policies, origin_of
 from gateway.control.shared_bus.throttle import Throttle
 from gateway.wire import frames
 from tests.fuzzing import fuzz
@@ -297,6 +297,14 @@ def test_clients_are_told_apart_by_where_they_connect_from() -> None:
         client_for(policies, "10.0.0.1").check_write(
             "cl2", ClientRequest(function=6, address=0x0206, count=1)
         )
+
+
+def test_a_connection_takes_turns_as_its_address_then_as_itself() -> None:
+    # One machine is one address for the fair share, over IPv4 or IPv6-mapped IPv4.
+    v4, mapped = origin_of(("10.0.0.5", 4000)), origin_of(("::ffff:10.0.0.5", 4001))
+    assert (v4.address, v4.connection) == ("10.0.0.5", "10.0.0.5:4000")
+    assert (mapped.address, mapped.connection) == ("10.0.0.5", "::ffff:10.0.0.5:4001")
+    assert origin_of(("fe80::1", 4002)).address == "fe80::1"
 
 
 def test_two_buses_with_the_same_address_need_a_unit_id_for_the_shared_bus() -> None:

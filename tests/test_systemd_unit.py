@@ -40,6 +40,8 @@ def test_unit_runs_under_systemd() -> None:
         "ok: systemd is PID 1",
         "ok: control: with DevicePolicy=strict the open is refused",
         "ok: serial port: the gateway holds /dev/ttyUSB0 open",
+        "ok: systemctl reload of a config with a problem fails",
+        "ok: systemctl reload of an edited config: applied",
         "ok: SIGKILL: active again",
         "ok: systemctl stop: exit status 0",
     ):

@@ -84,15 +84,25 @@ class CareBook:
         rules: CareRules | None,
         polled: Collection[str],
     ) -> None:
-        """Track a device (``rules`` None: care is off for it); ``polled``: its polled points."""
+        """Track a device (``rules`` None: care is off for it); ``polled``: its polled points.
+
+        Adding a device tracked already (a reload changed it) starts it afresh.
+        """
         if rules is None:
+            self.remove_device(device)
             return
         points = care_points(profile, rules.kind)
         tracked = _Device(
             bus=bus, name=device, profile=profile.id, rules=rules, points=frozenset(points)
         )
         tracked.unreadable = {name: NOT_POLLED for name in points if name not in polled}
-        self._devices[device] = tracked
+        with self._lock:
+            self._devices[device] = tracked
+
+    def remove_device(self, device: str) -> None:
+        """Stop tracking a device (a reload removed it, or its care is off now)."""
+        with self._lock:
+            self._devices.pop(device, None)
 
     def observe(self, samples: Sequence[Sample]) -> None:
         """Take one device's poll cycle; assess it again if care's records were in it."""

@@ -1,10 +1,12 @@
 """Guided calibration: ``gateway calibrate ...``.
 
 Each command names one device with the shared device options (:mod:`gateway.cli.device`),
-runs one flow of :mod:`gateway.control.calibration` and shows every step: what it reads, what it
-computes, the registers it is about to write. It asks before writing unless ``--yes``.
-Exit codes: 0 calibrated (or checked), 1 declined or verification failed, 2 refused
-before writing, or a device or line error.
+runs the procedure of the calibration catalogue (:mod:`gateway.control.calibration.catalogue`)
+that the device offers, and shows every step: what it reads, what it computes, the
+registers it is about to write. It asks before writing unless ``--yes``. The options, their
+checks and their defaults are the catalogue's parameters, as on the web page;
+``gateway calibrate procedures`` lists them. Exit codes: 0 calibrated (or checked), 1
+declined or verification failed, 2 refused before writing, or a device or line error.
 """
 
 from __future__ import annotations
@@ -13,20 +15,22 @@ import asyncio
 import json
 import sys
 from datetime import datetime
-from typing import TYPE_CHECKING, Annotated, Final
+from typing import TYPE_CHECKING, Annotated, Any, Final
 
 import typer
 from rich.markup import escape
 from rich.text import Text
 
 from gateway.cli.device import device_link, err, fail, out, with_device_options
+from gateway.control.calibration import Status, catalogue
 from gateway.control.writes import SafeWriter
-from gateway.errors import CommandRejectedError, GatewayError
+from gateway.errors import GatewayError
+from gateway.profiles import get_profile
 
-# The calibrations are imported by the command that runs one, not here: every command of
-# the command line imports this module to register its own, `gateway run` included.
+# This module is loaded only when one of its commands is run or listed (``cli/root``'s
+# LAZY_COMMANDS), so it reads the catalogue, and with it the flows, at import.
 if TYPE_CHECKING:
-    from collections.abc import Awaitable, Callable
+    from collections.abc import Mapping
 
     from rich.console import Console
 
@@ -34,12 +38,11 @@ if TYPE_CHECKING:
     from gateway.control import calibration
     from gateway.control.calibration import CalibrationOutcome, Step
 
-    Flow = Callable[[SafeWriter, calibration.Operator], Awaitable[CalibrationOutcome]]
-
 calibrate_app = typer.Typer(
     help=(
-        "Guided calibration: tecLine/Reiss slope, zero point and nominal slope; "
-        "H10/H20 zero point and end value. Shows each step and asks before writing."
+        "Guided calibration: tecLine/Reiss slope, zero point, nominal slope and the regular "
+        "check; H10/H20 zero point and end value. Shows each step and asks before writing; "
+        "'procedures' lists them with their options and defaults."
     ),
     no_args_is_help=True,
 )
@@ -56,25 +59,45 @@ _STYLES: Final = {
     "note": ("note", "dim"),
 }
 
-ReferenceOption = Annotated[
-    float,
-    typer.Option(
-        help="The analysed concentration, in the sensor's unit (0x0200), e.g. from a "
-        "photometer or titration (not a colorimeter)."
-    ),
-]
-CellCurrentOption = Annotated[
-    float | None,
-    typer.Option(
-        help="The cell current in nA noted when the sample was taken (default: read it now)."
-    ),
-]
-SamplesOption = Annotated[
-    int, typer.Option(help="Readings of the cell current to average.", min=1, max=100)
-]
-EveryOption = Annotated[
-    float, typer.Option(help="Seconds between those readings.", min=0.0, max=60.0)
-]
+
+def _option(procedure_id: str, name: str) -> Any:  # noqa: ANN401 - what typer.Option returns
+    """The command line's option for a parameter: its help and bounds from the catalogue."""
+    parameter = catalogue.procedure(procedure_id).parameter(name)
+    bound = int if parameter.kind is catalogue.InputKind.INTEGER else float
+    return typer.Option(
+        help=parameter.help,
+        min=None if parameter.minimum is None else bound(parameter.minimum),
+        max=None if parameter.maximum is None else bound(parameter.maximum),
+    )
+
+
+# The defaults of each procedure's parameters, as typer shows and applies them.
+_SLOPE: Final = catalogue.procedure("slope").defaults()
+_ZERO: Final = catalogue.procedure("zero").defaults()
+_CHECK: Final = catalogue.procedure("check").defaults()
+_OXYGEN_ZERO: Final = catalogue.procedure("oxygen_zero").defaults()
+_END_VALUE: Final = catalogue.procedure("oxygen_end_value").defaults()
+SLOPE_CELL_CURRENT: Final = _SLOPE.optional_number("cell_current")
+SLOPE_SAMPLES: Final = _SLOPE.integer("samples")
+SLOPE_EVERY: Final = _SLOPE.number("every")
+ZERO_CURRENT: Final = _ZERO.optional_number("zero_current")
+ZERO_SAMPLES: Final = _ZERO.integer("samples")
+ZERO_EVERY: Final = _ZERO.number("every")
+OXYGEN_ZERO_MODE: Final = _OXYGEN_ZERO.text("mode")
+END_VALUE_UNIT: Final = _END_VALUE.optional_text("unit")
+END_VALUE_MODE: Final = _END_VALUE.text("mode")
+CHECK_CELL_CURRENT: Final = _CHECK.optional_number("cell_current")
+CHECK_SAMPLES: Final = _CHECK.integer("samples")
+CHECK_EVERY: Final = _CHECK.number("every")
+
+ReferenceOption = Annotated[float, _option("slope", "reference")]
+CellCurrentOption = Annotated[float | None, _option("slope", "cell_current")]
+SamplesOption = Annotated[int, _option("slope", "samples")]
+EveryOption = Annotated[float, _option("slope", "every")]
+ZeroCurrentOption = Annotated[float | None, _option("zero", "zero_current")]
+ModeOption = Annotated[str, _option("oxygen_zero", "mode")]
+EndValueOption = Annotated[float, _option("oxygen_end_value", "reference")]
+UnitOption = Annotated[str | None, _option("oxygen_end_value", "unit")]
 
 
 def _parse_at(text: str) -> datetime:
@@ -93,10 +116,6 @@ AtOption = Annotated[
         help="Date and time of the calibration, ISO 8601 (default: now). The tecLine/Reiss "
         "stamp keeps the minute; the H10/H20 date the second and the UTC offset (local if none).",
     ),
-]
-ModeOption = Annotated[
-    str,
-    typer.Option(help="H10/H20 calibration mode 0x3009: as_configured (0x2021), wet or dry."),
 ]
 YesOption = Annotated[bool, typer.Option("--yes", "-y", help="Write without asking.")]
 JsonOption = Annotated[
@@ -142,31 +161,43 @@ def _when(at: datetime | None) -> datetime:
 
 async def _session(
     spec: DeviceSpec,
-    flow: Flow,
+    procedure: catalogue.Procedure,
+    inputs: catalogue.Inputs,
     operator: calibration.Operator,
+    *,
+    when: datetime,
 ) -> CalibrationOutcome:
     ledger = spec.ledger()
     try:
         async with device_link(spec) as link:
-            return await flow(SafeWriter(link, policy=spec.policy, ledger=ledger), operator)
+            writer = SafeWriter(link, policy=spec.policy, ledger=ledger, clock=spec.clock())
+            return await procedure.run(writer, operator, inputs, when=when)
     finally:
         ledger.close()
 
 
 def _run(
     options: DeviceOptions,
-    flow: Flow,
+    command: str,
+    given: Mapping[str, object],
     *,
+    at: datetime | None = None,
     yes: bool,
     as_json: bool,
 ) -> None:
-    """Open the device, run the flow, print the outcome and exit as the module says."""
-    from gateway.control.calibration import Status  # noqa: PLC0415
+    """Open the device, run the procedure ``command`` names for it, print, exit as above.
 
+    Which procedure that is and the checks of ``given`` are the catalogue's, before the
+    port is opened: a device without it is refused without a frame sent.
+    """
     console = err if as_json else out
     operator = ConsoleOperator(console, assume_yes=yes, prompt_to_stderr=as_json)
     try:
-        outcome = asyncio.run(_session(options.spec(), flow, operator))
+        spec = options.spec()
+        procedure, inputs = catalogue.choose(
+            command, spec.target.profile, given, device=spec.target.name
+        )
+        outcome = asyncio.run(_session(spec, procedure, inputs, operator, when=_when(at)))
     except GatewayError as exc:
         raise fail(exc) from exc
     if as_json:
@@ -189,107 +220,57 @@ def _run(
 def slope_command(
     *,
     reference: ReferenceOption,
-    cell_current: CellCurrentOption = None,
-    samples: SamplesOption = 3,
-    every: EveryOption = 2.0,
+    cell_current: CellCurrentOption = SLOPE_CELL_CURRENT,
+    samples: SamplesOption = SLOPE_SAMPLES,
+    every: EveryOption = SLOPE_EVERY,
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
     options: DeviceOptions,
 ) -> None:
     """tecLine/Reiss slope calibration: X_Span = (cell current - X_Zero) / reference."""
-
-    async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
-        from gateway.control import calibration  # noqa: PLC0415
-
-        return await calibration.calibrate_slope(
-            writer,
-            operator,
-            reference=reference,
-            when=_when(at),
-            cell_current_na=cell_current,
-            samples=samples,
-            sample_interval_s=every,
-        )
-
-    _run(options, flow, yes=yes, as_json=as_json)
+    given = {
+        "reference": reference,
+        "cell_current": cell_current,
+        "samples": samples,
+        "every": every,
+    }
+    _run(options, "slope", given, at=at, yes=yes, as_json=as_json)
 
 
 @calibrate_app.command("zero")
 @with_device_options
 def zero_command(
     *,
-    zero_current: Annotated[
-        float | None,
-        typer.Option(
-            help="tecLine/Reiss: the cell current in nA without disinfectant, if noted "
-            "(default: read it now)."
-        ),
-    ] = None,
-    samples: SamplesOption = 3,
-    every: EveryOption = 2.0,
-    mode: ModeOption = "as_configured",
+    zero_current: ZeroCurrentOption = ZERO_CURRENT,
+    samples: SamplesOption = ZERO_SAMPLES,
+    every: EveryOption = ZERO_EVERY,
+    mode: ModeOption = OXYGEN_ZERO_MODE,
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
     options: DeviceOptions,
 ) -> None:
     """Zero-point calibration: tecLine/Reiss X_Zero (annex 7.4), or H10/H20 via 0x3003."""
-
-    async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
-        from gateway.control import calibration  # noqa: PLC0415
-
-        if writer.link.profile.has_point("zero_point_calibration_trigger"):
-            if zero_current is not None:
-                raise CommandRejectedError("--zero-current is for tecLine/Reiss cells")
-            return await calibration.calibrate_oxygen_zero(
-                writer, operator, when=_when(at), mode=mode
-            )
-        if mode != "as_configured":
-            raise CommandRejectedError("--mode is for the H10/H20 oxygen sensors")
-        return await calibration.calibrate_zero_point(
-            writer,
-            operator,
-            when=_when(at),
-            zero_current_na=zero_current,
-            samples=samples,
-            sample_interval_s=every,
-        )
-
-    _run(options, flow, yes=yes, as_json=as_json)
+    given = {"zero_current": zero_current, "samples": samples, "every": every, "mode": mode}
+    _run(options, "zero", given, at=at, yes=yes, as_json=as_json)
 
 
 @calibrate_app.command("end-value")
 @with_device_options
 def end_value_command(
     *,
-    reference: Annotated[
-        float,
-        typer.Option(help="Oxygen at the end value (0x2043), in --unit or the unit at 0x204B."),
-    ],
-    unit: Annotated[
-        str | None,
-        typer.Option(
-            help="Unit of the reference, written to 0x204B if it differs: percent_saturation, "
-            "percent_volume, ppm, ppb, hpa (default: the one at 0x204B)."
-        ),
-    ] = None,
-    mode: ModeOption = "as_configured",
+    reference: EndValueOption,
+    unit: UnitOption = END_VALUE_UNIT,
+    mode: ModeOption = END_VALUE_MODE,
     at: AtOption = None,
     yes: YesOption = False,
     as_json: JsonOption = False,
     options: DeviceOptions,
 ) -> None:
     """H10/H20 end-value calibration via 0x2043 and 0x3005, with mode and date."""
-
-    async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
-        from gateway.control import calibration  # noqa: PLC0415
-
-        return await calibration.calibrate_oxygen_end_value(
-            writer, operator, reference=reference, when=_when(at), unit=unit, mode=mode
-        )
-
-    _run(options, flow, yes=yes, as_json=as_json)
+    given = {"reference": reference, "unit": unit, "mode": mode}
+    _run(options, "end-value", given, at=at, yes=yes, as_json=as_json)
 
 
 @calibrate_app.command("nominal")
@@ -302,13 +283,7 @@ def nominal_command(
     options: DeviceOptions,
 ) -> None:
     """tecLine/Reiss: restore the nominal slope (0x030A) and the zero point 0 (annex 7.5)."""
-
-    async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
-        from gateway.control import calibration  # noqa: PLC0415
-
-        return await calibration.restore_nominal_slope(writer, operator, when=_when(at))
-
-    _run(options, flow, yes=yes, as_json=as_json)
+    _run(options, "nominal", {}, at=at, yes=yes, as_json=as_json)
 
 
 @calibrate_app.command("check")
@@ -316,24 +291,95 @@ def nominal_command(
 def check_command(
     *,
     reference: ReferenceOption,
-    cell_current: CellCurrentOption = None,
-    samples: SamplesOption = 3,
-    every: EveryOption = 2.0,
+    cell_current: CellCurrentOption = CHECK_CELL_CURRENT,
+    samples: SamplesOption = CHECK_SAMPLES,
+    every: EveryOption = CHECK_EVERY,
     as_json: JsonOption = False,
     options: DeviceOptions,
 ) -> None:
     """tecLine/Reiss regular check (annex 7.3.4): today's slope against nominal; no writes."""
+    given = {
+        "reference": reference,
+        "cell_current": cell_current,
+        "samples": samples,
+        "every": every,
+    }
+    _run(options, "check", given, yes=False, as_json=as_json)
 
-    async def flow(writer: SafeWriter, operator: calibration.Operator) -> CalibrationOutcome:
-        from gateway.control import calibration  # noqa: PLC0415
 
-        return await calibration.check_slope(
-            writer,
-            operator,
-            reference=reference,
-            cell_current_na=cell_current,
-            samples=samples,
-            sample_interval_s=every,
+@calibrate_app.command("procedures")
+def procedures_command(
+    *,
+    profile: Annotated[
+        str | None,
+        typer.Option(help="Only the procedures a device of this profile offers."),
+    ] = None,
+    as_json: Annotated[
+        bool,
+        typer.Option("--json", help="Print them as JSON, as the web page and MQTT get them."),
+    ] = False,
+) -> None:
+    """The guided calibrations: which sensors offer them, their options and defaults."""
+    try:
+        chosen = catalogue.offered(get_profile(profile)) if profile else catalogue.PROCEDURES
+    except GatewayError as exc:
+        raise fail(exc) from exc
+    if as_json:
+        documents = [
+            p.as_dict() if profile else {**p.as_dict(), "profiles": catalogue.offering(p)}
+            for p in chosen
+        ]
+        sys.stdout.write(json.dumps(documents, indent=2, ensure_ascii=False) + "\n")
+        return
+    if not chosen:
+        out.print(f"{profile} offers no guided calibration.")
+        return
+    for procedure in chosen:
+        _print_procedure(procedure, with_profiles=profile is None)
+
+
+def _print_procedure(procedure: catalogue.Procedure, *, with_profiles: bool) -> None:
+    from rich.table import Table  # noqa: PLC0415 - this listing only
+
+    out.print(
+        Text.assemble(
+            (f"gateway calibrate {procedure.command}", "bold"),
+            f"  {procedure.title} [{procedure.id}]: {procedure.purpose} ({procedure.source})",
         )
+    )
+    if with_profiles:
+        out.print(f"  offered by: {', '.join(catalogue.offering(procedure))}")
+    if not procedure.parameters:
+        out.print("  no options\n")
+        return
+    table = Table(box=None, padding=(0, 2), show_edge=False)
+    for column in ("option", "default", "allowed", "source"):
+        table.add_column(column)
+    for parameter in procedure.parameters:
+        table.add_row(
+            parameter.option,
+            _default_text(parameter),
+            _allowed_text(parameter),
+            parameter.source,
+        )
+    out.print(table)
+    out.print()
 
-    _run(options, flow, yes=False, as_json=as_json)
+
+def _default_text(parameter: catalogue.Parameter) -> str:
+    if parameter.required:
+        return "required"
+    if parameter.default is None:
+        return f"({parameter.absent})"
+    unit = f" {parameter.unit}" if parameter.unit else ""
+    return f"{parameter.default}{unit}"
+
+
+def _allowed_text(parameter: catalogue.Parameter) -> str:
+    if parameter.choices:
+        return ", ".join(parameter.choices)
+    if parameter.minimum is None and parameter.maximum is None:
+        return parameter.kind.value
+    low = "" if parameter.minimum is None else f"{parameter.minimum:g}"
+    high = "" if parameter.maximum is None else f"{parameter.maximum:g}"
+    return f"{parameter.kind.value} {low} to {high}"

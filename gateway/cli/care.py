@@ -27,8 +27,8 @@ from gateway.care.rules import rules_for
 from gateway.cli.device import err, fail, out
 from gateway.config import load_config
 from gateway.control.link import open_link
+from gateway.control.ports import port_options
 from gateway.errors import GatewayError
-from gateway.line.port_access import port_options
 from gateway.wire import codec
 
 if TYPE_CHECKING:

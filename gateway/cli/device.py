@@ -26,10 +26,12 @@ from gateway.config import DEFAULT_FLASH_WRITE_BUDGET, FlashPolicy, load_config
 from gateway.config.echo import EchoMode
 from gateway.control.flash import LEDGER_FILE, FlashLedger
 from gateway.control.link import DeviceLink, open_link
+from gateway.control.ports import port_options
 from gateway.errors import ConfigError, GatewayError
 from gateway.line.devices import DeviceTarget
-from gateway.line.port_access import PortOptions, port_options
+from gateway.line.port_access import PortOptions
 from gateway.profiles import get_profile
+from gateway.publish.host_clock import HostClock
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat
 
@@ -93,6 +95,12 @@ class DeviceSpec:
     state_dir: Path  # where the flash-write ledger is kept
     echo: EchoMode = EchoMode.AUTO  # the bus's echo setting
     tcp: TcpSettings | None = None  # the bus's tcp: settings (socket:// and tcp:// ports)
+    # The config's clock.trust_unsynchronised (None without --config: the environment's).
+    trust_unsynchronised: bool | None = None
+
+    def clock(self) -> HostClock:
+        """The host clock the command's writes of a date are gated by (as the gateway's)."""
+        return HostClock(trust_unsynchronised=self.trust_unsynchronised)
 
     def ledger(self) -> FlashLedger:
         """The persistent flash-write ledger, shared with the running gateway."""
@@ -206,6 +214,7 @@ def device_spec(options: DeviceOptions) -> DeviceSpec:
             state_dir=state_directory(settings),
             echo=bus.echo,
             tcp=bus.tcp,
+            trust_unsynchronised=settings.clock.trust_unsynchronised,
         )
     if options.port is None or options.address is None or options.profile is None:
         raise ConfigError("give --port, --address and --profile (or --config with --device)")

@@ -62,7 +62,9 @@ async def _with_device(spec: DeviceSpec, operation: Callable[[SafeWriter], Await
     ledger = spec.ledger()
     try:
         async with device_link(spec) as link:
-            return await operation(SafeWriter(link, policy=spec.policy, ledger=ledger))
+            return await operation(
+                SafeWriter(link, policy=spec.policy, ledger=ledger, clock=spec.clock())
+            )
     finally:
         ledger.close()
 

@@ -22,9 +22,10 @@ from gateway.cli.device import fail
 from gateway.cli.heap import return_large_blocks
 from gateway.config import load_config, review_config
 from gateway.control.link import open_link
+from gateway.control.ports import port_advice
 from gateway.errors import ConfigError, GatewayError
 from gateway.line.devices import DeviceTarget
-from gateway.line.port_access import SystemRoots, port_advice
+from gateway.line.port_names import SystemRoots
 from gateway.line.samples import Quality, Sample, hex_registers, json_value
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.publish.console import ConsoleSink, format_sample
@@ -48,6 +49,7 @@ LAZY_COMMANDS: Final = {
     "measure": "gateway.cli.operations",
     "calibration-log": "gateway.cli.operations",
     "care": "gateway.cli.care",
+    "reload": "gateway.cli.reload",
 }
 
 
@@ -511,7 +513,10 @@ def run(
         typer.Option("--print/--no-print", help="Print each poll cycle (default: on a terminal)."),
     ] = None,
 ) -> None:
-    """Poll every configured bus and publish to MQTT and Prometheus until Ctrl-C or SIGTERM."""
+    """Poll every configured bus and publish to MQTT and Prometheus until Ctrl-C or SIGTERM.
+
+    SIGHUP (or ``gateway reload``) reads the config again and applies what changed.
+    """
     try:
         settings = load_config(config)
     except GatewayError as exc:
@@ -520,7 +525,7 @@ def run(
     return_large_blocks()
     console = show if show is not None else sys.stdout.isatty()
     try:
-        asyncio.run(run_gateway(settings, [ConsoleSink()] if console else []))
+        asyncio.run(run_gateway(settings, [ConsoleSink()] if console else [], config_path=config))
     except GatewayError as exc:
         raise fail(exc) from exc
 

@@ -38,7 +38,9 @@ async def _write(spec: DeviceSpec, point: str, value: object, *, allow_flash: bo
     ledger = spec.ledger() if flash else FlashLedger(None)
     try:
         async with device_link(spec) as link:
-            return await SafeWriter(link, policy=policy, ledger=ledger).set(target, value)
+            return await SafeWriter(link, policy=policy, ledger=ledger, clock=spec.clock()).set(
+                target, value
+            )
     finally:
         ledger.close()
 

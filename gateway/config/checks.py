@@ -1,9 +1,10 @@
 """Cross-field checks: what needs the whole config, not one entry.
 
 Bus and device names unique, buses and profiles known, one address per device on a bus,
-per-point settings, flash writes and feeds that name points of the device's profile, a
-pinned serial number the profile can read, and response timeouts that fit in the device's
-poll interval.
+per-point settings, flash writes and feeds that name points of the device's profile,
+Sparkplug's and Prometheus' per-device groups that name configured devices, a pinned
+serial number the profile can read, and response timeouts that fit in the device's poll
+interval.
 
 Each check runs on every entry that can be checked, even if others are broken, and yields
 ``(key path, message)``; :mod:`gateway.config.loading` locates them.
@@ -117,7 +118,22 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
     mqtt_on = not isinstance(mqtt, dict) or mqtt.get("enabled", True) is not False
     yield from _check_feeds(_entries(data.get("feeds"), FeedConfig), devices, mqtt_on=mqtt_on)
     yield from _check_sparkplug_deadbands(data.get("sparkplug"), devices)
+    yield from _check_prometheus_device_groups(data.get("prometheus"), devices)
     yield from _check_care_profiles(data.get("care"))
+
+
+def _check_prometheus_device_groups(
+    prometheus: object, devices: Sequence[_Entry[DeviceConfig]]
+) -> Iterator[tuple[KeyPath, str]]:
+    """``prometheus.device_groups`` names configured devices."""
+    if not isinstance(prometheus, dict):
+        return
+    groups = prometheus.get("device_groups")
+    names = {n: d.text("profile") for d in devices if (n := d.text("name")) is not None}
+    for device in groups if isinstance(groups, dict) else {}:
+        if device not in names:
+            message = f"no device {device!r}; devices: {_names(names)}"
+            yield ("prometheus", "device_groups", device), message
 
 
 def _check_care_profiles(care: object) -> Iterator[tuple[KeyPath, str]]:

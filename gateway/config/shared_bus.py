@@ -129,9 +129,13 @@ class SharedBusConfig(_Model):
     """Other masters (SCADA, the vendor's software) on the gateway's buses."""
 
     listen: list[ListenConfig] = []  # empty: off
+    # Of each bus's time, at most; divided equally between the source addresses asking
+    # (line.fair_share), an address's part between its connections.
     bus_share: Annotated[float, Field(gt=0, le=MAX_SHARE)] = 0.25
     max_wait: Annotated[float, Field(gt=0, le=60)] = 2.0  # seconds, then exception 06
-    max_pending: Annotated[int, Field(ge=1, le=1000)] = 16  # per bus, then exception 06
+    # Per bus, then exception 06: to the newest request of the address holding the most,
+    # if it holds at least two more than the newcomer's, else to the newcomer.
+    max_pending: Annotated[int, Field(ge=1, le=1000)] = 16
     max_connections: Annotated[int, Field(ge=1, le=1000)] = 16
     # Requests read from one connection and not yet answered; the socket is read no
     # further meanwhile, so a pipelining client waits in TCP's buffers (backpressure).

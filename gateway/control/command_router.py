@@ -5,7 +5,8 @@ Topics under ``{base}``:
 - ``{base}/{device}/{point}/set``: a plain value or ``{"value": …, "id": …}``; the outcome
   goes to ``{base}/{device}/{point}/set/result``;
 - ``{base}/{device}/command/{name}``: an operation (``set_clock``, ``measure``,
-  ``calibration_log``) with an empty payload or a JSON object of arguments and an ``id``;
+  ``calibration_log``, ``calibrations``) with an empty payload or a JSON object of
+  arguments and an ``id``;
   the outcome goes to ``{base}/{device}/command/{name}/result``.
 
 Every outcome is one JSON object: ``status`` ``ok`` or ``error``, the echoed ``id``, and

@@ -4,13 +4,17 @@
 and feeds change a device's registers:
 
 0. the point is resolved by name once, where the name comes in (:meth:`SafeWriter.point`),
-   and the :class:`~gateway.profiles.model.Point` is what every step below is given;
+   and the :class:`~gateway.profiles.model.Point` is what every step below is given; a
+   point that reaches a date-and-time register (a clock, a calibration stamp) is refused
+   while the host clock is not trusted (:mod:`gateway.control.clock_trust`);
 1. the value is checked and encoded for the point (:func:`gateway.control.commands.validate_write`);
    a bit field given as an object of bit names changes those bits only: the word is read
    and the other bits, named or not, are written back as the device holds them;
 2. a flash-backed point is read first and judged by :func:`gateway.control.flash.check_flash_write`
    (allowed by name, unchanged values skipped, the daily budget), and an accepted flash
-   write is counted in the persistent ledger *before* it is sent;
+   write is counted in the persistent ledger *before* it is sent, on the disk itself (a
+   power cut after the write cannot leave it uncounted; a ledger that cannot be written
+   refuses the write, tests/test_power_cut.py and tests/test_full_disk.py);
 3. the registers go out with function 06 or 16, and the post-write wait is kept;
 4. the point is read back, so the caller sees what the device now holds.
 
@@ -24,10 +28,12 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from gateway.config import FlashPolicy
+from gateway.control.clock_trust import require_trusted_for
 from gateway.control.commands import writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today
 from gateway.errors import BusError, CommandRejectedError, EncodeError
 from gateway.profiles.model import Storage
+from gateway.publish.host_clock import HostClock
 from gateway.wire import codec
 
 if TYPE_CHECKING:
@@ -67,11 +73,17 @@ class SafeWriter:
         policy: FlashPolicy,
         ledger: FlashLedger,
         today: Callable[[], date] = utc_today,
+        clock: HostClock | None = None,
     ) -> None:
-        """Write to ``link``'s device under ``policy``, counting flash writes in ``ledger``."""
+        """Write to ``link``'s device under ``policy``, counting flash writes in ``ledger``.
+
+        ``clock`` is the host clock that dates may be written by (the gateway's own, with
+        the config's override; by default the kernel's word and the environment's).
+        """
         self.link = link
         self.policy = policy
         self.ledger = ledger
+        self.clock = clock if clock is not None else HostClock()
         self._today = today
 
     @property
@@ -101,6 +113,7 @@ class SafeWriter:
         """
         link = self.link
         name = point.name
+        require_trusted_for(self.clock, link.profile, point, f"writing {name} of {link.device}")
         registers = await link.encode(point, value)  # refuses bad input before any read
         if isinstance(value, Mapping) and point.format.dtype in codec.BITFIELD_TYPES:
             registers = await link.encode(point, await self._merged_bits(point, value))

@@ -3,7 +3,7 @@
 Pure: bytes and times in, a verdict out (the answer, wait for more, or nothing here yet),
 with what was passed over on the way: garbage, another device's frame, a corrupted answer
 of the device itself, the request's own echo, or a frame complete before the device could
-have answered (:func:`~gateway.line.echo.earliest_answer`). :class:`~gateway.line.port.Line`
+have answered (:func:`~gateway.line.echo.earliest_answer`). :class:`~gateway.line.rtu.RtuLine`
 feeds it as bytes arrive and reads the failure it names when the time is up.
 """
 

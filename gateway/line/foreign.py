@@ -6,9 +6,12 @@ and are sent by the bus task like the gateway's own, under the same rules (inter
 gap, the device's minimum response time, post-write waits, the late-answer window, an
 offline device's backoff). They take turns with due values (one after each device's
 poll) and go before diagnostics, and only while their share of bus time is not spent (a
-token bucket of bus seconds): the share keeps polling on its deadlines. A request that
-waits too long, or finds the queue full, is refused with :class:`BusBusyError` (Modbus
-exception 06 to the client); nothing collides.
+token bucket of bus seconds): the share keeps polling on its deadlines. Within the share,
+the next request is the one of the client that had the least bus time
+(:mod:`~gateway.line.fair_share`): one that pipelines long reads, or opens many
+connections, leaves the others their part. A request that waits too long, or finds the
+queue full (and cannot take the place of a client holding more), is refused with
+:class:`BusBusyError` (Modbus exception 06 to the client); nothing collides.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from gateway.errors import (
     FrameError,
     GatewayError,
 )
+from gateway.line.fair_share import FairShare, Origin
 from gateway.profiles.effects import touched_by_write
 
 if TYPE_CHECKING:
@@ -38,6 +42,7 @@ if TYPE_CHECKING:
     from gateway.wire import frames
 
 BURST_S: Final = 2.0  # the share is kept over this window: a burst may use it at once
+CREDIT_SLACK_S: Final = 1e-9  # rounding: a credit refilled to what a request needs covers it
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -70,6 +75,7 @@ class ForeignJob:
     request: frames.Request
     queued_at: float
     done: asyncio.Future[frames.Response]
+    origin: Origin = field(default_factory=Origin)  # whose turn it goes in
     sent_at: float | None = None  # when it got the line
 
 
@@ -93,12 +99,25 @@ class BusTimeBucket:
         """Take the bus time a transaction used."""
         self._credit_s = self.credit(now) - seconds
 
-    def available_at(self, now: float) -> float:
-        """When the credit is positive again."""
+    def allows(self, seconds: float, now: float) -> bool:
+        """Whether a transaction expected to take ``seconds`` may start now.
+
+        The credit must cover it (one longer than the window, a full window): a long read
+        that overdrew the share would make whoever asks next wait to pay it back.
+        """
         credit = self.credit(now)
-        if credit > 0:
+        return credit > 0 and credit >= self._need(seconds) - CREDIT_SLACK_S
+
+    def available_at(self, now: float, seconds: float = 0.0) -> float:
+        """When a transaction expected to take ``seconds`` may start (0: the credit is positive)."""
+        if self.allows(seconds, now):
             return now
-        return now + (-credit) / self.share if self.share > 0 else float("inf")
+        if self.share <= 0:
+            return float("inf")
+        return now + (self._need(seconds) - self._credit_s) / self.share
+
+    def _need(self, seconds: float) -> float:
+        return max(0.0, min(seconds, self.capacity_s))
 
 
 class ForeignQueue:
@@ -121,6 +140,7 @@ class ForeignQueue:
         self.policy = SharePolicy(share=0.0)
         self.stats = ForeignStats()
         self._bucket = BusTimeBucket(0.0, now=time.monotonic())
+        self._fair = FairShare()
         self._jobs: list[ForeignJob] = []
         self._wake = wake
         self.accepting = False  # False: refused as busy (not shared, or the bus stops)
@@ -129,14 +149,19 @@ class ForeignQueue:
         """Let other masters in, within ``policy``."""
         self.policy = policy
         self._bucket = BusTimeBucket(policy.share, now=time.monotonic())
+        self._fair = FairShare()
         self.accepting = True
 
-    def submit(self, device: str, request: frames.Request) -> ForeignJob:
+    def submit(
+        self, device: str, request: frames.Request, origin: Origin | None = None
+    ) -> ForeignJob:
         """Queue a request for the device; :class:`BusBusyError` at once if it cannot wait.
 
-        The job's ``done`` holds the device's answer, or the error of the transaction
+        It goes in the turn of ``origin`` (its client's address and connection). The job's
+        ``done`` holds the device's answer, or the error of the transaction
         (:class:`DeviceExceptionError`, :class:`BusTimeoutError`, a :class:`FrameError`,
-        :class:`BusBusyError` when its wait ran out, :class:`BusClosedError`).
+        :class:`BusBusyError` when its wait ran out or a client holding fewer took its
+        place, :class:`BusClosedError`).
         """
         if device not in self.devices:
             raise GatewayError(f"bus {self.bus} has no device {device!r}")
@@ -145,25 +170,48 @@ class ForeignQueue:
         if not self.accepting:
             self.stats.refused["closed"] += 1
             raise BusBusyError(f"bus {self.bus} takes no requests of other masters now")
+        origin = origin or Origin()
         if len(self._jobs) >= self.policy.max_pending:
-            self.stats.refused["queue_full"] += 1
-            raise BusBusyError(f"bus {self.bus}: {len(self._jobs)} requests already wait")
+            self._make_room(origin)
         done: asyncio.Future[frames.Response] = asyncio.get_running_loop().create_future()
-        job = ForeignJob(device=device, request=request, queued_at=time.monotonic(), done=done)
+        job = ForeignJob(
+            device=device, request=request, queued_at=time.monotonic(), done=done, origin=origin
+        )
         self._jobs.append(job)
         self._wake.set()
         return job
 
+    def _make_room(self, origin: Origin) -> None:
+        """Refuse the newest request of a client that holds more of the queue, or this one."""
+        self.stats.refused["queue_full"] += 1
+        waiting = len(self._jobs)
+        displaced = self._fair.displaced(self._jobs, origin)
+        if displaced is None:
+            raise BusBusyError(f"bus {self.bus}: {waiting} requests already wait")
+        self._jobs.remove(displaced)
+        address = displaced.origin.address
+        reason = (
+            f"bus {self.bus}: {waiting} requests wait, most of them from {address}: "
+            "this one gave its place to another client's"
+        )
+        _settle(displaced, BusBusyError(reason))
+
     def wake_at(self, wake_at: float, now: float) -> float:
-        """``wake_at``, or earlier if a request may go (or time out) before."""
+        """``wake_at``, or earlier if a request may go (or time out) before.
+
+        The request whose turn it is goes when the share covers it, and no client that had
+        less is about to ask again; a device that becomes free first may bring another's
+        turn.
+        """
         if not self._jobs:
             return wake_at
-        expiry = min(job.queued_at for job in self._jobs) + self.policy.max_wait_s
-        ready = max(
-            self._bucket.available_at(now),
-            min(self.devices[job.device].not_before for job in self._jobs),
-        )
-        return min(wake_at, expiry, ready)
+        times = [wake_at, min(job.queued_at for job in self._jobs) + self.policy.max_wait_s]
+        if (job := self._turn(now)) is not None:
+            held = self._fair.held_until(job, now)
+            times.append(max(held, self._bucket.available_at(now, self._expected_s(job))))
+        freed = [self.devices[j.device].not_before for j in self._jobs]
+        times.extend(t for t in freed if t > now)
+        return min(times)
 
     def fail_all(self, exc: Exception) -> None:
         """Fail every waiting request (the port is gone, or the bus stops)."""
@@ -175,20 +223,28 @@ class ForeignQueue:
         """Send one request if its device is free and the share allows; whether one went."""
         if not self._jobs:
             return False
+        self._jobs[:] = [job for job in self._jobs if not job.done.cancelled()]  # clients gone
         self._expire(now)
         self._refuse_offline()
-        if not self._jobs or self._bucket.credit(now) <= 0:
+        job = self._turn(now)
+        if job is None or self._fair.held_until(job, now) > now:
             return False
-        for job in self._jobs:
-            state = self.devices[job.device]
-            if state.not_before > now:
-                continue
-            self._jobs.remove(job)
-            if job.done.cancelled():
-                return True  # the client went away
-            await self._send(state, job)
-            return True
-        return False
+        if not self._bucket.allows(self._expected_s(job), now):
+            # The others wait too: they would spend the credit its turn waits for.
+            return False
+        self._jobs.remove(job)
+        await self._send(self.devices[job.device], job)
+        return True
+
+    def _turn(self, now: float) -> ForeignJob | None:
+        """The request whose turn it is, of those whose device is free now."""
+        return self._fair.pick([j for j in self._jobs if self.devices[j.device].not_before <= now])
+
+    def _expected_s(self, job: ForeignJob) -> float:
+        """The bus time the request will take at least: both frames and the gap before it."""
+        nbytes = len(job.request.frame) + _answer_bytes(job.request)
+        state = self.devices[job.device]
+        return self.transactions.line.format.wire_s(nbytes) + self.transactions.gap_s(state)
 
     def _expire(self, now: float) -> None:
         """Refuse the requests that waited longer than the policy allows."""
@@ -249,7 +305,9 @@ class ForeignQueue:
             # The line's busy time (request to answer or timeout; counted in the line's
             # busy time too), and for the share the silent gap before it as well.
             busy = line.stats.busy_s - busy_before
-            self._bucket.spend(busy + self.transactions.gap_s(state), now)
+            spent = busy + self.transactions.gap_s(state)
+            self._bucket.spend(spent, now)
+            self._fair.charge(job.origin, spent, now)
             self.stats.busy_s += busy
 
 

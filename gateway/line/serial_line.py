@@ -29,6 +29,7 @@ import serial_asyncio_fast
 from gateway.config.echo import EchoMode
 from gateway.errors import BusClosedError, PortUnavailableError
 from gateway.line import port_access
+from gateway.line.port_diagnosis import PortReason
 from gateway.line.rtu import RtuLine
 
 if TYPE_CHECKING:
@@ -70,7 +71,7 @@ class SerialLine(RtuLine):
 
         A device that is missing, not permitted, in use or without the configured RS485
         mode raises :class:`PortUnavailableError` with its ``reason``
-        (:mod:`gateway.line.port_access`); its message names the remedy.
+        (:mod:`gateway.line.port_diagnosis`); its message names the remedy.
         """
         # A pseudo-terminal has no physical line: some kernels refuse a parity setting on
         # it (EINVAL), so parity is left off there. Timing still follows the configured
@@ -96,7 +97,7 @@ class SerialLine(RtuLine):
             # would otherwise end the gateway instead of this bus's retry with backoff.
             # (pyserial's SerialException is an OSError.)
             message = f"cannot open {self.port}: {exc}"
-            self.stats.closed_because(port_access.PortReason.DRIVER, message)
+            self.stats.closed_because(PortReason.DRIVER, message)
             raise BusClosedError(message) from exc
         _direct_io(opened.transport.serial)
         self.stats.latency_timer_s = opened.latency_timer_s
@@ -121,7 +122,7 @@ class SerialLine(RtuLine):
             )
         except (OSError, ValueError, termios.error) as exc:
             message = f"cannot open {self.port}: {exc}"
-            self.stats.closed_because(port_access.PortReason.DRIVER, message)
+            self.stats.closed_because(PortReason.DRIVER, message)
             raise BusClosedError(message) from exc
         self._serial = cast("serial.Serial | None", transport.get_extra_info("serial"))
         return transport

@@ -76,7 +76,7 @@ class LineStats:
     port_open: bool = False
     port_failures: int = 0
     noisy: str | None = None  # why the last request could not go out, while the line is noisy
-    port_problem: str | None = None  # why the port is not open (port_access.PortReason)
+    port_problem: str | None = None  # why the port is not open (port_diagnosis.PortReason)
     port_error: str = ""  # the message that says so, with its remedy
     latency_timer_s: float | None = None  # an FTDI adapter's latency timer, when read
 

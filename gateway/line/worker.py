@@ -29,7 +29,7 @@ from gateway.line.health import Availability
 from gateway.line.identity import IdentityGuard
 from gateway.line.jobs import JobQueue
 from gateway.line.lateness import Lateness, loop_watch
-from gateway.line.port_access import PortReason
+from gateway.line.port_diagnosis import PortReason
 from gateway.line.samples import DeviceEvent
 from gateway.line.schedule import Schedule
 from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
@@ -114,6 +114,9 @@ class BusWorker:
         self.lateness = Lateness(line)  # what made a late poll late, for the log
         self._port_failures_in_a_row = 0
         self._ever_opened = False
+        # Whether a port another master holds at the start ends the run (the gateway's own
+        # start), or is retried like any failure (a bus a reload added: the rest runs on).
+        self.in_use_is_fatal = True
         self._last_reason: str | None = None
         self._stopping = False
         self._stop_requested = asyncio.Event()  # also set to end a backoff for a pause
@@ -203,7 +206,8 @@ class BusWorker:
         (``gateway read`` during an unplug) is retried like any other failure.
         """
         return (
-            isinstance(exc, PortUnavailableError)
+            self.in_use_is_fatal
+            and isinstance(exc, PortUnavailableError)
             and exc.reason == PortReason.IN_USE
             and not self._ever_opened
         )

@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING
 
 from gateway.care import CareBook
 from gateway.line.samples import Quality
+from gateway.publish.host_clock import HostClock
+from gateway.publish.storage import StorageStatus
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator, Sequence
@@ -171,6 +173,36 @@ class WebStatus:
         return sum(1 for until in self.locked_until.values() if until > now)
 
 
+@dataclass(slots=True)
+class ConfigStatus:
+    """The config the gateway runs and its last reload, for ``/healthz`` and the metrics.
+
+    ``reloads`` counts every reload asked for, applied or not, so that ``gateway reload``
+    tells its own from an older one; ``problems`` says why the last one was not applied.
+    """
+
+    last_reload_ok: bool = True  # the running config is the file's (Prometheus' own idea)
+    last_success_at: float = field(default_factory=time.time)  # the start counts as one
+    reloads: int = 0
+    problems: tuple[str, ...] = ()
+    applied: str = ""  # what the last reload applied, in one line
+
+    def reloaded(self, applied: str) -> None:
+        """A reload was applied."""
+        self.reloads += 1
+        self.last_reload_ok = True
+        self.last_success_at = time.time()
+        self.problems = ()
+        self.applied = applied
+
+    def refused(self, problems: Sequence[str]) -> None:
+        """A reload was not applied: the file has these problems; the running config stays."""
+        self.reloads += 1
+        self.last_reload_ok = False
+        self.problems = tuple(problems)
+        self.applied = ""
+
+
 _Samples = dict[tuple[str, str], dict[str, "Sample"]]  # (bus, device) -> point -> sample
 
 
@@ -268,8 +300,13 @@ class GatewayState:
     shared_bus: SharedBusStatus = field(default_factory=SharedBusStatus)
     sparkplug: SparkplugStatus = field(default_factory=SparkplugStatus)
     web: WebStatus = field(default_factory=WebStatus)
+    config: ConfigStatus = field(default_factory=ConfigStatus)
     # Shared, not copied by a snapshot: it keeps its own lock (sensor care, README).
     care: CareBook = field(default_factory=CareBook)
+    # Shared, not copied by a snapshot: it keeps its own lock (the files of state_dir).
+    storage: StorageStatus = field(default_factory=StorageStatus)
+    # Shared, not copied by a snapshot: the host clock, asked at each read (clock_trust).
+    clock: HostClock = field(default_factory=HostClock)
     started: float = field(default_factory=time.monotonic)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _by_device: _Samples = field(default_factory=dict)  # the latest sample of each point
@@ -305,6 +342,20 @@ class GatewayState:
         with self._lock:
             self.lines[bus] = stats
             self.health_sources[bus] = health
+
+    def remove_line(self, bus: str) -> None:
+        """A bus a reload removed or replaced: its statistics and its devices' health go."""
+        with self._lock:
+            self.lines.pop(bus, None)
+            self.health_sources.pop(bus, None)
+
+    def remove_device(self, bus: str, device: str) -> None:
+        """A device a reload removed or moved: it and its samples are forgotten."""
+        with self._lock:
+            self.devices.pop((bus, device), None)
+            self._by_device.pop((bus, device), None)
+            self._good_before.pop((bus, device), None)
+        self.care.remove_device(device)
 
     def health(self) -> list[DeviceHealth]:
         """Every device's health, asked of its bus task (plain attribute reads)."""
@@ -382,7 +433,10 @@ class GatewayState:
                     lockouts=self.web.lockouts,
                     locked_until=dict(self.web.locked_until),
                 ),
+                config=replace(self.config),
                 care=self.care,
+                storage=self.storage,
+                clock=self.clock,
                 started=self.started,
             )
             copy._by_device = {device: dict(points) for device, points in self._by_device.items()}

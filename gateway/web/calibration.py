@@ -4,7 +4,9 @@ A :class:`CalibrationRun` runs one flow of :mod:`gateway.control.calibration` in
 the gateway's loop, with a :class:`WebOperator` that keeps every step for the page to
 fetch and answers the flow's confirmation when the operator clicks (an
 :class:`asyncio.Future` per question). The flows are the command line's, so the steps, the
-checks, the flash preflight and the confirmation before anything is written are the same.
+checks, the flash preflight and the confirmation before anything is written are the same;
+so are the procedures a device offers, their inputs, checks and defaults, which are the
+calibration catalogue's (:mod:`gateway.control.calibration.catalogue`).
 
 Cancelling is honoured at every step before the confirmation: while waiting for the answer
 it is a "no" (the flow ends declined, nothing written); while reading, the next step the
@@ -29,269 +31,32 @@ from datetime import datetime
 from enum import StrEnum
 from typing import TYPE_CHECKING, Final
 
-from gateway.control import calibration
+from gateway.control.calibration import catalogue
 from gateway.errors import CalibrationInterruptedError, CommandRejectedError, GatewayError
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable, Mapping
 
-    from gateway.control.calibration import CalibrationOutcome, Step
+    from gateway.control.calibration import Step
+    from gateway.control.calibration.catalogue import Procedure
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
     from gateway.web.auth import Sessions
 
 _LOGGER = logging.getLogger(__name__)
 
-MAX_SAMPLES: Final = 100  # as `gateway calibrate --samples`
-MAX_EVERY_S: Final = 60.0
 KEEP_RUNS: Final = 20  # finished runs kept for the page to show
 CONFIRM_TIMEOUT_S: Final = 600.0  # as web.confirm_minutes' default
 ACTIVE: Final = frozenset({"running", "confirm", "writing"})
 
 
-@dataclass(frozen=True, slots=True, kw_only=True)
-class FormField:
-    """One input of a procedure's form."""
-
-    name: str
-    label: str
-    kind: str  # "number", "integer", "choice", "text"
-    default: object = None
-    required: bool = False
-    choices: tuple[str, ...] = ()
-
-    def as_dict(self) -> dict[str, object]:
-        """JSON-ready, for the page's form."""
-        return {
-            "name": self.name,
-            "label": self.label,
-            "kind": self.kind,
-            "default": self.default,
-            "required": self.required,
-            "choices": list(self.choices),
-        }
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class Procedure:
-    """A calibration the page offers: when it applies, its form, what to watch settle."""
-
-    id: str
-    title: str
-    needs: str  # a point the profile must have
-    watch: tuple[str, ...]  # live values shown while the reading settles
-    fields: tuple[FormField, ...]
-    hint: str
-    run: Callable[
-        [SafeWriter, calibration.Operator, Mapping[str, object]], Awaitable[CalibrationOutcome]
-    ]
-
-    def applies_to(self, profile: Profile) -> bool:
-        """Whether the device's profile has what the procedure needs."""
-        return profile.has_point(self.needs)
-
-    def as_dict(self) -> dict[str, object]:
-        """JSON-ready, for the page."""
-        return {
-            "id": self.id,
-            "title": self.title,
-            "watch": list(self.watch),
-            "fields": [f.as_dict() for f in self.fields],
-            "hint": self.hint,
-        }
-
-
-_REFERENCE = FormField(
-    name="reference",
-    label="Reference (photometer or titration, in the sensor's unit)",
-    kind="number",
-    required=True,
-)
-_SAMPLES = FormField(name="samples", label="Readings to average", kind="integer", default=3)
-_EVERY = FormField(name="every", label="Seconds between readings", kind="number", default=2.0)
-_MODE = FormField(
-    name="mode",
-    label="Calibration mode (0x3009)",
-    kind="choice",
-    default="as_configured",
-    choices=("as_configured", "wet", "dry"),
-)
-
-
-def _float(inputs: Mapping[str, object], name: str, default: float | None = None) -> float:
-    value = inputs.get(name, default)
-    if value is None or value == "":
-        if default is None:
-            raise CommandRejectedError(f"{name} is required")
-        return default
-    try:
-        return float(str(value))
-    except ValueError:
-        raise CommandRejectedError(f"{name}: {value!r} is not a number") from None
-
-
-def _sampling(inputs: Mapping[str, object]) -> tuple[int, float]:
-    samples = _float(inputs, "samples", 3.0)
-    every = _float(inputs, "every", 2.0)
-    if samples != int(samples) or not 1 <= samples <= MAX_SAMPLES:
-        raise CommandRejectedError(f"samples must be a whole number from 1 to {MAX_SAMPLES}")
-    if not 0 <= every <= MAX_EVERY_S:
-        raise CommandRejectedError(f"every must be from 0 to {MAX_EVERY_S:g} seconds")
-    return int(samples), every
-
-
-def _mode(inputs: Mapping[str, object]) -> str:
-    mode = str(inputs.get("mode") or "as_configured")
-    if mode not in _MODE.choices:
-        raise CommandRejectedError(f"mode must be one of {', '.join(_MODE.choices)}")
-    return mode
+def procedures_for(profile: Profile) -> tuple[Procedure, ...]:
+    """The procedures a device's profile offers: the catalogue's, as every front end's."""
+    return catalogue.offered(profile)
 
 
 def _now() -> datetime:
     return datetime.now().astimezone()
-
-
-async def _slope(
-    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
-) -> CalibrationOutcome:
-    samples, every = _sampling(inputs)
-    return await calibration.calibrate_slope(
-        writer,
-        operator,
-        reference=_float(inputs, "reference"),
-        when=_now(),
-        samples=samples,
-        sample_interval_s=every,
-    )
-
-
-async def _zero(
-    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
-) -> CalibrationOutcome:
-    samples, every = _sampling(inputs)
-    return await calibration.calibrate_zero_point(
-        writer, operator, when=_now(), samples=samples, sample_interval_s=every
-    )
-
-
-async def _nominal(
-    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
-) -> CalibrationOutcome:
-    del inputs  # none
-    return await calibration.restore_nominal_slope(writer, operator, when=_now())
-
-
-async def _check(
-    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
-) -> CalibrationOutcome:
-    samples, every = _sampling(inputs)
-    return await calibration.check_slope(
-        writer,
-        operator,
-        reference=_float(inputs, "reference"),
-        samples=samples,
-        sample_interval_s=every,
-    )
-
-
-async def _oxygen_zero(
-    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
-) -> CalibrationOutcome:
-    return await calibration.calibrate_oxygen_zero(
-        writer, operator, when=_now(), mode=_mode(inputs)
-    )
-
-
-async def _oxygen_end_value(
-    writer: SafeWriter, operator: calibration.Operator, inputs: Mapping[str, object]
-) -> CalibrationOutcome:
-    unit = str(inputs.get("unit") or "") or None
-    return await calibration.calibrate_oxygen_end_value(
-        writer,
-        operator,
-        reference=_float(inputs, "reference"),
-        when=_now(),
-        unit=unit,
-        mode=_mode(inputs),
-    )
-
-
-PROCEDURES: Final = (
-    Procedure(
-        id="slope",
-        title="Slope (tecLine/Reiss)",
-        needs="x_span",
-        watch=("concentration", "cell_current"),
-        fields=(_REFERENCE, _SAMPLES, _EVERY),
-        hint="Take the sample at the sensor, analyse it, and wait for the cell current to "
-        "settle before you start.",
-        run=_slope,
-    ),
-    Procedure(
-        id="zero",
-        title="Zero point (tecLine/Reiss)",
-        needs="x_zero",
-        watch=("cell_current",),
-        fields=(_SAMPLES, _EVERY),
-        hint="The sensor must be in water without disinfectant, its cell current settled.",
-        run=_zero,
-    ),
-    Procedure(
-        id="nominal",
-        title="Nominal slope (tecLine/Reiss)",
-        needs="nominal_slope",
-        watch=("concentration",),
-        fields=(),
-        hint="Restores the nominal slope and the zero point 0.",
-        run=_nominal,
-    ),
-    Procedure(
-        id="check",
-        title="Regular check (tecLine/Reiss, writes nothing)",
-        needs="nominal_slope",
-        watch=("concentration", "cell_current"),
-        fields=(_REFERENCE, _SAMPLES, _EVERY),
-        hint="Today's slope against the nominal one; nothing is written.",
-        run=_check,
-    ),
-    Procedure(
-        id="oxygen_zero",
-        title="Zero point (H10/H20)",
-        needs="zero_point_calibration_trigger",
-        watch=("oxygen", "temperature"),
-        fields=(_MODE,),
-        hint="The sensor must be in an oxygen-free medium, its reading settled.",
-        run=_oxygen_zero,
-    ),
-    Procedure(
-        id="oxygen_end_value",
-        title="End value / span (H10/H20)",
-        needs="end_value_calibration_trigger",
-        watch=("oxygen", "temperature"),
-        fields=(
-            FormField(
-                name="reference", label="Oxygen at the end value", kind="number", required=True
-            ),
-            FormField(
-                name="unit",
-                label="Unit of the reference (blank: the one the sensor holds)",
-                kind="choice",
-                default="",
-                choices=("", "percent_saturation", "percent_volume", "ppm", "ppb", "hpa"),
-            ),
-            _MODE,
-        ),
-        hint="The sensor must be in the reference medium (e.g. water-saturated air), its "
-        "reading settled.",
-        run=_oxygen_end_value,
-    ),
-)
-BY_ID: Final = {procedure.id: procedure for procedure in PROCEDURES}
-
-
-def procedures_for(profile: Profile) -> list[Procedure]:
-    """The procedures that apply to a device's profile."""
-    return [procedure for procedure in PROCEDURES if procedure.applies_to(profile)]
 
 
 class Phase(StrEnum):
@@ -492,7 +257,8 @@ class CalibrationRun:
     async def execute(self, writer: SafeWriter) -> None:
         """Run the flow to its end and keep how it ended."""
         try:
-            outcome = await self.procedure.run(writer, WebOperator(self), self.inputs)
+            inputs = self.procedure.parse(self.inputs)  # refused here: the run says why
+            outcome = await self.procedure.run(writer, WebOperator(self), inputs, when=_now())
         except CalibrationInterruptedError as exc:
             self.phase, self.error = Phase.FAILED, str(exc)
             _LOGGER.exception("web: %s calibration of %s stopped", self.procedure.id, self.device)
@@ -583,8 +349,8 @@ class Calibrations:
         writer = self.writers.get(device)
         if writer is None:
             raise CommandRejectedError(f"no device {device!r}")
-        procedure = BY_ID.get(procedure_id)
-        if procedure is None or not procedure.applies_to(writer.link.profile):
+        procedure = catalogue.BY_ID.get(procedure_id)
+        if procedure is None or not procedure.offered_by(writer.link.profile):
             raise CommandRejectedError(f"{device} has no calibration {procedure_id!r}")
         busy = self.active(device)
         if busy:

@@ -4,9 +4,10 @@ Each document is the device's :meth:`~gateway.care.CareReport.as_dict` (the one 
 publishes as ``{base}/{device}/care`` and the metrics port serves at ``/care``), in
 :func:`~gateway.care.care_order`, with two keys the page adds: ``kind`` and
 ``calibration``, the guided calibration the care state asks for where the device offers
-one (``{"procedure", "title"}``, else None). A device care follows whose records were not
-all read yet has no report: it is listed as ``unknown``, "records not read yet", after the
-unknown reports and before the due ones.
+one (``{"procedure", "title"}``, else None), as the calibration catalogue decides it
+(:func:`gateway.control.calibration.catalogue.asked_by_care`). A device care follows whose
+records were not all read yet has no report: it is listed as ``unknown``, "records not read
+yet", after the unknown reports and before the due ones.
 """
 
 from __future__ import annotations
@@ -14,9 +15,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Final
 
 from gateway.care import CareState, care_kind, care_order
-from gateway.care.rules import CALIBRATION_PROCEDURE
+from gateway.control.calibration import catalogue
 from gateway.profiles import get_profile
-from gateway.web.calibration import BY_ID
 
 if TYPE_CHECKING:
     from gateway.care import CareReport
@@ -46,10 +46,8 @@ def calibration_offer(profile_id: str) -> dict[str, str] | None:
     has it (``gateway.app.build_writers``), so the link leads to the calibration the page's
     own calibration flow (``#/calibrate/DEVICE/PROCEDURE``) runs for that device.
     """
-    profile = get_profile(profile_id)
-    kind = care_kind(profile)
-    procedure = BY_ID.get(CALIBRATION_PROCEDURE.get(kind, "")) if kind is not None else None
-    if procedure is None or not procedure.applies_to(profile):
+    procedure = catalogue.asked_by_care(get_profile(profile_id))
+    if procedure is None:
         return None
     return {"procedure": procedure.id, "title": procedure.title}
 

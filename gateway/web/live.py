@@ -1,7 +1,9 @@
 """What the page shows, as JSON, read from the state without I/O.
 
 The lines and devices with their live values, one device's register map, the bus health
-figures (sensor care's documents are :mod:`~gateway.web.care`'s).
+figures (sensor care's documents are :mod:`~gateway.web.care`'s), and the host clock:
+while it is not trusted, the page says so and offers no date-and-time point for writing
+(:mod:`gateway.control.clock_trust` would refuse the write).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
+from gateway.control.clock_trust import time_points
 from gateway.line.samples import Quality, json_value
 from gateway.profiles.model import PollGroup, Storage
 from gateway.publish.prometheus.health import ERROR_KINDS
@@ -160,6 +163,7 @@ def overview(state: GatewayState, paused: Mapping[str, str] | None = None) -> di
         },
         "lines": lines,
         "devices": devices,
+        "clock": state.clock.status().as_dict(),
         "care_version": care_version(state),  # the page asks /api/care again when it changes
     }
 
@@ -181,6 +185,8 @@ def register_map(
     samples = state.device_samples(info.bus, info.name)
     points = []
     identity = {}
+    dated = {p.name for p in time_points(profile)}
+    clock_trusted = not dated or state.clock.status().trusted
     for point in profile.points:
         sample = samples.get(point.name)
         view = sample_view(sample, stale=state.is_stale(sample, now), now=now) if sample else None
@@ -190,6 +196,8 @@ def register_map(
             if point.storage is Storage.FLASH and point.name not in flash_allowed
             else None
         )
+        if point.name in dated and not clock_trusted:
+            refused = "a date, and the host clock is not synchronised"
         if point.group is PollGroup.IDENTITY and view is not None:
             identity[point.name] = view["text"]
         points.append(

@@ -79,6 +79,25 @@ class LineScans:
         self.timeout_s = timeout_s
         self.jobs: dict[str, ScanJob] = {}
 
+    def retarget(
+        self,
+        workers: Mapping[str, BusWorker],
+        *,
+        formats: Mapping[str, LineFormat],
+        options: Mapping[str, PortOptions],
+    ) -> None:
+        """The lines to scan after a reload: the running workers, their formats and options.
+
+        A scan under way keeps the worker it paused until it ends.
+        """
+        self.workers = dict(workers)
+        self.formats = formats
+        self.options = options
+        for bus in [bus for bus in self.jobs if bus not in self.workers]:
+            job = self.jobs[bus]
+            if job.task is None or job.task.done():
+                del self.jobs[bus]
+
     def paused(self) -> dict[str, str]:
         """The lines whose polling is paused now, and why."""
         return {

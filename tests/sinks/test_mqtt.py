@@ -18,7 +18,7 @@ import pytest
 
 from gateway.app import run
 from gateway.config import MqttConfig, parse_config
-from gateway.errors import PublishError
+from gateway.errors import GatewayError, PublishError
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -353,7 +353,7 @@ async def test_missing_tls_file_is_an_error_at_start(tmp_path: Path) -> None:
 async def test_unwritable_state_directory_is_an_error_at_start(tmp_path: Path) -> None:
     blocker = tmp_path / "state"
     blocker.write_text("a file, not a directory", encoding="utf-8")
-    with pytest.raises(PublishError, match="cannot be written"):
+    with pytest.raises(GatewayError, match="cannot be written"):
         await run(parse_config(gateway_yaml(tmp_path, 1883), environ={}), stop=asyncio.Event())
 
 

@@ -33,7 +33,7 @@ from gateway.errors import PublishError
 from gateway.line.health import DeviceHealth
 from gateway.line.samples import Quality, Sample
 from gateway.line.stats import LineStats
-from gateway.publish.prometheus import MetricsServer, value_naming
+from gateway.publish.prometheus import MetricsServer, ValueNaming, value_naming
 from gateway.publish.state import DeviceInfo, GatewayState, MqttStatus
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.codec import BitfieldValue, EnumValue
@@ -295,7 +295,8 @@ def test_values_are_named_by_unit_with_bus_device_profile_labels(server: Metrics
     assert oxygen == {"bus": "line2", "device": "tank2_oxygen", "profile": H10, "unit": "mg/l"}
     assert metrics.value("gateway_oxygen", device="tank2_oxygen") == 8.5
     assert metrics.value("gateway_concentration", device="basin_chlorine", unit="ppm") == 0.52
-    assert metrics.value("gateway_cell_current_nanoamperes", device="basin_chlorine") == 152.5
+    # In its base unit: the tecLine's 152.5 nA as amperes.
+    assert metrics.value("gateway_cell_current_amperes", device="basin_chlorine") == 152.5e-9
     assert metrics.value("gateway_analog_output_error_active", device="tank1_oxygen") == 1.0
 
 
@@ -449,29 +450,71 @@ def test_families_mixing_a_unit_label_and_none_fill_it_in() -> None:
     assert metrics.value("gateway_x_span", device="other", unit="") == 1.5
 
 
+def naming(point: str, unit: str | None, **how: Any) -> ValueNaming:
+    found = value_naming(point, unit, **how)
+    assert found is not None, point
+    return found
+
+
 def test_value_naming_follows_prometheus_conventions() -> None:
-    assert value_naming("temperature", "°C").family == "gateway_temperature_celsius"
-    assert value_naming("operating_seconds", "s").family == "gateway_operating_seconds"
-    assert value_naming("compensation_salinity", "mS/cm").family == (
-        "gateway_compensation_salinity_millisiemens_per_centimetre"
-    )
-    assert value_naming("raw_oxygen_amplitude", "µV").family == (
-        "gateway_raw_oxygen_amplitude_microvolts"
-    )
-    slope = value_naming("nominal_slope", "nA/ppm")
-    assert (slope.family, slope.unit_label, slope.fixed_unit) == (
+    assert naming("temperature", "°C").family == "gateway_temperature_celsius"
+    assert naming("operating_seconds", "s").family == "gateway_operating_seconds"
+    # Base units: the value converted from the sensor's unit.
+    for point, unit, family, sent, exported in (
+        ("cell_current", "nA", "gateway_cell_current_amperes", 152.5, 1.525e-07),
+        (
+            "current_output_fixed_value",
+            "mA",
+            "gateway_current_output_fixed_value_amperes",
+            4,
+            0.004,
+        ),
+        ("raw_oxygen_amplitude", "µV", "gateway_raw_oxygen_amplitude_volts", 350, 0.00035),
+        ("min_response_time", "ms", "gateway_min_response_time_seconds", 20, 0.02),
+        ("cip_min_duration", "min", "gateway_cip_min_duration_seconds", 2.5, 150),
+        ("pressure", "hPa", "gateway_pressure_pascals", 1013.25, 101325),
+        ("compensation_pressure", "mbar", "gateway_compensation_pressure_pascals", 950, 95000),
+        (
+            "compensation_salinity",
+            "mS/cm",
+            "gateway_compensation_salinity_siemens_per_metre",
+            12.3,
+            1.23,
+        ),
+        (
+            "hours_outside_operating_temperature",
+            "h",
+            "gateway_time_outside_operating_temperature_seconds",
+            0.5,
+            1800,
+        ),
+    ):
+        found = naming(point, unit)
+        assert (found.family, found.convert(sent)) == (family, exported), point
+    assert naming("phase_shift", "°").family == "gateway_phase_shift_degrees"  # no base form
+    # Counts that are not counters: no _total, no "counter" in the name.
+    assert naming("cip_cycles_total", "").family == "gateway_cip_cycles"
+    assert naming("measurement_counter", "").family == "gateway_measurements"
+    slope = naming("nominal_slope", "nA/ppm")
+    assert (slope.family, slope.unit_label, slope.fixed_unit, slope.convert(60)) == (
         "gateway_nominal_slope",
         True,
         "nA/ppm",
+        60,
     )
-    oxygen = value_naming("oxygen", None, unit_from=True)
+    oxygen = naming("oxygen", None, unit_from=True)
     assert (oxygen.family, oxygen.unit_label, oxygen.from_register) == (
         "gateway_oxygen",
         True,
         True,
     )
-    assert value_naming("calibration_status", "").family == "gateway_calibration_status"
-    assert value_naming("up", None).family == "gateway_up_value"  # never one of ours
+    constant = naming("sensor_constant_m", "")
+    assert (constant.family, constant.entry) == ("gateway_sensor_constant", ("constant", "m"))
+    assert naming("calibration_status", "").family == "gateway_calibration_status"
+    assert naming("up", None).family == "gateway_up_value"  # never one of ours
+    # Not metrics: a log's entries, and what gateway_device_info's labels carry.
+    assert value_naming("logbook_3_oxygen", "", repeat="logbook") is None
+    assert value_naming("firmware_version", "") is None
 
 
 # --- /healthz ------------------------------------------------------------------------------
@@ -709,13 +752,9 @@ async def test_identity_is_one_info_series_with_the_sensors_own_values(tmp_path:
     }
     assert info["basin_chlorine"]["firmware"] == "1503"
     assert {value for _, value in metrics.find("gateway_device_info")} == {1.0}
-    # The identity gauges stay for one release, marked deprecated.
-    assert metrics.value("gateway_firmware_version", device="basin_chlorine") == 1503
-    assert metrics.value("gateway_hardware_version", device="basin_chlorine") == 1130
-    assert metrics.value("gateway_hardware_version_major", device="tank1_oxygen") == 1
+    # Identity is labels, not gauges (prometheus.legacy_names brings the old gauges back).
     for name in ("gateway_firmware_version", "gateway_hardware_version_major"):
-        (help_line,) = re.findall(rf"^# HELP {name} (.*)$", metrics.text, re.MULTILINE)
-        assert "deprecated" in help_line
+        assert name not in metrics.families
 
 
 # --- a real Prometheus server --------------------------------------------------------------

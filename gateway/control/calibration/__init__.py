@@ -26,13 +26,20 @@ written) or verification failed. A refusal before anything is written (bad input
 flash budget, a wrong family) raises :class:`CommandRejectedError`; a failure part-way
 through the writes raises :class:`CalibrationInterruptedError`, naming what was written.
 
+Which procedures a device offers, their inputs and their defaults are the catalogue's
+(:mod:`~gateway.control.calibration.catalogue`), which every front end reads: the command
+line, the web page and MQTT's ``calibrations`` operation.
+
 The pieces: the arithmetic in :mod:`~gateway.control.calibration.rules`, the shared step
 machinery in :mod:`~gateway.control.calibration.steps`, the tecLine/Reiss procedures in
 :mod:`~gateway.control.calibration.amperometric`, the H10/H20 ones in
-:mod:`~gateway.control.calibration.oxygen`. Import from here.
+:mod:`~gateway.control.calibration.oxygen`, the catalogue in
+:mod:`~gateway.control.calibration.catalogue`. Import from here (the catalogue as the
+module ``catalogue``).
 """
 
 from gateway.care.rules import PPM_PER_UNIT
+from gateway.control.calibration import catalogue
 from gateway.control.calibration.amperometric import (
     calibrate_slope,
     calibrate_zero_point,
@@ -93,6 +100,7 @@ __all__ = [
     "calibrate_slope",
     "calibrate_zero_point",
     "calibration_stamp",
+    "catalogue",
     "check_slope",
     "expected_history",
     "history_effect",

@@ -12,9 +12,11 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.control.calibration.rules import (
-    AMPEROMETRIC_POINTS,
+    CELL_CURRENT_READINGS,
+    CELL_PROCEDURE_POINTS,
     CHEMICAL_CHECK_TOLERANCE,
     HISTORY_ENTRIES,
+    READING_INTERVAL_S,
     SLOPE_WARNING_FRACTION,
     HistoryEffect,
     HistoryEntry,
@@ -41,8 +43,6 @@ if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
     from gateway.control.writes import SafeWriter
-
-# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than 30 %
 
 # --- tecLine / Reiss -------------------------------------------------------------------------
 
@@ -225,8 +225,8 @@ async def calibrate_slope(
     when: datetime,
     cell_current_na: float | None = None,
     zero_na: float | None = None,
-    samples: int = 1,
-    sample_interval_s: float = 1.0,
+    samples: int = CELL_CURRENT_READINGS,
+    sample_interval_s: float = READING_INTERVAL_S,
 ) -> CalibrationOutcome:
     """Slope calibration from a reference concentration (tecLine annex 7.3, Reiss 5.2).
 
@@ -236,7 +236,7 @@ async def calibrate_slope(
     else the X_Zero the sensor holds (0, or the value of a zero-point calibration, 7.3.2).
     """
     flow = Flow(writer, operator, "slope")
-    flow.require(AMPEROMETRIC_POINTS | {"concentration", "history_0_x_zero"}, "slope calibration")
+    flow.require(CELL_PROCEDURE_POINTS, "slope calibration")
     state = await _read_cell(flow)
     current = await _cell_current(flow, cell_current_na, samples, sample_interval_s)
     if zero_na is None:
@@ -272,8 +272,8 @@ async def calibrate_zero_point(
     *,
     when: datetime,
     zero_current_na: float | None = None,
-    samples: int = 1,
-    sample_interval_s: float = 1.0,
+    samples: int = CELL_CURRENT_READINGS,
+    sample_interval_s: float = READING_INTERVAL_S,
 ) -> CalibrationOutcome:
     """Zero-point calibration (tecLine annex 7.4): X_Zero = the current without disinfectant.
 
@@ -283,7 +283,7 @@ async def calibrate_zero_point(
     subtracts this zero point: run it next, at least a minute later (annex 7.2 note).
     """
     flow = Flow(writer, operator, "zero_point")
-    flow.require(AMPEROMETRIC_POINTS | {"concentration", "history_0_x_zero"}, "zero point")
+    flow.require(CELL_PROCEDURE_POINTS, "zero point")
     flow.say(
         StepKind.NOTE,
         "JUMO: a zero-point calibration is generally not required (annex 7.4); the sensor "
@@ -321,7 +321,7 @@ async def restore_nominal_slope(
     The nominal slope is in nA/ppm; for another unit at 0x0200 it is converted.
     """
     flow = Flow(writer, operator, "nominal_slope")
-    flow.require(AMPEROMETRIC_POINTS | {"history_0_x_zero", "concentration"}, "nominal slope")
+    flow.require(CELL_PROCEDURE_POINTS, "nominal slope")
     state = await _read_cell(flow)
     nominal = nominal_in_unit(state.nominal, state.unit)
     if not math.isfinite(nominal) or nominal <= 0:
@@ -362,12 +362,12 @@ async def check_slope(
     *,
     reference: float,
     cell_current_na: float | None = None,
-    samples: int = 1,
-    sample_interval_s: float = 1.0,
+    samples: int = CELL_CURRENT_READINGS,
+    sample_interval_s: float = READING_INTERVAL_S,
 ) -> CalibrationOutcome:
     """The regular check (tecLine annex 7.3.4): today's slope against nominal; no writes."""
     flow = Flow(writer, operator, "check")
-    flow.require(AMPEROMETRIC_POINTS | {"concentration", "history_0_x_zero"}, "slope check")
+    flow.require(CELL_PROCEDURE_POINTS, "slope check")
     state = await _read_cell(flow)
     current = await _cell_current(flow, cell_current_na, samples, sample_interval_s)
     slope = slope_from(current, reference, zero_na=state.current.x_zero)

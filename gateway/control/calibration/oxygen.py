@@ -9,8 +9,10 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Final
 
 from gateway.control.calibration.rules import (
+    CALIBRATION_MODE_DEFAULT,
     LOGBOOK_NEWEST,
-    OPTICAL_OXYGEN_POINTS,
+    OXYGEN_END_VALUE_POINTS,
+    OXYGEN_ZERO_POINTS,
     SAME_MEASUREMENT_REL_TOL,
     close_to,
 )
@@ -32,8 +34,6 @@ if TYPE_CHECKING:
 
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
-
-# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than 30 %
 
 # --- digiLine O-DO H10 / H20 -----------------------------------------------------------------
 
@@ -209,7 +209,7 @@ async def calibrate_oxygen_zero(
     operator: Operator,
     *,
     when: datetime,
-    mode: str = "as_configured",
+    mode: str = CALIBRATION_MODE_DEFAULT,
 ) -> CalibrationOutcome:
     """H10/H20 zero-point calibration (6.2.4): mode, date, then any value to 0x3003.
 
@@ -217,7 +217,7 @@ async def calibrate_oxygen_zero(
     an entry of type 20; the 650 ms wait after 0x3003 is kept by the bus engine.
     """
     flow = Flow(writer, operator, "oxygen_zero")
-    flow.require(OPTICAL_OXYGEN_POINTS | {"zero_point_phase"}, "oxygen zero-point calibration")
+    flow.require(OXYGEN_ZERO_POINTS, "oxygen zero-point calibration")
     flow.say(StepKind.NOTE, "the sensor must be in an oxygen-free medium, its reading settled")
     await _read_oxygen(flow, ("zero_point_phase", "zero_point_temperature"))
     date = logbook_date(when)
@@ -244,7 +244,7 @@ async def calibrate_oxygen_end_value(
     reference: float,
     when: datetime,
     unit: str | None = None,
-    mode: str = "as_configured",
+    mode: str = CALIBRATION_MODE_DEFAULT,
 ) -> CalibrationOutcome:
     """H10/H20 end-value calibration (6.2.4) to ``reference`` in ``unit`` (0x204B).
 
@@ -253,7 +253,7 @@ async def calibrate_oxygen_end_value(
     0x2043 does; writing both covers either reading (see the profile's note).
     """
     flow = Flow(writer, operator, "oxygen_end_value")
-    flow.require(OPTICAL_OXYGEN_POINTS | {"end_value_oxygen_unit"}, "end-value calibration")
+    flow.require(OXYGEN_END_VALUE_POINTS, "end-value calibration")
     flow.say(StepKind.NOTE, "the sensor must be in the reference medium, its reading settled")
     before = await _read_oxygen(
         flow,

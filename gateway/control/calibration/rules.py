@@ -32,6 +32,28 @@ _FLOAT32_REL_TOL: Final = 1e-6
 # compared with a little room, as the manual does not say they are bit-identical.
 SAME_MEASUREMENT_REL_TOL: Final = 1e-4
 
+# How a flow reads the cell current when the operator did not note it. The catalogue
+# (``catalogue.py``) offers these as the defaults of ``samples`` and ``every`` to every front
+# end; the flows' keyword defaults are the same names, so there is one set of defaults.
+# tecLine annex 7.3.1 steps 2-3 and 7.4.1 steps 2-3, Reiss 5.2.1: wait until the signal at
+# the sensor is stable, then read the cell current (0x0002) once and note it. One reading.
+CELL_CURRENT_READINGS: Final = 1
+# Between further readings, if the operator asks for an average: the manuals are silent
+# (one reading needs no interval). One second is ours: the default poll interval of process
+# values, so the readings follow the live values the operator watched settle.
+READING_INTERVAL_S: Final = 1.0
+# The bounds of both (ours): a hundred readings a minute apart is already an hour and a
+# half at the sensor.
+MAX_READINGS: Final = 100
+MAX_READING_INTERVAL_S: Final = 60.0
+# H10/H20 manual 6.2.4: 0x3009 is 0 at start-up, "mode as configured in register 0x2021";
+# 1 wet, 2 dry (the profile's labels).
+CALIBRATION_MODES: Final = ("as_configured", "wet", "dry")
+CALIBRATION_MODE_DEFAULT: Final = CALIBRATION_MODES[0]
+# H10/H20 manual 6.2.3, table 2 (0x204B, the unit of the end value 0x2043): the profile's
+# labels of the units the end value may be given in.
+END_VALUE_UNITS: Final = ("percent_saturation", "percent_volume", "ppm", "ppb", "hpa")
+
 AMPEROMETRIC_POINTS: Final = frozenset(
     {"cell_current", "x_zero", "x_span", "calibration_stamp", "nominal_slope", "unit"}
 )
@@ -46,6 +68,11 @@ OPTICAL_OXYGEN_POINTS: Final = frozenset(
     }
 )
 LOGBOOK_NEWEST: Final = "logbook_1_"
+# What each family's procedures need of a profile: the flows refuse a device without them
+# before any I/O, and the catalogue offers a procedure only to a profile that has them.
+CELL_PROCEDURE_POINTS: Final = AMPEROMETRIC_POINTS | {"concentration", "history_0_x_zero"}
+OXYGEN_ZERO_POINTS: Final = OPTICAL_OXYGEN_POINTS | {"zero_point_phase"}
+OXYGEN_END_VALUE_POINTS: Final = OPTICAL_OXYGEN_POINTS | {"end_value_oxygen_unit"}
 
 
 # --- the pure part ---------------------------------------------------------------------------

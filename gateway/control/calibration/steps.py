@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Final, Protocol
 
 from gateway.config import FlashPolicy
 from gateway.control.calibration.rules import HistoryEntry
+from gateway.control.clock_trust import require_trusted_for
 from gateway.control.commands import function_for, writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today
 from gateway.errors import CalibrationInterruptedError, CommandRejectedError, GatewayError
@@ -30,8 +31,6 @@ if TYPE_CHECKING:
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
-
-# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than 30 %
 
 # --- talking to the operator -----------------------------------------------------------------
 
@@ -329,14 +328,22 @@ class Flow:
         return planned
 
     def preflight(self, plans: Sequence[PlannedWrite]) -> None:
-        """Refuse the whole flow if any flash write would be refused, so none is half-done.
+        """Refuse the whole flow if any write would be refused, so none is half-done.
 
         :class:`SafeWriter` checks each write again; this only keeps a flow from stopping
-        after its first writes because a later point's budget is spent.
+        after its first writes because a later point's budget is spent, or because the
+        date stamp that comes last may not be written while the host clock is not trusted
+        (X_Zero and X_Span would be written and never activated).
         """
         policy = self.writer.policy
         today = utc_today()
         for planned in plans:
+            require_trusted_for(
+                self.writer.clock,
+                self.profile,
+                planned.target,
+                f"the {self.procedure} calibration of {self.link.device}",
+            )
             if not planned.flash:
                 continue
             decision = check_flash_write(

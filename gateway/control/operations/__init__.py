@@ -1,10 +1,11 @@
-"""Operations on one sensor: set its clock, take a single measurement, read its calibration log.
+"""Operations on one sensor: its clock, a single measurement, its calibration log and offers.
 
-Each operation is a plain async function that the command line calls directly
-(:func:`set_clock`, :func:`measure`, :func:`calibration_log`) and returns a frozen value
-with an ``as_dict()`` of JSON-ready data. :func:`run_operation` runs one by name, as the
-MQTT ``{base}/{device}/command/{name}`` handler does, after checking the name, the
-device's profile and the arguments; a refusal there raises
+Each operation is a plain function (async where it talks to the sensor) that the command
+line calls directly (:func:`set_clock`, :func:`measure`, :func:`calibration_log`; the
+calibrations a device offers it lists with ``gateway calibrate procedures``) and returns a
+frozen value with an ``as_dict()`` of JSON-ready data. :func:`run_operation` runs one by
+name, as the MQTT ``{base}/{device}/command/{name}`` handler does, after checking the name,
+the device's profile and the arguments; a refusal there raises
 :class:`~gateway.errors.CommandRejectedError` before anything reaches the bus.
 
 Which operation applies is decided from the profile's data (the points it declares), not
@@ -17,7 +18,10 @@ from vendor names:
   progress", bit 2 "set to trigger a single measurement") and the status word 0x3007
   (bit 15 "new measured values"), manual 6.2.2 and 6.2.10;
 - ``calibration_log``: the H10/H20 logbook of 10 entries (manual 6.1.6) or the tecLine /
-  Reiss history of 5 entries with the current calibration (tecLine annex 7.2, Reiss 5.1).
+  Reiss history of 5 entries with the current calibration (tecLine annex 7.2, Reiss 5.1);
+- ``calibrations``: the guided calibrations the device offers, with their inputs and
+  defaults, from the calibration catalogue (MQTT lists them; it does not start them, see
+  :mod:`~gateway.control.operations.calibrations`).
 
 Every write goes through :class:`~gateway.control.writes.SafeWriter` as an explicit operator action:
 flash-backed points need no allow-list entry but are counted against the daily budget,
@@ -26,12 +30,19 @@ and the link keeps every timing rule (the H10/H20 250 ms post-write wait include
 The pieces: the names, which operation applies and the arguments in
 :mod:`~gateway.control.operations.catalogue`; one module per operation
 (:mod:`~gateway.control.operations.clock`, :mod:`~gateway.control.operations.measurement`,
-:mod:`~gateway.control.operations.logbook`); :func:`run_operation` in
+:mod:`~gateway.control.operations.logbook`,
+:mod:`~gateway.control.operations.calibrations`); :func:`run_operation` in
 :mod:`~gateway.control.operations.dispatch`. Import from here.
 """
 
+from gateway.control.operations.calibrations import (
+    NOT_OVER_MQTT,
+    CalibrationOffer,
+    calibrations,
+)
 from gateway.control.operations.catalogue import (
     CALIBRATION_LOG,
+    CALIBRATIONS,
     CLOCK_POINTS,
     LOG_LAYOUTS,
     MEASURE,
@@ -50,6 +61,7 @@ from gateway.control.operations.catalogue import (
     as_json,
     clock_point,
     log_layout,
+    offers_calibrations,
     operations_for,
     parse_arguments,
     require_operation,
@@ -74,6 +86,7 @@ from gateway.control.operations.measurement import (
 )
 
 __all__ = [
+    "CALIBRATIONS",
     "CALIBRATION_LOG",
     "CLOCK_POINTS",
     "LOG_LAYOUTS",
@@ -85,12 +98,14 @@ __all__ = [
     "MEASURE_TIMEOUT_S",
     "MEASURING_BIT",
     "NEW_VALUES_BIT",
+    "NOT_OVER_MQTT",
     "OPERATION_NAMES",
     "SET_CLOCK",
     "STATUS",
     "TRIGGER_BIT",
     "UNIT_TEXT_SUFFIX",
     "CalibrationLog",
+    "CalibrationOffer",
     "ClockPoint",
     "ClockSetting",
     "LogEntry",
@@ -98,9 +113,11 @@ __all__ = [
     "Measurement",
     "as_json",
     "calibration_log",
+    "calibrations",
     "clock_point",
     "log_layout",
     "measure",
+    "offers_calibrations",
     "operations_for",
     "parse_arguments",
     "require_operation",

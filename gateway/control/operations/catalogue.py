@@ -8,7 +8,9 @@ from vendor names:
 - ``measure``: the H10/H20 measurement control word 0x3001 and the status word 0x3007
   with the bits the profile names (manual 6.2.2 and 6.2.10);
 - ``calibration_log``: the H10/H20 logbook (manual 6.1.6) or the tecLine / Reiss history
-  (tecLine annex 7.2, Reiss 5.1).
+  (tecLine annex 7.2, Reiss 5.1);
+- ``calibrations``: a device that offers a guided calibration, as the calibration
+  catalogue decides it (:mod:`gateway.control.calibration.catalogue`).
 
 A refusal here raises :class:`~gateway.errors.CommandRejectedError` before anything
 reaches the bus.
@@ -33,7 +35,8 @@ if TYPE_CHECKING:
 SET_CLOCK: Final = "set_clock"
 MEASURE: Final = "measure"
 CALIBRATION_LOG: Final = "calibration_log"
-OPERATION_NAMES: Final = (SET_CLOCK, MEASURE, CALIBRATION_LOG)
+CALIBRATIONS: Final = "calibrations"
+OPERATION_NAMES: Final = (SET_CLOCK, MEASURE, CALIBRATION_LOG, CALIBRATIONS)
 
 # H10/H20 manual 6.2.2 (0x3001) and 6.2.10 (0x3007); the bit names are the profile's.
 MEASUREMENT_STATUS: Final = "measurement_status"
@@ -145,10 +148,23 @@ def _measure_applies(profile: Profile) -> bool:
     )
 
 
+def offers_calibrations(profile: Profile) -> bool:
+    """Whether a device of ``profile`` offers a guided calibration (the catalogue's word).
+
+    The catalogue, and with it the calibration flows, is imported when this is asked (a
+    ``command/…`` message), not with the MQTT command router: a gateway without its web
+    page does not hold the flows in memory (``tests/test_imports.py``).
+    """
+    from gateway.control.calibration import catalogue  # noqa: PLC0415 - see above
+
+    return bool(catalogue.offered(profile))
+
+
 _APPLIES: Final[Mapping[str, Callable[[Profile], bool]]] = {
     SET_CLOCK: lambda profile: clock_point(profile) is not None,
     MEASURE: _measure_applies,
     CALIBRATION_LOG: lambda profile: log_layout(profile) is not None,
+    CALIBRATIONS: offers_calibrations,
 }
 
 
@@ -199,6 +215,7 @@ _ARGUMENTS: Final[Mapping[str, Mapping[str, Callable[[str, object], object]]]] =
     SET_CLOCK: {"local": _flag},
     MEASURE: {"timeout": measure_timeout},
     CALIBRATION_LOG: {},
+    CALIBRATIONS: {},
 }
 
 
@@ -206,7 +223,8 @@ def parse_arguments(name: str, arguments: Mapping[str, object]) -> dict[str, obj
     """An operation's arguments checked and typed, or a :class:`CommandRejectedError`.
 
     ``set_clock`` takes ``{"local": true}`` (write the gateway host's local time instead
-    of UTC), ``measure`` takes ``{"timeout": seconds}``, ``calibration_log`` nothing.
+    of UTC), ``measure`` takes ``{"timeout": seconds}``, ``calibration_log`` and
+    ``calibrations`` nothing.
     """
     if name not in _ARGUMENTS:
         raise CommandRejectedError(

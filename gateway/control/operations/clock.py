@@ -4,7 +4,9 @@ The point is the profile's writable date-and-time block
 (:func:`~gateway.control.operations.catalogue.clock_point`): the S10 clock, which runs, or
 the H10/H20 calibration date, which the sensor copies into the logbook entries that
 follow and which does not run. The write goes through
-:class:`~gateway.control.writes.SafeWriter` as an explicit operator action.
+:class:`~gateway.control.writes.SafeWriter` as an explicit operator action, and only
+while the host clock is trusted (:mod:`gateway.control.clock_trust`): a Raspberry Pi
+boots with the time it last saved, and NTP steps it later, by hours or days.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING
 
+from gateway.control.clock_trust import require_trusted_clock
 from gateway.control.operations.catalogue import SET_CLOCK, clock_point, require_operation
 from gateway.errors import CommandRejectedError
 from gateway.line.samples import json_value
@@ -102,6 +105,8 @@ async def set_clock(writer: SafeWriter, *, now: datetime, local: bool = False) -
     The time written is UTC (offset 0), or with ``local`` the gateway host's local time
     and offset. The write waits for the gateway clock's next whole second, so the
     sensor, which keeps whole seconds, starts within the frame's travel time of it.
+    Refused before anything is read while the host clock is not trusted
+    (``writer.clock``).
     """
     link = writer.link
     require_operation(SET_CLOCK, link.profile)
@@ -109,6 +114,9 @@ async def set_clock(writer: SafeWriter, *, now: datetime, local: bool = False) -
     assert target is not None  # noqa: S101 - require_operation checked it
     if now.tzinfo is None or now.utcoffset() is None:
         raise CommandRejectedError("the gateway's clock must carry a time zone")
+    require_trusted_clock(
+        writer.clock, f"set-clock of {link.device}", link.profile.point(target.point)
+    )
     gateway = _GatewayClock(now)
     before = _as_datetime(await link.read_value(target.point))
     gateway_before = gateway.now()

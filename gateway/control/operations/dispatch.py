@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from gateway.control.operations.calibrations import CalibrationOffer, calibrations
 from gateway.control.operations.catalogue import (
+    CALIBRATIONS,
     MEASURE,
     MEASURE_TIMEOUT_S,
     SET_CLOCK,
@@ -33,13 +35,15 @@ async def run_operation(
     """
     require_operation(name, writer.link.profile)
     parsed = parse_arguments(name, arguments)
-    result: ClockSetting | Measurement | CalibrationLog
+    result: ClockSetting | Measurement | CalibrationLog | CalibrationOffer
     if name == SET_CLOCK:
         result = await set_clock(writer, now=now, local=parsed.get("local") is True)
     elif name == MEASURE:
         timeout = parsed.get("timeout", MEASURE_TIMEOUT_S)
         assert isinstance(timeout, float)  # noqa: S101 - measure_timeout returns a float
         result = await measure(writer, timeout_s=timeout)
+    elif name == CALIBRATIONS:
+        result = calibrations(writer.link.profile)
     else:
         result = await calibration_log(writer.link)
     return {"operation": name, "device": writer.device, **result.as_dict()}

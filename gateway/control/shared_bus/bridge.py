@@ -14,6 +14,7 @@ import logging
 import time
 from typing import TYPE_CHECKING
 
+from gateway.control.clock_trust import clock_refusal, time_point_touched
 from gateway.control.flash import utc_today
 from gateway.control.shared_bus.pdu import (
     DEVICE_BUSY,
@@ -39,6 +40,7 @@ from gateway.errors import (
     FrameError,
 )
 from gateway.profiles.model import Storage
+from gateway.publish.host_clock import HostClock
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -46,6 +48,7 @@ if TYPE_CHECKING:
     from gateway.control.flash import FlashLedger
     from gateway.control.shared_bus.pdu import ClientRequest
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
+    from gateway.line.fair_share import Origin
     from gateway.line.worker import BusWorker
     from gateway.publish.state import SharedBusClient
     from gateway.wire import frames
@@ -63,18 +66,30 @@ class Bridge:
         workers: Mapping[str, BusWorker],
         ledger: FlashLedger,
         flash_budgets: Mapping[str, int],
+        clock: HostClock | None = None,
     ) -> None:
-        """Requests for ``units`` go to the ``workers`` of their buses."""
+        """Requests for ``units`` go to the ``workers`` of their buses.
+
+        ``clock``: a write of a date-and-time register waits for it to be trusted.
+        """
         self.units = units
         self.workers = workers
         self.ledger = ledger
         self.flash_budgets = flash_budgets
+        self.clock = clock if clock is not None else HostClock()
 
     async def answer(
-        self, client: ClientPolicy, unit: int, pdu: bytes, stats: SharedBusClient
+        self,
+        client: ClientPolicy,
+        unit: int,
+        pdu: bytes,
+        stats: SharedBusClient,
+        *,
+        origin: Origin,
     ) -> tuple[bytes, bool]:
         """The answer PDU to one request for ``unit``; whether it came without the line.
 
+        A request for the line goes in the turn of ``origin`` (the connection it came on).
         An answer given without the line is given without a pause (no ``await``): the
         caller's clock around it is the time it held the event loop.
         """
@@ -91,12 +106,16 @@ class Bridge:
             worker = self.workers[target.bus]
             if request.is_write:
                 client.check_write(target.device, request)
+                self._check_clock(target, request, worker)
                 self._check_flash(target, request, worker)
             elif (cached := self._cached(client, target, request, worker)) is not None:
                 stats.cache_answers += 1
                 return cached, True
             forwarded = True
-            return await self._forward(client, target, request, worker, stats), False
+            return (
+                await self._forward(client, target, request, worker, stats, origin=origin),
+                False,
+            )
         except RequestRefusedError as refused:
             stats.exceptions[refused.code] += 1
             stats.refused[refused.label] += 1
@@ -117,6 +136,14 @@ class Bridge:
             not_before=time.monotonic() - client.cache_max_age_s,
         )
         return cached_read_pdu(request, registers) if registers is not None else None
+
+    def _check_clock(self, target: Unit, request: ClientRequest, worker: BusWorker) -> None:
+        """Refuse a write of a date (a clock, a calibration stamp) while the clock is a guess."""
+        profile = worker.device_profile(target.device)
+        point = time_point_touched(profile, request.address, request.count)
+        why = point and clock_refusal(self.clock, f"writing {point.name} of {target.device}", point)
+        if why:
+            raise RequestRefusedError(ILLEGAL_FUNCTION, why, label="clock_unsynchronised")
 
     def _check_flash(self, target: Unit, request: ClientRequest, worker: BusWorker) -> None:
         """Refuse a write over the flash budget; count it against the budget otherwise.
@@ -158,11 +185,16 @@ class Bridge:
         request: ClientRequest,
         worker: BusWorker,
         stats: SharedBusClient,
+        *,
+        origin: Origin,
     ) -> bytes:
-        """Send the request in its turn on the line; the device's answer or an exception."""
+        """Send the request in ``origin``'s turn on the line; the device's answer or an exception.
+
+        ``origin`` is the client's connection: the fair share is between clients.
+        """
         line = line_request(request, target.address)
         try:
-            job = worker.foreign.submit(target.device, line)
+            job = worker.foreign.submit(target.device, line, origin)
         except BusBusyError as exc:
             raise RequestRefusedError(DEVICE_BUSY, str(exc), label="busy") from exc
         except BusClosedError as exc:

@@ -14,6 +14,7 @@ from gateway.control.shared_bus.pdu import (
     ILLEGAL_FUNCTION,
     RequestRefusedError,
 )
+from gateway.line.fair_share import Origin
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
@@ -48,13 +49,8 @@ class ClientPolicy:
 
     def matches(self, host: str) -> bool:
         """Whether a connection from ``host`` belongs to this client."""
-        try:
-            address = ipaddress.ip_address(host)
-        except ValueError:
-            return False
-        if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
-            address = address.ipv4_mapped
-        return any(address in network for network in self.networks)
+        address = _address(host)
+        return address is not None and any(address in network for network in self.networks)
 
     def check_write(self, device: str, request: ClientRequest) -> None:
         """Refuse a write this client may not make (:class:`RequestRefusedError`)."""
@@ -74,6 +70,28 @@ class ClientPolicy:
                     f"client {self.name} may not write register {register:#06x} of {device}",
                     label="register_not_allowed",
                 )
+
+
+def _address(host: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    """``host`` as an address, an IPv4 one if it came over IPv6 (``::ffff:10.0.0.7``)."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return None
+    if isinstance(address, ipaddress.IPv6Address) and address.ipv4_mapped is not None:
+        return address.ipv4_mapped
+    return address
+
+
+def origin_of(peer: tuple[str, int]) -> Origin:
+    """The turn a connection's requests go in: its source address, then the connection.
+
+    One machine is one address whether it connects over IPv4 or IPv6-mapped IPv4.
+    """
+    host, port = peer
+    address = _address(host)
+    name = str(address) if address is not None else host
+    return Origin(address=name, connection=f"{host}:{port}")
 
 
 def client_policies(clients: Sequence[ClientConfig]) -> tuple[ClientPolicy, ...]:

@@ -24,7 +24,7 @@ from gateway.control.shared_bus.bridge import Bridge
 from gateway.control.shared_bus.connection import ClientConnection
 from gateway.control.shared_bus.framing import FramingError, framer_for
 from gateway.control.shared_bus.pdu import DEVICE_BUSY, exception_pdu
-from gateway.control.shared_bus.policy import client_for, client_policies
+from gateway.control.shared_bus.policy import client_for, client_policies, origin_of
 from gateway.control.shared_bus.throttle import Throttle
 from gateway.errors import ConfigError
 from gateway.line.lateness import loop_watch
@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from gateway.control.shared_bus.framing import Framer
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
     from gateway.line.worker import BusWorker
+    from gateway.publish.host_clock import HostClock
     from gateway.publish.state import GatewayState, SharedBusClient
 
 _LOGGER = logging.getLogger(__name__)
@@ -66,11 +67,19 @@ class SharedBusServer:
         ledger: FlashLedger,
         flash_budgets: Mapping[str, int],
         state: GatewayState,
+        clock: HostClock | None = None,
     ) -> None:
-        """Bridge requests for ``units`` to the ``workers`` of their buses."""
+        """Bridge requests for ``units`` to the ``workers`` of their buses.
+
+        ``clock``: the host clock a write of a date register waits to be trusted by.
+        """
         self.config = config
         self.bridge = Bridge(
-            units=units, workers=workers, ledger=ledger, flash_budgets=flash_budgets
+            units=units,
+            workers=workers,
+            ledger=ledger,
+            flash_budgets=flash_budgets,
+            clock=clock,
         )
         self.status = state.shared_bus
         self._clients = client_policies(config.clients)
@@ -220,6 +229,7 @@ class SharedBusServer:
         refusal, a cache hit) take turns with the polls however fast they come.
         """
         host = connection.peer[0]
+        origin = origin_of(connection.peer)  # its turn on the line, beside other clients
         rate = client.rate_limit or self.config.rate_limit
         # One read holds at most ``max_in_flight`` requests, and the socket is read only
         # when no whole request is left: the rest waits in TCP's buffers.
@@ -256,7 +266,9 @@ class SharedBusServer:
                 stats.exceptions[DEVICE_BUSY] += 1
                 pdu, local = exception_pdu(function, DEVICE_BUSY), True
             else:
-                pdu, local = await self.bridge.answer(client, frame.unit, frame.pdu, stats)
+                pdu, local = await self.bridge.answer(
+                    client, frame.unit, frame.pdu, stats, origin=origin
+                )
             out = framer.encode(pdu, frame.unit, frame.transaction)
             stats.sent_bytes += len(out)
             if local:

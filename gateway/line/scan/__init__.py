@@ -21,7 +21,7 @@ Identification, from the registers the manuals name for it (specs/README.md):
   the found address is reported, or Cl2, and either way marked as a guess. Serial number
   (0x030C), firmware (0x0309) and part number (0x0317) are read.
 
-I/O goes through :class:`gateway.line.port.Line` only; the probes use the digiLine-safe
+I/O goes through :class:`gateway.line.boundary.Line` only; the probes use the digiLine-safe
 inter-frame gap (3.5 characters, at least 2 ms) whatever is on the line.
 
 The pieces: the addresses and line formats to try in :mod:`~gateway.line.scan.formats`,

@@ -11,7 +11,7 @@ device is read only once it has answered, with its family's processing time and 
 retry: the digiLine device name (0x0000) and serial number (0x0100), the tecLine/Reiss
 sensor type (0x0300), serial number (0x030C) and part number (0x0317).
 
-I/O goes through :class:`gateway.line.port.Line` only; the probes use the digiLine-safe
+I/O goes through :class:`gateway.line.boundary.Line` only; the probes use the digiLine-safe
 inter-frame gap (3.5 characters, at least 2 ms) whatever is on the line.
 """
 

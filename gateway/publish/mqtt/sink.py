@@ -20,11 +20,12 @@ from gateway.publish.mqtt.topics import Topics
 from gateway.publish.store import MessageStore
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Iterable, Mapping, Sequence
     from pathlib import Path
 
     from gateway.config import MqttConfig, PublishSettings
     from gateway.line.samples import DeviceEvent, Sample
+    from gateway.profiles import Profile
     from gateway.publish.mqtt.connection import Listener
     from gateway.publish.state import GatewayState
 
@@ -45,25 +46,53 @@ class MqttSink:
         listeners: Sequence[Listener] = (),
     ) -> None:
         """Check the settings that can fail at start (TLS files, the state directory)."""
-        self.settings = settings
         self.state = state
+        self.state_dir = state_dir
         self.listeners = list(listeners)
+        self._build(settings, publish)
+
+    def _build(
+        self, settings: MqttConfig, publish: Mapping[tuple[str, str], PublishSettings] | None
+    ) -> None:
+        """The topics, the queue on disk and the connection, for these settings."""
         client_id = settings.client_id or f"gateway-{socket.gethostname()}"
-        self.topics = Topics(settings, state, client_id=client_id, publish=publish)
+        topics = Topics(settings, self.state, client_id=client_id, publish=publish)
         if settings.tls is not None:
             for name in ("ca", "cert", "key"):
                 path = getattr(settings.tls, name)
                 if path is not None and not path.is_file():
                     raise PublishError(f"mqtt.tls.{name}: {path} does not exist")
-        store = MessageStore(state_dir / "mqtt-queue.sqlite", max_messages=settings.queue_max)
-        status = state.mqtt
+        store = MessageStore(self.state_dir / "mqtt-queue.sqlite", max_messages=settings.queue_max)
+        self.state.storage.track(store.health)
+        status = self.state.mqtt
         status.enabled = True
         status.queue_max = settings.queue_max
         status.queue_depth = len(store)
-        self.outbox = Outbox(store, status)
+        self.settings = settings
+        self.topics = topics
+        self.outbox = Outbox(store, status, write_ahead=settings.persist == "always")
         self.connection = Connection(
             settings, status, self.outbox, client_id=client_id, listeners=self.listeners
         )
+
+    def reconfigure(
+        self, settings: MqttConfig, publish: Mapping[tuple[str, str], PublishSettings]
+    ) -> None:
+        """New settings after a reload, while :meth:`run` is not running.
+
+        The queue on disk is opened again where the stopped connection left it, so nothing
+        that was not acknowledged is lost; the topics start afresh (a device's document
+        count included), as after a restart.
+        """
+        self._build(settings, publish)
+
+    def set_publish(self, publish: Mapping[tuple[str, str], PublishSettings]) -> None:
+        """The publish settings per ``(device, point)`` after a reload (same connection)."""
+        self.topics.set_publish(publish)
+
+    def forget(self, bus: str, device: str, profile: Profile, points: Iterable[str]) -> None:
+        """A device a reload removed: offline, its retained topics and discovery cleared."""
+        self.outbox.enqueue(self.topics.forget(bus, device, profile, points))
 
     async def publish(self, samples: Sequence[Sample]) -> None:
         """Turn one device's poll cycle into messages and hand them to the sender."""

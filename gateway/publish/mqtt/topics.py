@@ -34,11 +34,12 @@ from gateway.publish.state import STALE_FACTOR, STALE_MARGIN_S
 from gateway.wire.codec import BitfieldValue
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Mapping, Sequence
+    from collections.abc import Callable, Iterable, Mapping, Sequence
     from datetime import datetime
 
     from gateway.config import MqttConfig
     from gateway.line.samples import DeviceEvent, Sample
+    from gateway.profiles import Profile
     from gateway.publish.state import GatewayState
 
 
@@ -200,6 +201,57 @@ class Topics:
                     qos=self.settings.qos,
                 )
             )
+
+    def set_publish(self, publish: Mapping[tuple[str, str], PublishSettings]) -> None:
+        """The publish settings per ``(device, point)`` after a reload."""
+        self._publish = dict(publish)
+
+    def forget(
+        self, bus: str, device: str, profile: Profile, points: Iterable[str]
+    ) -> list[Message]:
+        """A device a reload removed: said offline, then every retained topic of it cleared.
+
+        Its values (``points``: those it polled), status bits, state and care documents and
+        availability, and its Home Assistant discovery, so that the entities go too. What
+        was remembered of it goes: a device added again later starts afresh.
+        """
+        clear = [f"{self.base}/{device}/{point}" for point in points] + [
+            f"{self.base}/{device}/status/{flag}" for flag in self._flags.pop(device, {})
+        ]
+        clear += [f"{self.base}/{device}/state", f"{self.base}/{device}/{CARE_TOPIC_SUFFIX}"]
+        if (bus, device) in self._discovered or device in self._care_sent:
+            announced = discovery_messages(
+                prefix=self.settings.discovery.prefix,
+                base_topic=self.base,
+                gateway_id=self.client_id,
+                device=device,
+                profile=profile,
+                points=points,
+                identity={},
+                units={},
+            ) + care_discovery_messages(
+                prefix=self.settings.discovery.prefix,
+                base_topic=self.base,
+                gateway_id=self.client_id,
+                device=device,
+                profile=profile,
+                identity={},
+                slope=True,
+            )
+            clear += [message.topic for message in announced]
+        self._discovered.discard((bus, device))
+        self._care_sent.pop(device, None)
+        self._sequence.pop(device, None)
+        self._layouts.pop(device, None)
+        prefix = f"{self.base}/{device}/"
+        for topic in [t for t in self._last if t.startswith(prefix)]:
+            del self._last[topic]
+        self._fault_cleared = {t for t in self._fault_cleared if not t.startswith(prefix)}
+        offline = self._message(f"{device}/availability", "offline", retain=True)
+        cleared = [
+            Message(topic=topic, payload=b"", qos=self.settings.qos, retain=True) for topic in clear
+        ]
+        return [offline, *cleared, self._message(f"{device}/availability", "", retain=True)]
 
     def availability(self, event: DeviceEvent) -> Message:
         """A device's ``online``/``offline`` (retained)."""

@@ -9,9 +9,13 @@ from prometheus_client.metrics_core import GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
 from gateway.publish.prometheus.care import care_families
+from gateway.publish.prometheus.clock import clock_families
 from gateway.publish.prometheus.health import device_families, line_families
 from gateway.publish.prometheus.identity import identity_families
+from gateway.publish.prometheus.reloads import reload_families
+from gateway.publish.prometheus.selection import Selection
 from gateway.publish.prometheus.shared_bus import shared_bus_families
+from gateway.publish.prometheus.storage import storage_families
 from gateway.publish.prometheus.values import value_families
 from gateway.publish.prometheus.writes import (
     mqtt_families,
@@ -32,13 +36,17 @@ class GatewayCollector(Collector):
     Example::
 
         registry = CollectorRegistry()
-        registry.register(GatewayCollector(state))
+        registry.register(GatewayCollector(state, selection=Selection.of(config.prometheus)))
         generate_latest(registry)  # the text exposition
     """
 
-    def __init__(self, state: GatewayState) -> None:
-        """Read ``state`` at every scrape."""
+    def __init__(self, state: GatewayState, *, selection: Selection | None = None) -> None:
+        """Read ``state`` at every scrape; export the points ``selection`` selects.
+
+        Default: the process values and status of every device, new names only.
+        """
         self._state = state
+        self.selection = selection or Selection()
         # The wall-clock start, from the state's monotonic start, fixed once.
         self._start_time = time.time() - (time.monotonic() - state.started)
 
@@ -59,7 +67,7 @@ class GatewayCollector(Collector):
             "Start time of the gateway, seconds since the Unix epoch",
             value=self._start_time,
         )
-        yield from value_families(snapshot, now)
+        yield from value_families(snapshot, now, self.selection)
         yield from device_families(snapshot, health)
         yield from identity_families(health)
         yield from care_families(snapshot)
@@ -69,3 +77,6 @@ class GatewayCollector(Collector):
         yield from write_families(snapshot, now)
         yield from web_families(snapshot, now)
         yield from shared_bus_families(snapshot)
+        yield from storage_families(snapshot)
+        yield from reload_families(snapshot)
+        yield from clock_families(snapshot)

@@ -25,14 +25,18 @@ from prometheus_client.registry import Collector
 from gateway.care import care_order
 from gateway.errors import PublishError
 from gateway.line.stats import ErrorKind
+from gateway.publish.prometheus.clock import clock_health
 from gateway.publish.prometheus.collector import GatewayCollector
 from gateway.publish.prometheus.identity import identity_report
+from gateway.publish.prometheus.selection import Selection
+from gateway.publish.prometheus.storage import storage_health
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Iterator, Sequence
 
     from prometheus_client.metrics_core import Metric
 
+    from gateway.config.model import PrometheusConfig
     from gateway.publish.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
@@ -61,11 +65,12 @@ def exposition(registry: CollectorRegistry) -> list[bytes]:
     """``generate_latest``'s text, in pieces of at most ``PIECE_SAMPLES`` samples.
 
     The same bytes, but never the whole scrape at once as the lines of every family, their
-    join and its encoding: at 16 buses x 16 devices a scrape is some 130,000 lines (6 MB),
-    and making it in one piece held three copies of it, which the process kept as resident
-    memory. The collector builds the families one by one as they are asked for; a large
-    family (the status bits: some 78,000 lines) is written a piece at a time, each piece's
-    lines freed as soon as it is encoded.
+    join and its encoding: at 16 buses x 16 devices with every poll group and the old names
+    a scrape is some 55,000 lines (6 MB; 12,000 and 1.1 MB by default), and making it in
+    one piece held three copies of it, which the process kept as resident memory. The
+    collector builds the families one by one as they are asked for; a large family (the
+    values' ages: some 23,000 lines there) is written a piece at a time, each piece's lines
+    freed as soon as it is encoded.
     """
     return [piece for metric in registry.collect() for piece in _pieces(metric)]
 
@@ -116,7 +121,7 @@ _TRIM: Final = _malloc_trim()
 def release_free_memory() -> None:
     """Give the C heap's free pages back to the system, after a scrape.
 
-    A scrape at 16 x 16 makes some 6 MB of text and the lists and strings it is made of;
+    A scrape at 16 x 16 makes up to 6 MB of text and the lists and strings it is made of;
     freed, what lies in the middle of the heap stays resident (the C library returns only
     the top of its heap by itself), and so does what the start's burst of messages left
     (every point read at once). Once per scrape (every 15 s or so), in the scrape's own
@@ -151,7 +156,7 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         )
         buses[bus] = {
             "port_open": stats.port_open,
-            # Why not (line/port_access.PortReason: missing, permission_denied, in_use,
+            # Why not (line/port_diagnosis.PortReason: missing, permission_denied, in_use,
             # no_rs485_mode, driver_error) and the message with the remedy; null while open.
             "port_problem": None if stats.port_open else stats.port_problem,
             "port_error": None if stats.port_open else (stats.port_error or None),
@@ -177,12 +182,24 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         reasons.append(
             f"mqtt: not connected and the queue is full ({mqtt.queue_depth}/{mqtt.queue_max}){why}"
         )
+    storage_reasons, storage = storage_health(snapshot)
+    reasons.extend(storage_reasons)
     body: dict[str, object] = {
         "status": "unhealthy" if reasons else "ok",
         "reasons": reasons,
         "buses": buses,
         "identity": identity_report(health),
         **_shared_bus(snapshot),
+        "storage": storage,
+        "clock": clock_health(snapshot),  # said, not a reason: a restart cannot fix it
+        "config": {
+            # A refused reload leaves the gateway running its previous config: not
+            # unhealthy, but said here with the file's problems (and in the metrics).
+            "last_reload_successful": snapshot.config.last_reload_ok,
+            "reloads": snapshot.config.reloads,
+            "problems": list(snapshot.config.problems),
+            "applied": snapshot.config.applied,
+        },
         "mqtt": {
             "enabled": mqtt.enabled,
             "connected": mqtt.connected,
@@ -322,6 +339,7 @@ class MetricsServer:
     Example::
 
         server = MetricsServer(state, host="0.0.0.0", port=9108)
+        server = MetricsServer.of(state, config.prometheus)  # where and what the config says
         server.start()  # PublishError if the port is taken
         ...
         server.stop()
@@ -330,19 +348,29 @@ class MetricsServer:
     """
 
     def __init__(
-        self, state: GatewayState, *, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT
+        self,
+        state: GatewayState,
+        *,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        selection: Selection | None = None,
     ) -> None:
-        """Serve ``state`` on ``host:port`` once started."""
+        """Serve ``state`` on ``host:port`` once started: the points ``selection`` selects."""
         self.state = state
         self.host = host
         self.registry = CollectorRegistry()
-        self.collector = GatewayCollector(state)
+        self.collector = GatewayCollector(state, selection=selection)
         self.registry.register(self.collector)
         self._requested_port = port
         self._bound_port: int | None = None
         self._server: _Server | None = None
         self._thread: threading.Thread | None = None
         self._stop_pipe: tuple[int, int] | None = None  # read end, write end
+
+    @classmethod
+    def of(cls, state: GatewayState, settings: PrometheusConfig) -> MetricsServer:
+        """The server a config's ``prometheus:`` section describes (``enabled`` aside)."""
+        return cls(state, host=settings.host, port=settings.port, selection=Selection.of(settings))
 
     @property
     def port(self) -> int:
@@ -375,6 +403,12 @@ class MetricsServer:
         self._bound_port = int(server.server_address[1])
         thread.start()
         _LOGGER.info("serving /metrics and /healthz on %s:%d", where, self.port)
+        if self.collector.selection.legacy_names:
+            _LOGGER.warning(
+                "prometheus.legacy_names: the values are also exported under their old "
+                "names, which the next release drops; move dashboards and alerts to the new "
+                "names (README: Prometheus, migration) and remove legacy_names"
+            )
 
     def stop(self) -> None:
         """Stop serving and close the socket (idempotent).

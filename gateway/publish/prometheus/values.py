@@ -2,6 +2,9 @@
 
 Faults are never numbers: a point whose latest sample is a fault has no value sample, and
 ``gateway_value_fault{fault="overrange"}`` says why. Strings and date-times are left to MQTT.
+Only the points of the poll groups selected (:class:`~.selection.Selection`) are exported;
+with ``legacy_names`` the values whose family was renamed are also exported under the old
+name, as the sensor sent them (:mod:`~gateway.publish.prometheus.legacy`).
 """
 
 from __future__ import annotations
@@ -14,18 +17,22 @@ from prometheus_client.metrics_core import Metric
 from prometheus_client.samples import Sample as PromSample
 
 from gateway.line.samples import Quality
+from gateway.publish.prometheus.legacy import legacy_labelled_families, legacy_of
 from gateway.publish.prometheus.naming import (
     POINT_LABELS,
     VALUE_LABELS,
+    is_log_entry,
     labelled_families,
     naming_of,
 )
+from gateway.publish.prometheus.selection import Selection
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator, Sequence
 
     from gateway.line.samples import Sample
+    from gateway.publish.prometheus.naming import ValueNaming
     from gateway.publish.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
@@ -35,11 +42,12 @@ _Row = Any  # what a lazy family's samples are made from: its own kind of row
 class LazySamples:
     """A family's samples, made one at a time as the exposition reads them.
 
-    At 16 buses x 16 devices a scrape has some 130,000 samples (most of them status bits);
-    made at once as ``prometheus_client`` samples (a named tuple and a dict of labels
-    each) they took some 25 MB, which the process kept as resident memory after the
-    scrape. Here a family keeps what it was built from (the snapshot's own samples) and
-    makes each exposition sample when it is read; iterable more than once.
+    A large plant's scrape has tens of thousands of samples (16 buses x 16 devices with
+    every poll group: some 30,000); made at once as ``prometheus_client`` samples (a named
+    tuple and a dict of labels each) they took some 200 bytes each (25 MB for 130,000),
+    which the process kept as resident memory after the scrape. Here a family keeps what
+    it was built from (the snapshot's own samples) and makes each exposition sample when
+    it is read; iterable more than once.
     """
 
     __slots__ = ("_make", "_rows")
@@ -76,22 +84,38 @@ def _labels(names: Sequence[str], values: Sequence[str]) -> dict[str, str]:
     return dict(zip(names, values, strict=True))
 
 
+# One value of a family: the sample, its record entry, its unit, the value as exported.
+_ValueRow = tuple["Sample", str | None, str | None, float]
+
+
 @dataclass(slots=True)
 class _ValueFamily:
     documentation: str
-    rows: list[tuple[Sample, str | None, float]] = field(default_factory=list)
-    devices: set[str] = field(default_factory=set)  # one row per device (the first)
+    entry_label: str | None  # the record entry's label name, for a record's family
+    rows: list[_ValueRow] = field(default_factory=list)
+    keys: set[tuple[str, str | None]] = field(default_factory=set)  # (device, entry): once
     has_unit: bool = False
 
 
-def value_families(snapshot: GatewayState, now: float) -> Iterator[Metric]:
-    """Values, faults, status bits, enums and ages of every point's latest sample."""
-    values = _Values()
+def value_families(
+    snapshot: GatewayState, now: float, selection: Selection | None = None
+) -> Iterator[Metric]:
+    """Values, faults, status bits, enums and ages of the selected points' latest samples."""
+    selection = selection or Selection()
+    values = _Values(legacy=selection.legacy_names)
     for sample in snapshot.latest.values():
-        if not snapshot.is_stale(sample, now):  # an old reading is not the present
+        # An old reading is not the present; a point of a group not selected is not exported.
+        if _exported(sample, selection) and not snapshot.is_stale(sample, now):
             values.add(sample)
     yield from values.families()
-    yield _ages(snapshot, now)
+    yield _ages(snapshot, now, selection)
+
+
+def _exported(sample: Sample, selection: Selection) -> bool:
+    """A point of a selected group, and not a log's entry (unless the old names are asked)."""
+    if not selection.exports(sample):
+        return False
+    return selection.legacy_names or not is_log_entry(sample)
 
 
 class _Values:
@@ -101,7 +125,8 @@ class _Values:
     exposition's samples are made when the family is read.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, *, legacy: bool = False) -> None:
+        self._legacy = legacy
         self._values: dict[str, _ValueFamily] = {}
         self._faults: list[Sample] = []
         self._flags: list[Sample] = []
@@ -120,11 +145,16 @@ class _Values:
         elif isinstance(value, EnumValue):
             self._enums.append(sample)
         elif isinstance(value, bool | int | float):
-            self._add_value(sample, float(value))
+            naming, description = naming_of(sample)
+            if naming is not None:
+                self._add_value(sample, naming, description, naming.convert(float(value)))
+            if self._legacy and (old := legacy_of(sample.profile, sample.point)) is not None:
+                self._add_value(sample, old[0], old[1], float(value))
         # strings and date-times are not numbers: MQTT carries them
 
-    def _add_value(self, sample: Sample, value: float) -> None:
-        naming, description = naming_of(sample)
+    def _add_value(
+        self, sample: Sample, naming: ValueNaming, description: str, value: float
+    ) -> None:
         unit: str | None = None
         if naming.from_register:
             if not sample.unit:
@@ -132,21 +162,24 @@ class _Values:
             unit = sample.unit
         elif naming.fixed_unit is not None:
             unit = naming.fixed_unit
+        entry_label, entry = naming.entry if naming.entry is not None else (None, None)
         family = self._values.get(naming.family)
         if family is None:
-            family = self._values[naming.family] = _ValueFamily(description)
-        if sample.device in family.devices:
+            family = self._values[naming.family] = _ValueFamily(description, entry_label)
+        if (sample.device, entry) in family.keys:
             # Two points of one device named into one family (``x`` in s next to a
             # dimensionless ``x_seconds``): no profile has such a pair; keep the first.
             _LOGGER.debug("%s: %s also maps to %s; left out", sample.device, sample.point, naming)
             return
-        family.devices.add(sample.device)
-        family.rows.append((sample, unit, value))
+        family.keys.add((sample.device, entry))
+        family.rows.append((sample, entry, unit, value))
         family.has_unit |= unit is not None
 
     def families(self) -> Iterator[Metric]:
         """One gauge per value family (label names fixed per family), then the rest."""
         labelled = labelled_families()
+        if self._legacy:
+            labelled |= legacy_labelled_families()
         for name in sorted(self._values):
             family = self._values[name]
             yield _value_family(name, family, with_unit=family.has_unit or name in labelled)
@@ -173,7 +206,6 @@ class _Values:
 _FAULT_LABELS: Final = (*POINT_LABELS, "fault")
 _FLAG_LABELS: Final = (*POINT_LABELS, "flag")
 _ENUM_LABELS: Final = (*POINT_LABELS, "label", "code")
-_VALUE_UNIT_LABELS: Final = (*VALUE_LABELS, "unit")
 
 
 def _point(sample: Sample) -> tuple[str, str, str, str]:
@@ -202,21 +234,27 @@ def _enum_samples(sample: _Row) -> Iterator[PromSample]:
 
 def _value_family(name: str, family: _ValueFamily, *, with_unit: bool) -> Metric:
     """One value family; its samples made when read."""
+    names = (*VALUE_LABELS, *(() if family.entry_label is None else (family.entry_label,)))
+    if with_unit:
+        names = (*names, "unit")
 
-    def make(row: tuple[Sample, str | None, float]) -> Iterator[PromSample]:
-        sample, unit, value = row
-        key = (sample.bus, sample.device, sample.profile)
+    def make(row: _ValueRow) -> Iterator[PromSample]:
+        sample, entry, unit, value = row
+        values: tuple[str, ...] = (sample.bus, sample.device, sample.profile)
+        if entry is not None:
+            values = (*values, entry)
         if with_unit:
-            yield PromSample(name, _labels(_VALUE_UNIT_LABELS, (*key, unit or "")), value)
-        else:
-            yield PromSample(name, _labels(VALUE_LABELS, key), value)
+            values = (*values, unit or "")
+        yield PromSample(name, _labels(names, values), value)
 
     return lazy_gauge(name, family.documentation, family.rows, make)
 
 
-def _ages(snapshot: GatewayState, now: float) -> Metric:
+def _ages(snapshot: GatewayState, now: float, selection: Selection) -> Metric:
     def make(item: tuple[tuple[str, str, str], Sample]) -> Iterator[PromSample]:
         (bus, device, point), sample = item
+        if not _exported(sample, selection):
+            return
         info = snapshot.devices.get((bus, device))
         if info is not None and point in info.intervals and info.intervals[point] is None:
             return  # identity, read once per connection: its age says nothing

@@ -159,6 +159,10 @@ class Catalogue:
     """The edge node's metrics: its devices' in config order."""
 
     devices: dict[str, DeviceMetrics] = field(default_factory=dict)
+    # The first alias no metric of the node has had: a device a reload adds starts there.
+    # Aliases of devices a reload removed are not given again while the node lives: a host
+    # may still hold them (Sparkplug 3.0: an alias names one metric of the Edge Node).
+    next_alias: int = FIRST_DEVICE_ALIAS
 
     @classmethod
     def build(
@@ -169,17 +173,19 @@ class Catalogue:
         deadbands: Mapping[str, Mapping[str, float]] | None = None,
         groups: Collection[str] = DEFAULT_GROUPS,
         device_groups: Mapping[str, Collection[str]] | None = None,
+        first_alias: int = FIRST_DEVICE_ALIAS,
     ) -> Catalogue:
         """The metrics of ``(device, profile, names of the points it polls)``, in order.
 
         ``deadband`` applies to every Float metric without one of its own in ``deadbands``
         (device -> point -> deadband). Only points of ``groups`` (a device's own in
         ``device_groups``) are metrics; ``care`` among them adds the care report's.
+        Aliases are numbered from ``first_alias`` (a reload's devices: after the node's).
         """
         deadbands = deadbands or {}
         device_groups = device_groups or {}
         catalogue = cls()
-        alias = FIRST_DEVICE_ALIAS
+        alias = first_alias
         for name, profile, polled in devices:
             own = deadbands.get(name, {})
             wanted = {str(g) for g in device_groups.get(name, groups)}
@@ -240,6 +246,7 @@ class Catalogue:
             alias += 1
             metrics.add(metrics.result)
             catalogue.devices[name] = metrics
+        catalogue.next_alias = alias
         return catalogue
 
 

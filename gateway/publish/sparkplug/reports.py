@@ -242,6 +242,20 @@ class Reporter:
         self.born.discard(device)
         return self._message(self.topics.device("DDEATH", device), payloads.new_payload(now_ms))
 
+    def forget(self, device: str, now_ms: int) -> Message | None:
+        """A device a reload removed or changed: its DDEATH if it was born; nothing kept."""
+        message = self.ddeath(device, now_ms)
+        self.dead.discard(device)
+        self._last.pop(device, None)
+        self._units.pop(device, None)
+        return message
+
+    def track(self, devices: Iterable[str]) -> None:
+        """Devices a reload added to the catalogue: born at their first answer, as at a start."""
+        for device in devices:
+            self._last[device] = {}
+            self._units[device] = {}
+
     def alive(self, device: str) -> None:
         """The device is online again: its next cycle with an answer may birth it."""
         self.dead.discard(device)

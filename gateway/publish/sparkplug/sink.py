@@ -73,6 +73,8 @@ class SparkplugSink:
             care=state.care if state is not None else None,
         )
         store = MessageStore(state_dir / QUEUE_FILE, max_messages=settings.queue_max)
+        if state is not None:
+            state.storage.track(store.health)
         self.session = SparkplugSession(
             broker,
             settings,
@@ -102,6 +104,42 @@ class SparkplugSink:
         message = self.reporter.ddeath(event.device, _now_ms())
         if message is not None:
             self.session.enqueue([message])
+
+    def change_devices(
+        self, devices: Iterable[tuple[str, Profile, Collection[str]]], *, changed: Collection[str]
+    ) -> None:
+        """A reload's devices, the node's own settings the same: no new NBIRTH.
+
+        A device that went or ``changed`` gets its DDEATH (if it was born) and its metrics
+        go; one added or changed gets metrics with aliases the node never gave, and its
+        DBIRTH once it answers, as at a start (Sparkplug 3.0: a DBIRTH may follow the
+        NBIRTH at any time; a device's metrics change only with a new DBIRTH).
+        """
+        wanted = {name: (name, profile, polled) for name, profile, polled in devices}
+        now = _now_ms()
+        deaths = []
+        for name in list(self.catalogue.devices):
+            if name not in wanted or name in changed:
+                message = self.reporter.forget(name, now)
+                if message is not None:
+                    deaths.append(message)
+                del self.catalogue.devices[name]
+        fresh = [spec for name, spec in wanted.items() if name not in self.catalogue.devices]
+        settings = self.settings
+        added = Catalogue.build(
+            fresh,
+            deadband=settings.deadband,
+            deadbands=settings.deadbands,
+            groups=settings.groups,
+            device_groups=settings.device_groups,
+            first_alias=self.catalogue.next_alias,
+        )
+        merged = {**self.catalogue.devices, **added.devices}
+        self.catalogue.devices = {name: merged[name] for name in wanted}  # the config's order
+        self.catalogue.next_alias = added.next_alias
+        self.reporter.track(added.devices)
+        if deaths:
+            self.session.enqueue(deaths)
 
     async def run(self) -> None:
         """Keep the session, until cancelled (see :meth:`SparkplugSession.run`)."""

@@ -241,11 +241,29 @@ function deviceCard(device) {
   );
 }
 
+// The host clock: until it is synchronised (or trusted by the config), set-clock and every
+// calibration, which write a date into the sensor, are refused; the page says so first.
+// A list (empty or one note), to spread among the children.
+function clockNote(clock) {
+  if (!clock || clock.synchronized) return [];
+  if (clock.trusted) {
+    return [el("p", { class: "meta", id: "clock-note", text: "The host clock is not synchronised; dates are written into sensors as it stands (clock.trust_unsynchronised)." })];
+  }
+  return [
+    el(
+      "p",
+      { class: "warning", role: "alert", id: "clock-note" },
+      `The host clock is not synchronised: ${clock.problem}. Calibrations and setting a sensor's clock write a date, so they are refused until it is. To fix: ${clock.fix}.`,
+    ),
+  ];
+}
+
 function livePage() {
   const body = el("div", { id: "live" });
   const render = (state) => {
     const paused = state.lines.filter((l) => l.paused);
     body.replaceChildren(
+      ...clockNote(state.clock),
       ...paused.map((l) => el("p", { class: "warning", role: "alert" }, `Line ${l.name}: polling is paused (${l.paused}); its values are not being read.`)),
       el("div", { class: "grid" }, state.devices.map(deviceCard)),
     );
@@ -409,6 +427,7 @@ function healthPage() {
         ),
       ),
       el("p", { class: "meta", text: `MQTT: ${state.mqtt.enabled ? (state.mqtt.connected ? "connected" : "not connected") : "off"} · queue ${state.mqtt.queue_depth}` }),
+      ...clockNote(state.clock),
     );
   };
   show(el("h1", { text: "Bus health" }), body);
@@ -542,13 +561,16 @@ async function devicePage(name) {
 
 // --- guided calibration ----------------------------------------------------------------------
 
+// A field of the calibration catalogue (its default, bounds and choices are the server's,
+// the same as `gateway calibrate`'s); an optional choice without a default may stay blank.
 function field(f) {
   if (f.kind === "choice") {
+    const choices = !f.required && f.default === null ? ["", ...f.choices] : f.choices;
     return el(
       "label",
       {},
       f.label,
-      el("select", { name: f.name, id: `f-${f.name}` }, f.choices.map((c) => el("option", { value: c, selected: c === f.default, text: c || "(as the sensor holds it)" }))),
+      el("select", { name: f.name, id: `f-${f.name}` }, choices.map((c) => el("option", { value: c, selected: c === (f.default ?? ""), text: c || "(as the sensor holds it)" }))),
     );
   }
   return el(
@@ -560,6 +582,8 @@ function field(f) {
       id: `f-${f.name}`,
       type: "number",
       step: f.kind === "integer" ? "1" : "any",
+      min: f.min,
+      max: f.max,
       inputmode: "decimal",
       value: f.default === null ? "" : f.default,
       required: f.required,
