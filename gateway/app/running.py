@@ -48,6 +48,7 @@ from gateway.config.changes import ConfigChanges
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.errors import ConfigError, GatewayError
 from gateway.profiles import get_profile
+from gateway.publish.host_clock import trust_from_environment
 from gateway.publish.state import GatewayState
 
 if TYPE_CHECKING:
@@ -79,7 +80,7 @@ class RunningGateway:
         """Build the parts of ``config``; :meth:`start` starts them. ``sinks``: besides MQTT's."""
         self.config = config
         self.state = state
-        state.clock.trust_unsynchronised = config.clock.trust_unsynchronised
+        state.clock.trust_unsynchronised = _trusted(config)
         self.extra_sinks = list(sinks)
         self.state_dir = state_directory(config)
         self.ledger = FlashLedger(self.state_dir / LEDGER_FILE)
@@ -263,7 +264,7 @@ class RunningGateway:
         going = {*changes.buses_removed, *changes.buses_changed}
         await self._stop_buses(going, old, new)
         self.config = new
-        self.state.clock.trust_unsynchronised = new.clock.trust_unsynchronised
+        self.state.clock.trust_unsynchronised = _trusted(new)
         self.state.writes.flash_budgets = flash_budgets(new)
         await self._stop_sections(changes, old)
         coming = self._build_buses({*changes.buses_added, *changes.buses_changed})
@@ -446,6 +447,11 @@ _TASK_NAMES: Final = {
     "feeds": "feeds",
     "web": "web",
 }
+
+
+def _trusted(config: GatewayConfig) -> bool:
+    """``clock.trust_unsynchronised``; false in the file leaves the environment's word."""
+    return config.clock.trust_unsynchronised or trust_from_environment()
 
 
 def _sign_in(config: GatewayConfig) -> tuple[object, ...]:

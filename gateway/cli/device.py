@@ -214,7 +214,7 @@ def device_spec(options: DeviceOptions) -> DeviceSpec:
             state_dir=state_directory(settings),
             echo=bus.echo,
             tcp=bus.tcp,
-            trust_unsynchronised=settings.clock.trust_unsynchronised,
+            trust_unsynchronised=settings.clock.trust_unsynchronised or None,
         )
     if options.port is None or options.address is None or options.profile is None:
         raise ConfigError("give --port, --address and --profile (or --config with --device)")
