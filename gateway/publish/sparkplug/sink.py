@@ -18,7 +18,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
 from gateway.publish.sparkplug import payloads
-from gateway.publish.sparkplug.catalogue import Catalogue
+from gateway.publish.sparkplug.catalogue import FIRST_DEVICE_ALIAS, Catalogue
 from gateway.publish.sparkplug.reports import Reported, Reporter
 from gateway.publish.sparkplug.session import SparkplugSession
 from gateway.publish.sparkplug.topics import SparkplugTopics
@@ -59,13 +59,7 @@ class SparkplugSink:
         self.state = state
         edge = settings.edge_node_id or socket.gethostname().split(".")[0]
         self.topics = SparkplugTopics(settings.group_id, edge, settings.primary_host_id)
-        self.catalogue = Catalogue.build(
-            devices,
-            deadband=settings.deadband,
-            deadbands=settings.deadbands,
-            groups=settings.groups,
-            device_groups=settings.device_groups,
-        )
+        self.catalogue = _catalogue(settings, devices)
         self.reporter = Reporter(
             self.catalogue,
             self.topics,
@@ -125,15 +119,7 @@ class SparkplugSink:
                     deaths.append(message)
                 del self.catalogue.devices[name]
         fresh = [spec for name, spec in wanted.items() if name not in self.catalogue.devices]
-        settings = self.settings
-        added = Catalogue.build(
-            fresh,
-            deadband=settings.deadband,
-            deadbands=settings.deadbands,
-            groups=settings.groups,
-            device_groups=settings.device_groups,
-            first_alias=self.catalogue.next_alias,
-        )
+        added = _catalogue(self.settings, fresh, first_alias=self.catalogue.next_alias)
         merged = {**self.catalogue.devices, **added.devices}
         self.catalogue.devices = {name: merged[name] for name in wanted}  # the config's order
         self.catalogue.next_alias = added.next_alias
@@ -199,6 +185,23 @@ class SparkplugSink:
             self.session.enqueue(
                 [self.reporter.ddata(device, changed, historical=not live, now_ms=now)]
             )
+
+
+def _catalogue(
+    settings: SparkplugConfig,
+    devices: Iterable[tuple[str, Profile, Collection[str]]],
+    *,
+    first_alias: int = FIRST_DEVICE_ALIAS,
+) -> Catalogue:
+    """The metrics of ``devices`` under the node's groups and deadbands."""
+    return Catalogue.build(
+        devices,
+        deadband=settings.deadband,
+        deadbands=settings.deadbands,
+        groups=settings.groups,
+        device_groups=settings.device_groups,
+        first_alias=first_alias,
+    )
 
 
 def _now_ms() -> int:
