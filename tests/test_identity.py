@@ -21,7 +21,7 @@ from gateway.config import checks as config_checks
 from gateway.errors import CommandRejectedError
 from gateway.line.samples import Quality
 from gateway.profiles import builtin_profiles, get_profile
-from gateway.profiles.identity import PinnedSerial, pinned_serial
+from gateway.profiles.serial_number import PinnedSerial, pinned_serial
 from gateway.wire import codec
 from tests.rigs import rig, target
 
@@ -170,7 +170,7 @@ def pinned(name: str, profile_id: str, address: int, serial: str, **options: Any
 
 
 def identity_records(caplog: pytest.LogCaptureFixture) -> list[logging.LogRecord]:
-    return [r for r in caplog.records if r.name == "gateway.line.identity"]
+    return [r for r in caplog.records if r.name == "gateway.line.identity_guard"]
 
 
 async def test_the_pinned_serial_answering_publishes_as_before(tmp_path: Path) -> None:
@@ -194,7 +194,7 @@ async def test_the_pinned_serial_answering_publishes_as_before(tmp_path: Path) -
 async def test_another_serial_publishes_nothing_until_the_pinned_one_answers(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.DEBUG, logger="gateway.line.identity")
+    caplog.set_level(logging.DEBUG, logger="gateway.line.identity_guard")
     devices = [
         {
             "profile": S10,

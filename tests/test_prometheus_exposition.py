@@ -11,7 +11,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 from prometheus_client.registry import Collector
 
 from gateway.line.samples import Quality, Sample
-from gateway.publish.prometheus.server import PIECE_SAMPLES, exposition
+from gateway.publish.prometheus.endpoint import PIECE_SAMPLES, exposition
 from gateway.publish.prometheus.values import value_families
 from gateway.publish.state import DeviceInfo, GatewayState
 from gateway.wire.codec import BitfieldValue, EnumValue

@@ -21,6 +21,7 @@ import urllib.error
 import urllib.request
 from typing import TYPE_CHECKING
 
+import aiohttp
 import pytest
 
 from gateway.app.reload import ReloadRequests
@@ -226,7 +227,7 @@ def test_a_file_with_a_problem_is_refused_and_the_running_config_stays(gateway: 
     )
 
 
-async def test_only_the_changed_bus_is_rebuilt_and_a_removed_device_leaves_no_trace(
+async def test_an_unchanged_bus_runs_on_and_a_removed_device_leaves_no_trace(
     gateway: Running, broker: Broker
 ) -> None:
     # The retained topics of the device to be removed exist before, its discovery too.
@@ -237,7 +238,12 @@ async def test_only_the_changed_bus_is_rebuilt_and_a_removed_device_leaves_no_tr
     assert any("_dioxide" in m.topic and m.payload for m in announced.messages)
     before = scrape(gateway.metrics)
     missed_before = sample(before, "gateway_missed_deadlines_total", device="oxygen")
-    gateway.write(CL2)  # the M3C goes; line1 is as it was
+    # The M3C goes; the tecLine no longer polls its temperature; line1 is as it was.
+    gateway.write(
+        CL2.replace(
+            "poll_interval: 0.5}", "poll_interval: 0.5, points: {temperature: {enabled: false}}}"
+        )
+    )
     command = [sys.executable, "-m", "gateway", "reload", "--config", str(gateway.config)]
     result = await asyncio.to_thread(
         subprocess.run, command, capture_output=True, text=True, timeout=60, check=False
@@ -249,8 +255,8 @@ async def test_only_the_changed_bus_is_rebuilt_and_a_removed_device_leaves_no_tr
     # line1 kept its worker and its open port: its counters run on, no deadline was missed.
     assert requests_of(after, "line1") >= requests_of(before, "line1")
     assert sample(after, "gateway_missed_deadlines_total", device="oxygen") == missed_before
-    # line2 was rebuilt (a device went): its counters started again.
-    assert requests_of(after, "line2") < requests_of(before, "line2")
+    # line2 lost a device: the same worker and port go on without it, counters running on.
+    assert requests_of(after, "line2") >= requests_of(before, "line2")
     assert sample(after, "gateway_device_online", device="dioxide") is None
     await asyncio.to_thread(wait_until, lambda: gateway.online("chlorine"))
     # The removed device's retained messages are gone: a new subscriber gets none.
@@ -262,6 +268,14 @@ async def test_only_the_changed_bus_is_rebuilt_and_a_removed_device_leaves_no_tr
         await asyncio.sleep(1.0)
     assert [m.topic for m in still.messages if "_dioxide" in m.topic and m.payload] == []
     assert any("_chlorine" in m.topic and m.payload for m in still.messages)  # it stays
+    # The tecLine's temperature: neither its entity nor its retained value is left.
+    entities = [m.topic for m in still.messages if "_chlorine" in m.topic and m.payload]
+    assert not [t for t in entities if "temperature" in t], entities
+    assert any("concentration" in t for t in entities), entities  # announced anew
+    async with recording(broker.port, "gw/chlorine/#", name="tecline") as tecline:
+        await tecline.wait_for("gw/chlorine/concentration")
+        await asyncio.sleep(1.0)
+    assert [m for m in tecline.messages if m.topic == "gw/chlorine/temperature" and m.payload] == []
 
 
 def test_gateway_reload_of_a_file_with_a_problem_exits_2_and_the_gateway_says_so_too(
@@ -386,3 +400,111 @@ async def test_sparkplug_hears_only_the_devices_that_changed(
     assert reborn
     assert not reborn & ever, sorted(reborn & ever)[:5]
     assert "Traceback" not in stderr, stderr
+
+
+PASSWORD = "correct horse battery"  # noqa: S105 - the test gateway's page
+
+
+def page_section(port: int, **more: object) -> str:
+    keys = "".join(f", {key}: {value}" for key, value in more.items())
+    return f'web: {{enabled: true, port: {port}, password: "{PASSWORD}"{keys}}}\n'
+
+
+async def calibration(
+    http: aiohttp.ClientSession, url: str, run_id: str, *, past: set[str]
+) -> dict[str, object]:
+    """The run as the page reads it, once its phase is none of ``past``."""
+    async with asyncio.timeout(30):
+        while True:
+            async with http.get(f"{url}/api/calibrations/{run_id}") as response:
+                run: dict[str, object] = await response.json()
+            if run["phase"] not in past:
+                return run
+            await asyncio.sleep(0.2)
+
+
+async def start_slope(http: aiohttp.ClientSession, url: str) -> tuple[dict[str, str], str]:
+    """Sign in and start the tecLine's slope calibration: the session's headers, the run."""
+    login = {"name": "ana", "password": PASSWORD}
+    async with http.post(f"{url}/api/login", json=login) as response:
+        assert response.status == 200, await response.text()
+        headers = {"X-CSRF-Token": (await response.json())["csrf"]}
+    start = {"device": "chlorine", "procedure": "slope", "inputs": {"reference": 0.5, "samples": 1}}
+    async with http.post(f"{url}/api/calibrations", json=start, headers=headers) as response:
+        assert response.status == 201, await response.text()
+        return headers, str((await response.json())["id"])
+
+
+def edit_line2(running: Running, web: int, edit: str) -> None:
+    """``devices``: the other sensor of line2 polled every second, the page's section changed;
+    ``line``: line2's own settings (the simulator's line does not echo: it says so now)."""
+    if edit == "devices":
+        running.extra = page_section(web, confirm_minutes=9)
+        running.write(CL2 + M3C.replace("poll_interval: 0.5", "poll_interval: 1"))
+    else:
+        text = running.config.read_text(encoding="utf-8")
+        edited = re.sub(r"(name: line2, [^}]*)}", r"\1, echo: off}", text)
+        running.config.write_text(edited, encoding="utf-8")
+
+
+@pytest.mark.parametrize("edit", ["devices", "line"])
+async def test_a_calibration_under_way_goes_on_through_a_reload_of_its_bus(
+    tmp_path: Path, lines: tuple[Path, Path], broker: Broker, edit: str
+) -> None:
+    """The tecLine's slope calibration waits at its question through a reload of its bus;
+    answered after it, it writes.
+
+    ``devices``: the other sensor of its bus is re-planned and the page's section changes:
+    the bus keeps its worker and its port (its requests count on), the page its sign-in
+    and the run. ``line``: the bus's own settings change: polling pauses, its port opens
+    anew, and the run goes on all the same. The tecLine misses no deadline either way.
+    """
+    web = free_port()
+    running = Running(tmp_path, *lines, broker.port)
+    running.extra = page_section(web)
+    running.write(CL2 + M3C)
+    running.start()
+    url = f"http://127.0.0.1:{web}"
+    try:
+        await asyncio.to_thread(wait_until, lambda: running.online("chlorine", "dioxide"), 30)
+        async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as http:
+            headers, run_id = await start_slope(http, url)
+            run = await calibration(http, url, run_id, past={"running"})
+            assert run["phase"] == "confirm", run
+            before = scrape(running.metrics)
+            missed = sample(before, "gateway_missed_deadlines_total", device="chlorine")
+
+            edit_line2(running, web, edit)
+            assert running.process is not None
+            running.process.send_signal(signal.SIGHUP)
+            await asyncio.to_thread(
+                wait_until,
+                lambda: healthz(running.metrics)["config"]["reloads"] == 1,  # type: ignore[index]
+            )
+            after = scrape(running.metrics)
+            assert sample(after, "gateway_config_last_reload_successful") == 1.0
+            if edit == "devices":
+                assert requests_of(after, "line2") >= requests_of(before, "line2")
+            assert sample(after, "gateway_missed_deadlines_total", device="chlorine") == missed
+
+            # The rebuilt page knows the session and the run, still at its question.
+            run = await calibration(http, url, run_id, past=set())
+            assert run["phase"] == "confirm", run
+            assert run["mine"] is True
+            answer = f"{url}/api/calibrations/{run_id}/answer"
+            async with http.post(answer, json={"confirm": True}, headers=headers) as r:
+                assert r.status == 200, await r.text()
+            run = await calibration(http, url, run_id, past={"confirm", "writing", "running"})
+        assert run["phase"] == "done", run
+        outcome = run["outcome"]
+        assert isinstance(outcome, dict)
+        assert outcome["status"] == "calibrated", outcome
+        written = [w["point"] for w in outcome["writes"]]
+        assert written == ["x_zero", "x_span", "calibration_stamp"], written
+        await asyncio.to_thread(wait_until, lambda: running.online("chlorine", "dioxide"))
+    finally:
+        stderr = running.stop()
+    assert "Traceback" not in stderr, stderr
+    paused = "line2: polling paused: its settings changed" in stderr
+    assert paused is (edit == "line"), stderr[-3000:]
+    assert "line1: polling paused" not in stderr

@@ -20,7 +20,7 @@ from typing import Any
 import pytest
 
 from gateway.config.shared_bus import DEFAULT_RATE_LIMIT
-from gateway.control.shared_bus import server as server_module
+from gateway.control.shared_bus import listener
 from gateway.publish.prometheus.shared_bus import shared_bus_families
 from gateway.wire import frames
 from tests.test_shared_bus import H10, TECLINE, Plant, _mbap, _raw, plant
@@ -212,7 +212,7 @@ async def test_a_client_that_reads_no_answers_is_reset_and_its_socket_is_gone(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # The client's wait shrunk from 10 s: how long is not the point, that the socket goes is.
-    monkeypatch.setattr(server_module, "DRAIN_TIMEOUT_S", 1.0)
+    monkeypatch.setattr(listener, "DRAIN_TIMEOUT_S", 1.0)
     shared = (
         "shared_bus:\n"
         "  listen: [{host: 127.0.0.1, port: 0}]\n"

@@ -25,7 +25,7 @@ from gateway.line.foreign import SharePolicy
 from gateway.line.port_names import SystemRoots, port_name_advice
 from gateway.line.schedule import spread_phase
 from gateway.line.worker import BusWorker
-from gateway.profiles.identity import pinned_serial
+from gateway.profiles.serial_number import pinned_serial
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 
 # What only an optional feature needs (MQTT and its client, Prometheus and its server, the
@@ -45,12 +45,14 @@ if TYPE_CHECKING:
     from gateway.control.feeds import FeedEngine
     from gateway.control.flash import FlashLedger
     from gateway.control.shared_bus import SharedBusServer
+    from gateway.line.boundary import Line
     from gateway.line.samples import Sink
     from gateway.profiles import Profile
     from gateway.publish.host_clock import HostClock
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.sparkplug import SparkplugSink
     from gateway.web import LineScans, Sessions, WebServer
+    from gateway.web.calibration import Calibrations
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -100,26 +102,10 @@ def build_worker(
     config: GatewayConfig, bus: BusConfig, sinks: Sequence[Sink], state: GatewayState | None
 ) -> BusWorker:
     """The worker of one configured bus, with its devices; registered in ``state`` if given."""
-    if (advice := port_name_advice(bus.port, SystemRoots())) is not None:
-        _LOGGER.warning("%s: %s", bus.name, advice)  # as check-config warns
-    b = next(i for i, each in enumerate(config.buses) if each.name == bus.name)
-    on_bus = config.devices_on(bus.name)
-    # Spread across the interval and across buses: not 256 cycles due at one instant.
-    phases = (
-        spread_phase(device=j, devices=len(on_bus), bus=b, buses=len(config.buses))
-        for j in range(len(on_bus))
-    )
-    targets = [device_target(d, bus, phase=p) for d, p in zip(on_bus, phases, strict=True)]
+    targets = bus_targets(config, bus)
     worker = BusWorker(
         name=bus.name,
-        line=build_line(
-            port=bus.port,
-            line=bus.line,
-            tcp=bus.tcp,
-            bus=bus.name,
-            echo=bus.echo,
-            options=port_options(bus, config.shared_bus),
-        ),
+        line=bus_line(config, bus),
         devices=targets,
         sinks=[StateSink(state), *sinks] if state is not None else sinks,
         reconnect_max_s=bus.reconnect_max_s,
@@ -127,22 +113,60 @@ def build_worker(
     if state is not None:
         state.add_line(bus.name, worker.line.stats, worker.health)
         for target in targets:
-            state.add_device(
-                DeviceInfo(
-                    bus=bus.name,
-                    name=target.name,
-                    profile=target.profile.id,
-                    address=target.address,
-                    intervals=target.intervals,  # shared, not copied: read-only
-                )
-            )
+            register_device(state, bus.name, target)
         care_for(config, state, worker)
     return worker
 
 
-def care_for(config: GatewayConfig, state: GatewayState, worker: BusWorker) -> None:
-    """Sensor care's rules for the devices of ``worker``, from the config's ``care:`` layers."""
+def bus_targets(config: GatewayConfig, bus: BusConfig) -> list[DeviceTarget]:
+    """What the worker of ``bus`` polls: its devices, each at its share of the interval."""
+    b = next(i for i, each in enumerate(config.buses) if each.name == bus.name)
+    on_bus = config.devices_on(bus.name)
+    # Spread across the interval and across buses: not 256 cycles due at one instant.
+    phases = (
+        spread_phase(device=j, devices=len(on_bus), bus=b, buses=len(config.buses))
+        for j in range(len(on_bus))
+    )
+    return [device_target(d, bus, phase=p) for d, p in zip(on_bus, phases, strict=True)]
+
+
+def bus_line(config: GatewayConfig, bus: BusConfig) -> Line:
+    """The line of a configured bus, not open yet."""
+    if (advice := port_name_advice(bus.port, SystemRoots())) is not None:
+        _LOGGER.warning("%s: %s", bus.name, advice)  # as check-config warns
+    return build_line(
+        port=bus.port,
+        line=bus.line,
+        tcp=bus.tcp,
+        bus=bus.name,
+        echo=bus.echo,
+        options=port_options(bus, config.shared_bus),
+    )
+
+
+def register_device(state: GatewayState, bus: str, target: DeviceTarget) -> None:
+    """A device of a running bus, as the state shows it (the metrics, the page, MQTT)."""
+    state.add_device(
+        DeviceInfo(
+            bus=bus,
+            name=target.name,
+            profile=target.profile.id,
+            address=target.address,
+            intervals=target.intervals,  # shared, not copied: read-only
+        )
+    )
+
+
+def care_for(
+    config: GatewayConfig,
+    state: GatewayState,
+    worker: BusWorker,
+    devices: Collection[str] | None = None,
+) -> None:
+    """Sensor care's rules for the devices of ``worker`` (or those of them named)."""
     for device in config.devices_on(worker.name):
+        if devices is not None and device.name not in devices:
+            continue
         target = worker.devices[device.name].target
         state.care.add_device(
             bus=worker.name,
@@ -320,8 +344,12 @@ def web_page(
     writers: Mapping[str, SafeWriter],
     *,
     sessions: Sessions | None = None,
+    calibrations: Calibrations | None = None,
 ) -> WebServer | None:
-    """The commissioning and calibration page, if ``web.enabled`` (``sessions``: kept)."""
+    """The commissioning and calibration page, if ``web.enabled``.
+
+    ``sessions`` and ``calibrations``: a former page's, kept by a reload.
+    """
     if not config.web.enabled:
         return None
     # Here, not at the top: without the page, `gateway run` holds neither aiohttp nor the
@@ -330,7 +358,9 @@ def web_page(
 
     scans = LineScans(list(workers.values()), {})
     retarget_scans(config, scans, workers)
-    return WebServer(config.web, state, writers, scans=scans, sessions=sessions)
+    return WebServer(
+        config.web, state, writers, scans=scans, sessions=sessions, calibrations=calibrations
+    )
 
 
 def retarget_scans(

@@ -21,9 +21,13 @@ from typing import TYPE_CHECKING, Any, Final, Protocol
 from gateway.app.build import (
     build_worker,
     build_writer,
+    bus_line,
+    bus_targets,
     care_for,
+    device_target,
     flash_budgets,
     publish_settings,
+    register_device,
     retarget_scans,
     retarget_shared,
     shared_bus_server,
@@ -55,7 +59,7 @@ if TYPE_CHECKING:
     from collections.abc import Coroutine, Sequence
     from pathlib import Path
 
-    from gateway.config import GatewayConfig
+    from gateway.config import BusConfig, DeviceConfig, GatewayConfig
     from gateway.control.command_router import CommandRouter
     from gateway.control.feeds import FeedEngine
     from gateway.control.shared_bus import SharedBusServer
@@ -66,6 +70,7 @@ if TYPE_CHECKING:
     from gateway.publish.prometheus import MetricsServer
     from gateway.publish.sparkplug import SparkplugSink
     from gateway.web import Sessions, WebServer
+    from gateway.web.calibration import Calibrations
 
 _LOGGER = logging.getLogger(__name__)
 SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports
@@ -118,7 +123,9 @@ class RunningGateway:
         self.metrics: MetricsServer | None = None
         self._bus_tasks: dict[str, asyncio.Task[None]] = {}
         self._tasks: dict[str, asyncio.Task[None]] = {}  # the sinks', the feeds', the page's
-        self._kept_sessions: Sessions | None = None  # a reload's, while the page is rebuilt
+        # A reload's, while the page is rebuilt.
+        self._kept_sessions: Sessions | None = None
+        self._kept_calibrations: Calibrations | None = None
 
     def _sinks(self) -> list[Sink]:
         """What every bus hands its samples to (the state's sink is each worker's own)."""
@@ -245,10 +252,13 @@ class RunningGateway:
     async def apply(self, new: GatewayConfig) -> ConfigChanges:
         """Change the running parts to ``new`` (valid already), and only what differs.
 
-        The buses that go or change stop first (the devices that go are said offline and
-        their retained topics cleared), and the parts whose section changed; then the new
-        and changed buses are built, the parts that reach devices (write paths, feeds,
-        commands, the shared bus, the page's scans, Sparkplug) pointed at them, and started.
+        The buses that go stop first, and those that changed change in their running
+        workers (a new line if their settings changed; devices added, re-planned and
+        removed between two transactions, so what runs on the others, a calibration
+        among it, goes on). The devices that go are said offline and their retained
+        topics cleared. Then the parts whose section changed stop, the new buses are
+        built, the parts that reach devices (write paths, feeds, commands, the shared
+        bus, the page's scans, Sparkplug) are pointed at them, and all are started.
         """
         old = self.config
         changes = ConfigChanges.between(old, new)
@@ -261,13 +271,12 @@ class RunningGateway:
             )
         if "logging" in changes.sections:
             configure_logging(new.logging)
-        going = {*changes.buses_removed, *changes.buses_changed}
-        await self._stop_buses(going, old, new)
         self.config = new
         self.state.clock.trust_unsynchronised = _trusted(new)
         self.state.writes.flash_budgets = flash_budgets(new)
+        rebuilt = await self._change_buses(changes, old)
         await self._stop_sections(changes, old)
-        coming = self._build_buses({*changes.buses_added, *changes.buses_changed})
+        coming = self._build_buses({*changes.buses_added, *rebuilt})
         if "care" in changes.sections:
             for name, worker in self.workers.items():
                 if name not in coming:
@@ -278,14 +287,104 @@ class RunningGateway:
             self._bus_tasks[name] = task
         return changes
 
-    async def _stop_buses(self, going: set[str], old: GatewayConfig, new: GatewayConfig) -> None:
-        """Stop the buses that go or change; forget their devices, and the devices that go."""
-        for name in going:
+    async def _change_buses(self, changes: ConfigChanges, old: GatewayConfig) -> set[str]:
+        """Stop the buses that go, change those that changed in their running workers.
+
+        Then forget the devices that went (after their worker stopped polling them, so
+        that no late sample brings their retained topics back) and those now on another
+        bus or at another address or of another profile; and show the devices that
+        changed or came. A bus whose worker cannot change (its line is paused for a scan)
+        is stopped and built anew, its name returned.
+        """
+        new = self.config
+        rebuilt: set[str] = set()
+        for name in changes.buses_removed:
             await self._stop_bus(name)
-        staying = {device.name for device in new.devices}
+        for name in changes.buses_changed:
+            if not await self._change_bus(name, old):
+                await self._stop_bus(name)
+                rebuilt.add(name)
+        self._announce_changed(changes, old)
+        stopped = {*changes.buses_removed, *rebuilt}
+        after = {device.name: device for device in new.devices}
         for device in old.devices:
-            if device.bus in going or device.name not in staying:
-                self._forget_device(device.bus, device.name, gone=device.name not in staying)
+            now = after.get(device.name)
+            if now is None:
+                self._forget_device(device.bus, device.name, gone=True)
+            elif device.bus in stopped or _another_sensor(device, now):
+                self._forget_device(device.bus, device.name, gone=False)
+        touched = {*changes.devices_changed, *changes.devices_added}
+        for device in new.devices:
+            if device.name not in touched or device.bus not in changes.buses_changed:
+                continue  # unchanged, or on a bus built anew (whose builder shows it)
+            if device.bus in rebuilt:
+                continue
+            worker = self.workers[device.bus]
+            register_device(self.state, device.bus, worker.devices[device.name].target)
+            care_for(new, self.state, worker, devices={device.name})
+            self.writers[device.name] = build_writer(device, worker, self.ledger, self.state.clock)
+        return rebuilt
+
+    def _announce_changed(self, changes: ConfigChanges, old: GatewayConfig) -> None:
+        """MQTT: each changed device announced anew at its next cycle, as it is polled now.
+
+        The points it no longer polls lose their retained values and their Home Assistant
+        entities; a device of another profile now loses all of the former's.
+        """
+        if self.mqtt is None:
+            return
+        after = {device.name: device for device in self.config.devices}
+        for device in old.devices:
+            info = self.state.devices.get((device.bus, device.name))
+            if device.name not in changes.devices_changed or info is None:
+                continue
+            now = after[device.name]
+            profile = get_profile(info.profile)
+            if now.profile != device.profile:
+                self.mqtt.forget(device.bus, device.name, profile, info.intervals)
+                continue
+            polled = device_target(now, self.config.bus(now.bus)).intervals
+            dropped = [point for point in info.intervals if point not in polled]
+            self.mqtt.replan(device.bus, device.name, profile, dropped)
+
+    async def _change_bus(self, name: str, old: GatewayConfig) -> bool:
+        """One bus changed in its running worker; what it polls and runs otherwise goes on.
+
+        A new line if its settings changed; the devices added, re-planned and removed.
+        False if its line is paused for a scan: nothing changed, the caller rebuilds it.
+        """
+        new = self.config
+        worker = self.workers[name]
+        bus = next(each for each in new.buses if each.name == name)
+        if _line_of(bus) != _line_of(next(each for each in old.buses if each.name == name)):
+            line = bus_line(new, bus)
+            if not await worker.use_line(line):
+                return False
+            self.state.remove_line(name)
+            self.state.add_line(name, line.stats, worker.health)
+        worker.reconnect_max_s = bus.reconnect_max_s
+        # A device the reload did not change keeps its target as it is (its phase among
+        # them: another device on the bus must not shift its slot); the worker tells a
+        # re-plan of the same sensor from another sensor.
+        unchanged = {
+            device.name
+            for device in old.devices_on(name)
+            if device in new.devices and device.bus == name
+        }
+        targets = [
+            worker.devices[target.name].target
+            if target.name in unchanged and target.name in worker.devices
+            else target
+            for target in bus_targets(new, bus)
+        ]
+        try:
+            async with asyncio.timeout(SHUTDOWN_S):
+                await worker.change_devices(targets)
+        except TimeoutError:
+            _LOGGER.warning(
+                "reload: %s takes its new devices after the transaction in flight", name
+            )
+        return True
 
     async def _stop_bus(self, name: str) -> None:
         """A bus removed or changed: its worker stops after the frame in flight, its port closes."""
@@ -336,12 +435,16 @@ class RunningGateway:
         if "shared_bus" in sections and self.shared is not None:
             await self.shared.close()
             self.shared = None
-        self._kept_sessions = None
+        self._kept_sessions = self._kept_calibrations = None
         if "web" in sections and self.page is not None:
+            # Signed-in operators stay signed in, and their calibrations under way go on
+            # (stopped before its task, whose end would otherwise stop them).
+            keep = _sign_in(old) == _sign_in(new)
+            await self.page.stop(keep_calibrations=keep)
             await self._stop_task("web")
-            await self.page.stop()
-            if _sign_in(old) == _sign_in(new):  # signed-in operators stay signed in
+            if keep:
                 self._kept_sessions = self.page.sessions
+                self._kept_calibrations = self.page.calibrations
             self.page = None
 
     async def _stop_mqtt(self, new: GatewayConfig) -> None:
@@ -399,7 +502,12 @@ class RunningGateway:
         """The page anew if its section changed (sessions kept), else its scans retargeted."""
         if "web" in changes.sections:
             self.page = web_page(
-                self.config, self.state, self.workers, self.writers, sessions=self._kept_sessions
+                self.config,
+                self.state,
+                self.workers,
+                self.writers,
+                sessions=self._kept_sessions,
+                calibrations=self._kept_calibrations,
             )
             if self.page is not None:
                 await self._run_page(self.page)
@@ -452,6 +560,20 @@ _TASK_NAMES: Final = {
 def _trusted(config: GatewayConfig) -> bool:
     """``clock.trust_unsynchronised``; false in the file leaves the environment's word."""
     return config.clock.trust_unsynchronised or trust_from_environment()
+
+
+def _line_of(bus: BusConfig) -> tuple[object, ...]:
+    """What a bus's line is built from: another value of any takes a new line."""
+    return (bus.port, bus.line, bus.echo, bus.rs485, bus.tcp)
+
+
+def _another_sensor(before: DeviceConfig, after: DeviceConfig) -> bool:
+    """Whether a device the reload kept by name is another sensor: moved, readdressed, other."""
+    return (
+        before.bus != after.bus
+        or before.address != after.address
+        or before.profile != after.profile
+    )
 
 
 def _sign_in(config: GatewayConfig) -> tuple[object, ...]:

@@ -26,13 +26,13 @@ from pydantic import (
     ValidationError,
 )
 
-from gateway.config.identity import check_serial_number
 from gateway.config.model import (
     BusConfig,
     DeviceConfig,
     FeedConfig,
     FeedSource,
 )
+from gateway.config.serial_pin import check_serial_number
 from gateway.profiles import Profile, builtin_profiles
 from gateway.profiles.model import Storage
 from gateway.wire.codec import NUMERIC_TYPES

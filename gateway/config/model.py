@@ -52,7 +52,7 @@ from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves 
 from gateway.config.shared_bus import SharedBusConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
-from gateway.profiles.identity import EMPTY_SERIAL
+from gateway.profiles.serial_number import EMPTY_SERIAL
 from gateway.wire.codec import WordOrder  # noqa: TC001 - pydantic resolves it at run time
 from gateway.wire.timing import LineFormat, Parity
 

@@ -35,6 +35,7 @@ def holds_answer(request: frames.Request, data: bytes) -> bool:
 
 
 _WAIT: Final = object()  # a plausible answer has started: wait for the rest
+_OTHERS: Final = object()  # a whole, sound frame of another device: passed over as one
 
 
 class AnswerScan:
@@ -164,7 +165,10 @@ class AnswerScan:
                     continue
                 self.consumed = offset + self._length
                 return verdict
-            offset += 1
+            # Another device's frame is passed over at once: scanned byte by byte, its own
+            # bytes were taken for garbage, and a byte equal to this device's address could
+            # begin a "corrupted answer" of it (noise or a CRC error where it is stale).
+            offset += self._length if verdict is _OTHERS else 1
         return None
 
     def _own_read_answer(self, buffer: bytearray, arrived_at: float) -> frames.Response | None:
@@ -212,6 +216,7 @@ class AnswerScan:
             )
         except UnexpectedDeviceError:
             self.other_device = head[0]
+            return _OTHERS
         except MalformedFrameError:
             self.garbage = True
         return None

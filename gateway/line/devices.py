@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from gateway.profiles import Point, Profile
-    from gateway.profiles.identity import PinnedSerial
+    from gateway.profiles.serial_number import PinnedSerial
 
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
 # Polled in the time process values leave free (the schedule's "slow" class).

@@ -219,6 +219,12 @@ class ForeignQueue:
             _settle(job, exc)
         self._jobs.clear()
 
+    def fail_device(self, device: str, exc: Exception) -> None:
+        """Fail the waiting requests for one device (a reload removed it)."""
+        for job in [job for job in self._jobs if job.device == device]:
+            _settle(job, exc)
+            self._jobs.remove(job)
+
     async def run_next(self, now: float) -> bool:
         """Send one request if its device is free and the share allows; whether one went."""
         if not self._jobs:

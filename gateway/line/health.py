@@ -35,8 +35,8 @@ class DeviceHealth:
     lag_s: float
     missed_deadlines: int
     unreadable_points: int
-    # A pinned serial number's verdict (line/identity: unpinned, unconfirmed, confirmed,
-    # mismatch, unread), the serial pinned and the one that answered last.
+    # A pinned serial number's verdict (line/identity_guard: unpinned, unconfirmed,
+    # confirmed, mismatch, unread), the serial pinned and the one that answered last.
     identity: str = "unpinned"
     expected_serial: str | None = None
     answered_serial: str | None = None

@@ -26,6 +26,7 @@ class Inbox(asyncio.Protocol):
         self.last_byte_at = -math.inf
         self.lost = asyncio.Event()
         self.lost_reason: Exception | None = None
+        self.peer_closed = False  # the peer ended its side (a FIN) before the stream ended
         self._waiter: asyncio.Future[None] | None = None
 
     def data_received(self, data: bytes) -> None:
@@ -33,6 +34,21 @@ class Inbox(asyncio.Protocol):
         self.buffer.extend(data)
         self.last_byte_at = time.monotonic()
         self._wake()
+
+    def eof_received(self) -> None:
+        """The peer closed its side: noted for :meth:`why_lost`; the transport closes ours.
+
+        Without the note a converter's FIN ended the stream with no reason at all, and the
+        line said it "went away: None".
+        """
+        self.peer_closed = True
+
+    def why_lost(self) -> str:
+        """Why the stream ended, in words: the error that ended it, or the peer's close."""
+        reason = self.lost_reason
+        if reason is not None:
+            return str(reason) or type(reason).__name__
+        return "the other end closed it" if self.peer_closed else "it was closed"
 
     def connection_lost(self, exc: Exception | None) -> None:
         """The stream ended (``exc``: why, if it failed); a waiting transaction wakes to it."""

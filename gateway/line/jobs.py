@@ -144,6 +144,13 @@ class JobQueue:
                 job.done.set_exception(exc)
         self._jobs.clear()
 
+    def fail_device(self, device: str, exc: Exception) -> None:
+        """Fail the queued jobs of one device (a reload removed it)."""
+        for job in [job for job in self._jobs if job.device == device]:
+            if not job.done.done():
+                job.done.set_exception(exc)
+            self._jobs.remove(job)
+
     async def run_next(self, now: float) -> bool:
         """Run one job, else one broadcast, if one may run now; whether one did."""
         return await self._run_a_job(now) or await self._run_a_broadcast(now)

@@ -12,10 +12,13 @@ covers a LAN's round trip; a slower network needs the bus's ``timeout``).
 
 Stale-frame protection is the transaction id: an answer to an older request (a late
 answer of a device, a converter's 0B after the gateway gave up) is dropped and counted
-as a stale frame of its unit. The converter's own exceptions, 0A (no path to its serial
-side) and 0B (the device did not answer it), are failures like a timeout with their own
-names (:class:`~gateway.errors.ConverterError`), never device exceptions that would split
-a read.
+as a stale frame of its unit; a request whose own answer never came says so, since a
+converter that does not return the transaction id it is given looks like that too. The
+converter's own exceptions, 0A (no path to its serial side) and 0B (the device did not
+answer it), are failures like a timeout with their own names
+(:class:`~gateway.errors.ConverterError`), never device exceptions that would split a
+read. Stray bytes before an answer are passed over up to the answer's header (its
+transaction id), not with everything held.
 
 It stands behind the line's boundary (:class:`gateway.line.boundary.Line`) beside the
 RTU lines and shares nothing with them but the boundary, the counters
@@ -27,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import struct
 import time
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
@@ -43,7 +47,7 @@ from gateway.errors import (
 from gateway.line.boundary import Exchange
 from gateway.line.inbox import Inbox
 from gateway.line.stats import ErrorKind, LineStats, failure_kind
-from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect
+from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect, session_ended
 from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames, mbap
 
@@ -55,6 +59,7 @@ if TYPE_CHECKING:
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
+_HEAD = struct.Struct(">HH")  # an MBAP header's transaction id and protocol id, its start
 
 
 class ModbusTcpLine:
@@ -134,9 +139,7 @@ class ModbusTcpLine:
             raise BusClosedError(f"{self.port} is not open")
         if session.lost.is_set():
             self.stats.port_open = False
-            reason = session.lost_reason
-            why = f"{reason}" if reason is not None else "the converter closed the session"
-            raise BusClosedError(f"{self.port} went away: {why}")
+            raise BusClosedError(f"{self.port} went away: {session_ended(session)}")
         return session
 
     def flush_input(self, device: int) -> None:
@@ -244,13 +247,15 @@ class ModbusTcpLine:
             self.stats.errors[request.device, failure_kind(exc, otherwise=ErrorKind.NOISE)] += 1
             self._failed(sent_at, heard=True)
             raise
-        except BusTimeoutError:
+        except BusTimeoutError as exc:
             self.stats.errors[request.device, ErrorKind.TIMEOUT] += 1
             session = self._session
             heard = session is not None and session.last_byte_at > heard_before
-            if self._failed(sent_at, heard=heard):
+            ended = self._failed(sent_at, heard=heard)
+            if ended is not None:
                 await self.close()
                 await self.open()  # fails as a closed port does: the worker's backoff
+                raise BusTimeoutError(f"{exc}; {ended}") from exc
             raise
         self._finish(sent_at, line_quiet_at=received_at)
         self.watch.heard()
@@ -263,12 +268,12 @@ class ModbusTcpLine:
         self.last_frame_end = end
         self.stats.busy_s += end - sent_at
 
-    def _failed(self, sent_at: float, *, heard: bool) -> bool:
-        """Book a failed transaction; ``True`` when the session is to be reopened (silence)."""
+    def _failed(self, sent_at: float, *, heard: bool) -> str | None:
+        """Book a failed transaction; why the session is to be reopened (silence), else ``None``."""
         self._finish(sent_at)
         if heard:
             self.watch.heard()
-            return False
+            return None
         return self.watch.unheard()
 
     async def _await_answer(
@@ -282,21 +287,24 @@ class ModbusTcpLine:
     ) -> tuple[frames.Response, float]:
         """Read frames until the one with ``transaction`` (and when it came); older are stale."""
         noise = False
+        others: list[int] = []  # the transaction ids of the answers dropped meanwhile
         while True:
             session = self._live()
             try:
                 cut = mbap.decode(session.buffer)
             except MalformedFrameError:
-                # A byte stream has no silence to resynchronise on: what is held goes.
-                _LOGGER.debug("%s: not an MBAP frame: %s", self.port, session.buffer.hex(" "))
-                session.buffer.clear()
-                noise, cut = True, None
+                self._resync(session.buffer, transaction)
+                noise = True
+                continue
             if cut is not None:
                 frame, used = cut
                 del session.buffer[:used]
                 if frame.transaction != transaction:
                     self._stale(frame)
+                    others.append(frame.transaction)
                     continue
+                if noise:  # stray bytes came before the answer: dropped, counted
+                    self.stats.errors[request.device, ErrorKind.NOISE] += 1
                 answer = mbap.parse_answer(
                     request,
                     frame,
@@ -307,13 +315,74 @@ class ModbusTcpLine:
                 return answer, session.last_byte_at
             now = time.monotonic()
             if now >= deadline:
+                held = bytes(session.buffer)
                 session.buffer.clear()
-                what = _what(request)
-                if noise:
-                    raise MalformedFrameError(f"{self.port}: no valid answer of {what}, only noise")
-                raise BusTimeoutError(f"{self.port}: no answer of {what}")
+                raise _no_answer(
+                    self.port,
+                    request,
+                    transaction=transaction,
+                    noise=noise,
+                    held=held,
+                    others=others,
+                )
             await session.wait(deadline - now)
+
+    def _resync(self, buffer: bytearray, transaction: int) -> None:
+        """Drop what cannot start an MBAP frame, up to where this transaction's answer may.
+
+        A byte stream has no silence to resynchronise on. Dropping all that was held lost
+        a good answer that came right behind a few stray bytes (a converter's trailing
+        garbage after its previous answer): the answer awaited begins with its transaction
+        id and protocol 0, so that is looked for; the last three bytes stay if it is not
+        found, as they may be the beginning of it.
+        """
+        start = buffer.find(_HEAD.pack(transaction, mbap.MBAP_PROTOCOL_MODBUS), 1)
+        keep = start if start >= 0 else max(1, len(buffer) - (_HEAD.size - 1))
+        _LOGGER.debug("%s: not an MBAP frame: %s", self.port, buffer[:keep].hex(" "))
+        del buffer[:keep]
 
 
 def _what(request: frames.Request) -> str:
     return f"device {request.device} function {request.function:#04x} at {request.address:#06x}"
+
+
+def _no_answer(
+    port: str,
+    request: frames.Request,
+    *,
+    transaction: int,
+    noise: bool,
+    held: bytes,
+    others: list[int],
+) -> FrameError | BusTimeoutError:
+    """The failure of a request whose answer did not come in time, saying what did come.
+
+    "No answer" alone misled where bytes came: a frame cut short (its header announcing
+    more than was sent: a converter's wrong length field, or a network slower than the
+    timeout) or answers with other transaction ids (late answers, or a converter that
+    does not return the id it is given: then every request ends so).
+    """
+    what = _what(request)
+    if noise:
+        return MalformedFrameError(f"{port}: no valid answer of {what}, only noise")
+    if held:
+        if len(held) >= mbap.MBAP_HEADER_LENGTH - 1:
+            need = mbap.MBAP_HEADER_LENGTH - 1 + int.from_bytes(held[4:6], "big")
+            came = f"{len(held)} of the {need} bytes its MBAP header announces"
+        else:
+            came = f"{len(held)} bytes of an MBAP header"
+        return BusTimeoutError(f"{port}: an incomplete answer of {what}: {came}")
+    if others:
+        ids = ", ".join(str(other) for other in others)
+        came = (
+            f"an answer came with transaction id {ids}"
+            if len(others) == 1
+            else f"{len(others)} answers came with transaction ids {ids}"
+        )
+        return BusTimeoutError(
+            f"{port}: no answer of {what}: {came}, this request's is {transaction}: a late "
+            "answer to an earlier request, or a converter that does not return the "
+            "transaction id it is given (if every request ends so: a firmware upgrade of "
+            "the converter, or its transparent mode with a socket:// port, helps)"
+        )
+    return BusTimeoutError(f"{port}: no answer of {what}")

@@ -34,6 +34,10 @@ class RegisterCache:
         for offset, value in enumerate(registers):
             words[address + offset] = (value, at)
 
+    def drop(self, device: str) -> None:
+        """Drop every register of a device (a reload removed or re-planned it)."""
+        self._words.pop(device, None)
+
     def forget(self, device: str, address: int, count: int) -> None:
         """Drop registers a write may have changed."""
         words = self._words.get(device)

@@ -173,8 +173,12 @@ class RtuLine(ABC):
             raise BusClosedError(f"{self.port} is not open")
         if inbox.lost.is_set():
             self.stats.port_open = False
-            raise BusClosedError(f"{self.port} went away: {inbox.lost_reason}")
+            raise BusClosedError(f"{self.port} went away: {self._lost_words(inbox)}")
         return inbox
+
+    def _lost_words(self, inbox: Inbox) -> str:
+        """Why the stream ended, for the failure that says the line went away."""
+        return inbox.why_lost()
 
     def flush_input(self, device: int) -> None:
         """Discard whatever arrived between transactions: late answers and noise."""
@@ -467,7 +471,7 @@ class RtuLine(ABC):
                 raise
             if result is not None:
                 self._consume(inbox, scan, request.device)
-                return result, inbox.last_byte_at
+                return self._later_answer(inbox, scan, result), inbox.last_byte_at
             now = time.monotonic()
             # A corrupted answer from the device itself is final once the line falls silent.
             # A frame of another device is not: it may be a late answer that came first,
@@ -480,6 +484,47 @@ class RtuLine(ABC):
                 raise scan.failure(self.port)
             await inbox.wait(wake - now)
             self._live_inbox()
+
+    def _later_answer(
+        self, inbox: Inbox, scan: AnswerScan, response: frames.Response
+    ) -> frames.Response:
+        """The last of the read's answers that came together: the earlier ones are stale.
+
+        A converter that held a late answer sends it with the next one in one TCP segment
+        (the same device's, the same shape: nothing in the frame tells them apart), and
+        the first one was taken for the answer to the current request. The stream keeps
+        the order of the bytes, and the device answers this request only after it came,
+        so of two complete answers in a row the later is its answer; the earlier is counted
+        as a stale frame of the device. Reads only: a write's answer is a copy of its
+        request, which an adapter's echo can be too.
+        """
+        request = scan.request
+        if request.function not in frames.READ_FUNCTIONS:
+            return response
+        while len(inbox.buffer) > 1:
+            data = bytes(inbox.buffer)
+            try:
+                need = frames.response_length(request, data, byte_count_16bit=scan.byte_count_16bit)
+                if not 0 < need <= len(data) or not frames.crc_ok(data[:need]):
+                    return response
+                later = frames.parse_response(
+                    request,
+                    data[:need],
+                    exceptions=scan.exceptions,
+                    byte_count_16bit=scan.byte_count_16bit,
+                )
+            except (FrameError, DeviceExceptionError):
+                return response  # not an answer to it: the next request's flush counts it
+            del inbox.buffer[:need]
+            self.stats.errors[request.device, ErrorKind.STALE] += 1
+            self._note_late(request.device, inbox.last_byte_at)
+            _LOGGER.debug(
+                "%s: of two answers of device %d in a row the later taken",
+                self.port,
+                request.device,
+            )
+            response = later
+        return response
 
     def _consume(self, inbox: Inbox, scan: AnswerScan, device: int) -> None:
         """Drop the bytes up to the answer; count what was skipped on the way.

@@ -23,7 +23,7 @@ from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP
 from gateway.errors import BusClosedError, BusTimeoutError, DeviceExceptionError, FrameError
 from gateway.line.rtu import RtuLine
-from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect
+from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect, session_ended
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -79,6 +79,10 @@ class RtuOverTcpLine(RtuLine):
         self._ready_at = time.monotonic() + self.tcp.connect_pause_s
         return transport
 
+    def _lost_words(self, inbox: Inbox) -> str:
+        """The converter's FIN or RST, or the user timeout, in words a plant engineer can act on."""
+        return session_ended(inbox)
+
     def tcp_socket(self) -> TransportSocket | None:
         """The session's socket (for its options), ``None`` while closed."""
         transport = self._transport
@@ -126,12 +130,16 @@ class RtuOverTcpLine(RtuLine):
                 exceptions=exceptions,
                 turnaround_s=turnaround_s,
             )
-        except BusTimeoutError:
+        except BusTimeoutError as exc:
             if self._last_byte_at() > before:
                 self.watch.heard()
-            elif self.watch.unheard():
+                raise
+            ended = self.watch.unheard()
+            if ended is not None:
                 await self.close()
                 await self.open()  # fails as a closed port does: the worker's backoff
+                if type(exc) is BusTimeoutError:  # a LineNoiseError keeps its kind
+                    raise BusTimeoutError(f"{exc}; {ended}") from exc
             raise
         except (FrameError, DeviceExceptionError):
             self.watch.heard()  # bytes came: a wrong answer, but from a live peer

@@ -113,10 +113,23 @@ class Schedule:
         # Per class (slow: diagnostics): (deadline, address, index, device); the key last
         # pushed for each device index, older entries of a device being stale.
         self._index = {state.target.name: n for n, state in enumerate(devices.values())}
+        self._next_index = len(self._index)  # a device a reload adds: an index never used
         self._heaps: dict[bool, list[tuple[float, int, int, DeviceState]]] = {False: [], True: []}
         self._keys: dict[bool, dict[int, float]] = {False: {}, True: {}}
         for state in devices.values():
             self.touch(state)
+
+    def add(self, state: DeviceState, now: float) -> None:
+        """A device a reload added (already among the devices): all of it due now."""
+        self._index[state.target.name] = self._next_index
+        self._next_index += 1
+        self.restart_device(state, now)
+
+    def remove(self, state: DeviceState) -> None:
+        """A device a reload removed: its heap entries are stale from now on."""
+        index = self._index.pop(state.target.name)
+        for keys in self._keys.values():
+            keys.pop(index, None)
 
     def touch(self, state: DeviceState) -> None:
         """Put the device in the heaps with its deadlines as they are now.

@@ -92,6 +92,31 @@ def configure_socket(sock: socket.socket | TransportSocket, settings: TcpSetting
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
 
+def session_ended(inbox: Inbox) -> str:
+    """Why a converter's session ended and what to check, in a plant engineer's words.
+
+    The stream's own words were a programmer's: ``[Errno 104] Connection reset by peer``,
+    and for a converter's orderly close nothing at all (the line said "went away: None").
+    """
+    reason = inbox.lost_reason
+    if isinstance(reason, TimeoutError):
+        return (
+            "the converter stopped acknowledging what was sent (tcp.user_timeout_s): it "
+            "lost power, a cable is out, or the network between is down"
+        )
+    if isinstance(reason, ConnectionResetError):
+        what = "the converter reset the connection (RST)"
+    elif reason is None and inbox.peer_closed:
+        what = "the converter closed the connection"
+    else:
+        return inbox.why_lost()
+    return (
+        f"{what}; it is opened again. If this repeats, check that no other client (a "
+        "second gateway, a configuration tool, a SCADA) takes the converter's connection, "
+        "and the converter's limit of connections and its idle timeout"
+    )
+
+
 class SilenceWatch:
     """Counts requests in a row that got no byte back; says when the session is to end.
 
@@ -115,21 +140,27 @@ class SilenceWatch:
             )
         self.silent = self.reopened = 0
 
-    def unheard(self) -> bool:
-        """A request got no byte back; ``True`` when the session is to be ended now."""
+    def unheard(self) -> str | None:
+        """A request got no byte back; why the session is to be ended now, else ``None``.
+
+        The words go into the failure of the request that ends it as well as the log: a
+        device's offline reason that said only "no answer" left a session the converter
+        no longer serves looking like a sensor fault.
+        """
         self.silent += 1
         if not self.limit or self.silent < self.limit:
-            return False
-        log = _LOGGER.warning if not self.reopened else _LOGGER.debug
-        log(
-            "%s: no byte back for %d requests in a row: the converter keeps the session "
-            "but answers nothing (or every device behind it is away); reopening the "
-            "session (tcp.silent_requests: %d)",
-            self.port,
-            self.silent,
-            self.limit,
+            return None
+        message = (
+            f"no byte back for {self.silent} requests in a row: the converter keeps the "
+            "connection open but answers nothing (or no device behind it answers); the "
+            f"connection is closed and opened again (tcp.silent_requests: {self.limit}). "
+            "If this repeats, restart the converter (it may hold a dead session of its "
+            "own) and check its serial side: the wiring, the baud rate and parity set as "
+            "the bus's, and the devices' power"
         )
+        log = _LOGGER.warning if not self.reopened else _LOGGER.debug
+        log("%s: %s", self.port, message)
         self.silent = 0
         self.reopened += 1
         self.ended_at.append(time.monotonic())
-        return True
+        return message

@@ -120,24 +120,49 @@ class Transactions:
         # One planner (and its cache of plans) for the devices of one profile and cost: a
         # plan depends on nothing else, and a bus of sixteen sensors of four families kept
         # sixteen caches of the same plans.
-        shared: dict[tuple[str, CostModel], Planner] = {}
+        self._shared_planners: dict[tuple[str, CostModel], Planner] = {}
         self._planners: dict[str, Planner] = {}
-        for name, state in devices.items():
-            cost = CostModel.for_device(
-                state.profile, line.format, extra_gap_s=state.target.extra_gap_s
-            )
-            key = (state.profile.id, cost)
-            if key not in shared:
-                shared[key] = Planner(state.profile, cost)
-            self._planners[name] = shared[key]
         # Read requests by (device, address, count): the same few blocks are asked again
         # and again, and building one through pymodbus costs more than the rest of a read.
         self._read_requests: dict[tuple[int, int, int], frames.Request] = {}
         self._gaps: dict[str, float] = {}
         self._timeouts: dict[tuple[str, int, float | None], float] = {}
-        self._by_address = {state.target.address: state for state in devices.values()}
+        self._by_address: dict[int, DeviceState] = {}
+        for state in devices.values():
+            self.add(state)
         # What each device last answered, for other masters' reads (off unless asked for).
         self.cache = RegisterCache()
+
+    def add(self, state: DeviceState) -> None:
+        """Plan the reads of a device (at the start, or one a reload added or re-planned)."""
+        cost = CostModel.for_device(
+            state.profile, self.line.format, extra_gap_s=state.target.extra_gap_s
+        )
+        key = (state.profile.id, cost)
+        if key not in self._shared_planners:
+            self._shared_planners[key] = Planner(state.profile, cost)
+        self._planners[state.target.name] = self._shared_planners[key]
+        self._by_address[state.target.address] = state
+
+    def remove(self, state: DeviceState) -> None:
+        """Forget a device a reload removed or re-plans: its plans, waits and registers."""
+        name = state.target.name
+        self._planners.pop(name, None)
+        self._gaps.pop(name, None)
+        self._timeouts = {key: t for key, t in self._timeouts.items() if key[0] != name}
+        if self._by_address.get(state.target.address) is state:
+            del self._by_address[state.target.address]
+        self.cache.drop(name)
+
+    def use_line(self, line: Line) -> None:
+        """Another line, maybe of another format (a reload): every plan and wait anew."""
+        self.line = line
+        self._shared_planners.clear()
+        self._read_requests.clear()
+        self._gaps.clear()
+        self._timeouts.clear()
+        for state in self.devices.values():
+            self.add(state)
 
     def timeout_for(
         self, state: DeviceState, response_bytes: int, min_response_s: float | None
@@ -149,7 +174,7 @@ class Transactions:
         """
         key = (state.target.name, response_bytes, min_response_s)
         timeout = self._timeouts.get(key)
-        if timeout is None:  # the target, its profile and the line format never change
+        if timeout is None:  # cleared when the target or the line changes
             timeout = default_timeout_s(
                 state.target,
                 response_bytes,

@@ -21,12 +21,12 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.errors import BusClosedError, BusError, PortUnavailableError
+from gateway.errors import BusClosedError, BusError, GatewayError, PortUnavailableError
 from gateway.line.decode import Decoder
 from gateway.line.devices import DeviceState
 from gateway.line.foreign import ForeignQueue
 from gateway.line.health import Availability
-from gateway.line.identity import IdentityGuard
+from gateway.line.identity_guard import IdentityGuard
 from gateway.line.jobs import JobQueue
 from gateway.line.lateness import Lateness, loop_watch
 from gateway.line.port_diagnosis import PortReason
@@ -50,6 +50,21 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 PORT_BACKOFF_FIRST_S: Final = 0.5
+# What a re-planned device keeps (:meth:`BusWorker.change_devices`): what it answered, its
+# waits and verdicts, and its counters (a counter that went back would read as a reset).
+_KEPT_BY_REPLAN: Final = (
+    "values",
+    "online",
+    "failures",
+    "probe_at",
+    "backoff_s",
+    "not_before",
+    "split_before",
+    "unreadable",
+    "undecodable",
+    "missed_deadlines",
+    "late_hint_given",
+)
 
 
 class BusWorker:
@@ -123,6 +138,11 @@ class BusWorker:
         self._resume: asyncio.Event | None = None  # set while :meth:`paused` holds the line
         self._released = asyncio.Event()
         self.paused_for: str | None = None  # why polling is paused, while it is
+        # A reload's new set of devices, applied between transactions (:meth:`change_devices`).
+        self._changes: list[tuple[tuple[DeviceTarget, ...], asyncio.Future[None]]] = []
+        # Whether run() waits where nothing of it walks the devices (asleep, backing off,
+        # paused): a change of devices is applied at once then, not at the next step.
+        self._parked = False
 
     # --- running ----------------------------------------------------------------------
 
@@ -147,6 +167,7 @@ class BusWorker:
 
     async def _run(self, delay: float) -> None:
         while not self._stopping:
+            self._apply_changes()
             if self._resume is not None:
                 await self._hold(self._resume)
                 continue
@@ -219,9 +240,13 @@ class BusWorker:
         """
         if self._resume is not None:
             return
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(delay_s):
-                await self._stop_requested.wait()
+        self._parked = True
+        try:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(delay_s):
+                    await self._stop_requested.wait()
+        finally:
+            self._parked = False
         if not self._stopping:
             self._stop_requested.clear()  # it ended the backoff for a pause
 
@@ -269,7 +294,11 @@ class BusWorker:
         """Let go of the line until :meth:`paused` ends (or the worker stops)."""
         await self.line.close()
         self._released.set()
-        await resume.wait()
+        self._parked = True
+        try:
+            await resume.wait()
+        finally:
+            self._parked = False
         self._released.clear()
         if not self._stopping:
             self._stop_requested.clear()  # it was set to end a backoff for the pause
@@ -319,6 +348,105 @@ class BusWorker:
         now = time.monotonic()
         for address, count in touched_by_write(state.profile, request.address, request.count):
             self.schedule.reread(state, address, count, now)
+
+    # --- a reload's changes ------------------------------------------------------------
+
+    def change_devices(self, targets: Sequence[DeviceTarget]) -> asyncio.Future[None]:
+        """The devices of this line are ``targets`` from now on; done once applied.
+
+        A device whose target is the one it has keeps everything: its schedule, its state,
+        its queued work (a calibration under way goes on). One with the same address and
+        profile but other settings is re-planned: its deadlines start again, while what
+        it answered, its waits (a post-write wait holds), its verdicts and its counters
+        stay, and so does its queued work. One at another address or of another profile
+        is another sensor: its queued work fails, and it starts afresh, as does a new one.
+        A device not in ``targets`` goes; its queued work fails with the reason.
+
+        Applied between transactions, never inside one: at once while :meth:`run` sleeps,
+        backs off or is paused (or does not run), else before its next step.
+        """
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._changes.append((tuple(targets), done))
+        if self._parked or not self.running:
+            self._apply_changes()
+        else:
+            self._wake.set()
+        return done
+
+    def _apply_changes(self) -> None:
+        while self._changes:
+            targets, done = self._changes.pop(0)
+            self._change_devices(targets)
+            if not done.done():
+                done.set_result(None)
+
+    def _change_devices(self, targets: Sequence[DeviceTarget]) -> None:
+        wanted = {target.name: target for target in targets}
+        for name in [name for name in self.devices if name not in wanted]:
+            self._remove_device(name, f"{self.name}/{name} was removed from the config")
+        now = time.monotonic()
+        for target in targets:
+            former = self.devices.get(target.name)
+            if former is not None and former.target == target:
+                continue
+            if former is None:
+                self._add_device(DeviceState(target=target), now)
+            elif former.target.address == target.address and former.profile is target.profile:
+                self._replan_device(former, target, now)
+            else:
+                self._remove_device(target.name, f"{self.name}/{target.name} is another sensor now")
+                self._add_device(DeviceState(target=target), now)
+        self._wake.set()
+
+    def _remove_device(self, name: str, reason: str) -> None:
+        state = self.devices.pop(name)
+        gone = GatewayError(reason)
+        self.jobs.fail_device(name, gone)
+        self.foreign.fail_device(name, gone)
+        self.schedule.remove(state)
+        self.transactions.remove(state)
+        self.identity.remove(name)
+
+    def _add_device(self, state: DeviceState, now: float) -> None:
+        self.devices[state.target.name] = state
+        self.transactions.add(state)
+        self.identity.add(state)
+        self.schedule.add(state, now)
+
+    def _replan_device(self, former: DeviceState, target: DeviceTarget, now: float) -> None:
+        """The same sensor with other settings: new deadlines, what it is and said kept."""
+        kept = {name: getattr(former, name) for name in _KEPT_BY_REPLAN}
+        state = DeviceState(target=target, **kept)
+        self.schedule.remove(former)
+        self.transactions.remove(former)
+        pin = self.identity.remove(target.name)
+        self.devices[target.name] = state
+        self.transactions.add(state)
+        self.identity.add(state, keep=pin)
+        self.schedule.add(state, now)
+
+    async def use_line(self, line: Line) -> bool:
+        """Go on with ``line`` in place of the line (a reload changed the bus's settings).
+
+        Polling pauses: the transaction in flight ends and the old port closes; the new
+        one opens as after a reconnection. False, and nothing changed, if the line is
+        paused already (a scan of it): the caller builds a new worker instead.
+        """
+        if self._resume is not None:
+            return False
+        if not self.running:
+            await self.line.close()
+            self._swap_line(line)
+            return True
+        async with self.paused("its settings changed"):
+            self._swap_line(line)
+        return True
+
+    def _swap_line(self, line: Line) -> None:
+        line.wait_watch, self.line.wait_watch = self.line.wait_watch, None
+        self.line = line
+        self.lateness = Lateness(line, self.lateness.watch)
+        self.transactions.use_line(line)
 
     # --- queued work ------------------------------------------------------------------
 
@@ -383,6 +511,8 @@ class BusWorker:
         """
         foreign_turn = False
         while not self._stopping and self._resume is None:
+            if self._changes:
+                self._apply_changes()
             now = time.monotonic()
             if await self.jobs.run_next(now):
                 continue
@@ -414,6 +544,7 @@ class BusWorker:
         watch = self.line.wait_watch
         if watch is not None:
             watch.asleep()
+        self._parked = True
         try:
             # asyncio.timeout, not wait_for: wait_for wraps the wait in a task of its own,
             # at every sleep (with devices' phases spread, a bus sleeps between most polls).
@@ -421,6 +552,7 @@ class BusWorker:
                 async with asyncio.timeout(timeout):
                     await self._wake.wait()
         finally:
+            self._parked = False
             if watch is not None:
                 watch.awake(now + timeout, time.monotonic())
         if self._resume is not None:

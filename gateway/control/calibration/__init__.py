@@ -30,7 +30,7 @@ Which procedures a device offers, their inputs and their defaults are the catalo
 (:mod:`~gateway.control.calibration.catalogue`), which every front end reads: the command
 line, the web page and MQTT's ``calibrations`` operation.
 
-The pieces: the arithmetic in :mod:`~gateway.control.calibration.rules`, the shared step
+The pieces: the arithmetic in :mod:`~gateway.control.calibration.arithmetic`, the shared step
 machinery in :mod:`~gateway.control.calibration.steps`, the tecLine/Reiss procedures in
 :mod:`~gateway.control.calibration.amperometric`, the H10/H20 ones in
 :mod:`~gateway.control.calibration.oxygen`, the catalogue in
@@ -46,12 +46,7 @@ from gateway.control.calibration.amperometric import (
     check_slope,
     restore_nominal_slope,
 )
-from gateway.control.calibration.oxygen import (
-    calibrate_oxygen_end_value,
-    calibrate_oxygen_zero,
-    logbook_date,
-)
-from gateway.control.calibration.rules import (
+from gateway.control.calibration.arithmetic import (
     AMPEROMETRIC_POINTS,
     CHEMICAL_CHECK_TOLERANCE,
     HISTORY_ENTRIES,
@@ -67,6 +62,11 @@ from gateway.control.calibration.rules import (
     nominal_in_unit,
     slope_from,
     stamp_number,
+)
+from gateway.control.calibration.oxygen import (
+    calibrate_oxygen_end_value,
+    calibrate_oxygen_zero,
+    logbook_date,
 )
 from gateway.control.calibration.steps import (
     CalibrationOutcome,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.control.calibration.rules import (
+from gateway.control.calibration.arithmetic import (
     CELL_CURRENT_READINGS,
     CELL_PROCEDURE_POINTS,
     CHEMICAL_CHECK_TOLERANCE,

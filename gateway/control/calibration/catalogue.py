@@ -37,9 +37,7 @@ from gateway.control.calibration.amperometric import (
     check_slope,
     restore_nominal_slope,
 )
-from gateway.control.calibration.inputs import InputKind, Inputs, Parameter
-from gateway.control.calibration.oxygen import calibrate_oxygen_end_value, calibrate_oxygen_zero
-from gateway.control.calibration.rules import (
+from gateway.control.calibration.arithmetic import (
     CALIBRATION_MODE_DEFAULT,
     CALIBRATION_MODES,
     CELL_CURRENT_READINGS,
@@ -51,6 +49,8 @@ from gateway.control.calibration.rules import (
     OXYGEN_ZERO_POINTS,
     READING_INTERVAL_S,
 )
+from gateway.control.calibration.inputs import InputKind, Inputs, Parameter
+from gateway.control.calibration.oxygen import calibrate_oxygen_end_value, calibrate_oxygen_zero
 from gateway.control.clock_trust import require_trusted_clock, time_points
 from gateway.errors import CommandRejectedError
 from gateway.profiles import builtin_profiles

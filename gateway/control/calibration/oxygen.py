@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Final
 
-from gateway.control.calibration.rules import (
+from gateway.control.calibration.arithmetic import (
     CALIBRATION_MODE_DEFAULT,
     LOGBOOK_NEWEST,
     OXYGEN_END_VALUE_POINTS,

@@ -15,7 +15,7 @@ from enum import StrEnum
 from typing import TYPE_CHECKING, Final, Protocol
 
 from gateway.config import FlashPolicy
-from gateway.control.calibration.rules import HistoryEntry
+from gateway.control.calibration.arithmetic import HistoryEntry
 from gateway.control.clock_trust import require_trusted_for
 from gateway.control.commands import function_for, writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today

@@ -90,6 +90,10 @@ class MqttSink:
         """The publish settings per ``(device, point)`` after a reload (same connection)."""
         self.topics.set_publish(publish)
 
+    def replan(self, bus: str, device: str, profile: Profile, dropped: Iterable[str]) -> None:
+        """A device a reload changed: announced anew, the points it no longer polls cleared."""
+        self.outbox.enqueue(self.topics.replan(bus, device, profile, dropped))
+
     def forget(self, bus: str, device: str, profile: Profile, points: Iterable[str]) -> None:
         """A device a reload removed: offline, its retained topics and discovery cleared."""
         self.outbox.enqueue(self.topics.forget(bus, device, profile, points))

@@ -206,6 +206,36 @@ class Topics:
         """The publish settings per ``(device, point)`` after a reload."""
         self._publish = dict(publish)
 
+    def replan(
+        self, bus: str, device: str, profile: Profile, dropped: Iterable[str]
+    ) -> list[Message]:
+        """A device a reload changed, the same sensor: announced again at its next cycle.
+
+        Home Assistant learns its points as they are now; the retained values and the
+        entities of the points it no longer polls (``dropped``) are cleared.
+        """
+        dropped = tuple(dropped)
+        clear = [f"{self.base}/{device}/{point}" for point in dropped]
+        if dropped and (bus, device) in self._discovered:
+            announced = discovery_messages(
+                prefix=self.settings.discovery.prefix,
+                base_topic=self.base,
+                gateway_id=self.client_id,
+                device=device,
+                profile=profile,
+                points=dropped,
+                identity={},
+                units={},
+            )
+            clear += [message.topic for message in announced]
+        self._discovered = {known for known in self._discovered if known[1] != device}
+        self._layouts.pop(device, None)
+        for topic in clear:
+            self._last.pop(topic, None)
+        return [
+            Message(topic=topic, payload=b"", qos=self.settings.qos, retain=True) for topic in clear
+        ]
+
     def forget(
         self, bus: str, device: str, profile: Profile, points: Iterable[str]
     ) -> list[Message]:

@@ -28,10 +28,18 @@ status bits, enums and ages in :mod:`~gateway.publish.prometheus.values`; the bu
 device health in :mod:`~gateway.publish.prometheus.health`; MQTT, writes, flash and feeds
 in :mod:`~gateway.publish.prometheus.writes`; the collector that yields them all, in that
 order, in :mod:`~gateway.publish.prometheus.collector`; the HTTP server with ``/healthz``
-in :mod:`~gateway.publish.prometheus.server`.
+in :mod:`~gateway.publish.prometheus.endpoint`.
 """
 
 from gateway.publish.prometheus.collector import GatewayCollector
+from gateway.publish.prometheus.endpoint import (
+    DEFAULT_HOST,
+    DEFAULT_PORT,
+    REQUEST_TIMEOUT_S,
+    STOP_TIMEOUT_S,
+    MetricsServer,
+    health_report,
+)
 from gateway.publish.prometheus.health import ERROR_KINDS, IDENTITY_LABELS
 from gateway.publish.prometheus.legacy import Rename, legacy_naming, renames
 from gateway.publish.prometheus.naming import (
@@ -43,14 +51,6 @@ from gateway.publish.prometheus.naming import (
     value_naming,
 )
 from gateway.publish.prometheus.selection import ALL_GROUPS, DEFAULT_GROUPS, Selection
-from gateway.publish.prometheus.server import (
-    DEFAULT_HOST,
-    DEFAULT_PORT,
-    REQUEST_TIMEOUT_S,
-    STOP_TIMEOUT_S,
-    MetricsServer,
-    health_report,
-)
 
 __all__ = [
     "ALL_GROUPS",

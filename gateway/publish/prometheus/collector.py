@@ -11,7 +11,7 @@ from prometheus_client.registry import Collector
 from gateway.publish.prometheus.care import care_families
 from gateway.publish.prometheus.clock import clock_families
 from gateway.publish.prometheus.health import device_families, line_families
-from gateway.publish.prometheus.identity import identity_families
+from gateway.publish.prometheus.identity_mismatch import identity_families
 from gateway.publish.prometheus.reloads import reload_families
 from gateway.publish.prometheus.selection import Selection
 from gateway.publish.prometheus.shared_bus import shared_bus_families

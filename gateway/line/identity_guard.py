@@ -31,7 +31,7 @@ from gateway.errors import (
     FrameError,
 )
 from gateway.line.samples import Quality
-from gateway.profiles.identity import answered_text, serial_point
+from gateway.profiles.serial_number import answered_text, serial_point
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
@@ -42,7 +42,7 @@ if TYPE_CHECKING:
     from gateway.line.schedule import Schedule
     from gateway.line.transactions import Transactions
     from gateway.profiles import Point
-    from gateway.profiles.identity import PinnedSerial
+    from gateway.profiles.serial_number import PinnedSerial
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -90,11 +90,29 @@ class IdentityGuard:
         self.schedule = schedule
         self._announce = announce
         self._pins: dict[str, _Pin] = {}
-        for name, state in devices.items():
-            expected = state.target.serial_number
-            point = serial_point(state.profile)
-            if expected is not None and point is not None:
-                self._pins[name] = _Pin(expected=expected, point=point)
+        for state in devices.values():
+            self.add(state)
+
+    # --- a reload's changes ------------------------------------------------------------
+
+    def add(self, state: DeviceState, *, keep: _Pin | None = None) -> None:
+        """Guard a device if its serial is pinned; ``keep``: its verdict before a re-plan.
+
+        A re-planned device pinned to the same serial keeps its verdict: it is the same
+        sensor, and its writes (a calibration under way) are not refused meanwhile.
+        """
+        expected = state.target.serial_number
+        point = serial_point(state.profile)
+        if expected is None or point is None:
+            return
+        if keep is not None and keep.expected == expected and keep.point == point:
+            self._pins[state.target.name] = keep
+        else:
+            self._pins[state.target.name] = _Pin(expected=expected, point=point)
+
+    def remove(self, device: str) -> _Pin | None:
+        """Stop guarding a device (a reload removed or re-plans it); its pin, if it had one."""
+        return self._pins.pop(device, None)
 
     # --- what the worker asks ----------------------------------------------------------
 

@@ -3,7 +3,7 @@
 USB adapters renumber after a reboot, and two lines with the same formats and addresses
 then swap their sensors without a single failed request. A device may pin the serial
 number its sensor reports (``devices[].serial_number``); the line compares every serial it
-reads with it (:mod:`gateway.line.identity`). This module is the pure part both the config
+reads with it (:mod:`gateway.line.identity_guard`). This module is the pure part both the config
 check and the line use: which point is a profile's serial number, what a pinned value may
 be for that point, and when an answer matches it.
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from gateway.profiles.identity import SERIAL_NUMBER_POINT, PinnedSerial, serial_point
+from gateway.profiles.serial_number import SERIAL_NUMBER_POINT, PinnedSerial, serial_point
 
 if TYPE_CHECKING:
     from collections.abc import Iterator, Mapping

@@ -109,19 +109,25 @@ class WebServer:
         *,
         scans: LineScans | None = None,
         sessions: Sessions | None = None,
+        calibrations: Calibrations | None = None,
         throttle: SignInThrottle | None = None,
         event_interval_s: float = EVENT_INTERVAL_S,
     ) -> None:
-        """Serve ``state``; writes and calibrations through ``writers`` (by device name)."""
+        """Serve ``state``; writes and calibrations through ``writers`` (by device name).
+
+        ``sessions`` and ``calibrations``: a former page's, kept by a reload (a calibration
+        under way goes on, its operator still signed in).
+        """
         self.config = config
         self.state = state
         self.writers = writers
         self.scans = scans
         self.sessions = sessions or Sessions.from_config(config)
         self.throttle = throttle or SignInThrottle()
-        self.calibrations = Calibrations(
-            writers, sessions=self.sessions, confirm_timeout_s=config.confirm_minutes * 60
-        )
+        if calibrations is None:
+            calibrations = Calibrations(writers, sessions=self.sessions)
+        calibrations.confirm_timeout_s = config.confirm_minutes * 60
+        self.calibrations = calibrations
         self._allowed_hosts = frozenset(config.allowed_hosts)
         self._refused_hosts: set[str] = set()
         state.web.enabled = True
@@ -194,10 +200,17 @@ class WebServer:
         host = f"[{host}]" if ":" in host else host
         return f"http://{host}:{self.port or self.config.port}/"
 
-    async def stop(self) -> None:
-        """Close the event streams, let waiting calibrations decline, stop listening."""
+    async def stop(self, *, keep_calibrations: bool = False) -> None:
+        """Close the event streams, let waiting calibrations decline, stop listening.
+
+        ``keep_calibrations``: a reload rebuilds the page; its runs go on under the next.
+        Stopped once: :meth:`run`'s end, after a reload's stop, changes nothing more.
+        """
+        if self._closing.is_set():
+            return
         self._closing.set()
-        await self.calibrations.close()
+        if not keep_calibrations:
+            await self.calibrations.close()
         if self.scans is not None:
             await self.scans.close()
         if self._runner is not None:

@@ -27,7 +27,7 @@ from gateway.errors import PublishError
 from gateway.line.stats import ErrorKind
 from gateway.publish.prometheus.clock import clock_health
 from gateway.publish.prometheus.collector import GatewayCollector
-from gateway.publish.prometheus.identity import identity_report
+from gateway.publish.prometheus.identity_mismatch import identity_report
 from gateway.publish.prometheus.selection import Selection
 from gateway.publish.prometheus.storage import storage_health
 
