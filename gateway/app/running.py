@@ -2,8 +2,9 @@
 
 :class:`RunningGateway` holds what one config builds (the bus workers, the write paths, the
 sinks, the shared bus, the web page, the metrics server) and applies a reloaded config by
-changing only what differs (:class:`~gateway.config.changes.ConfigChanges`): a bus whose
-settings and devices are the same keeps its worker, its open port and its schedule; a
+changing only what differs (:class:`~gateway.config.changes.ConfigChanges`): the buses
+change in place (:class:`~gateway.app.buses.Buses`: a bus whose settings and devices are
+the same keeps its worker, its open port and its schedule, a changed one its worker); a
 section whose settings are the same keeps its connection. What must outlive any change
 lives here for the whole run: the state, the flash-write ledger, the MQTT queue on disk,
 the web page's sessions.
@@ -19,15 +20,9 @@ import time
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
 from gateway.app.build import (
-    build_worker,
-    build_writer,
-    bus_line,
-    bus_targets,
     care_for,
-    device_target,
     flash_budgets,
     publish_settings,
-    register_device,
     retarget_scans,
     retarget_shared,
     shared_bus_server,
@@ -39,6 +34,7 @@ from gateway.app.build import (
     wire_feeds,
     wire_sparkplug_commands,
 )
+from gateway.app.buses import Buses
 from gateway.app.logs import configure_logging
 from gateway.app.reload import (
     ReloadRequests,
@@ -47,11 +43,11 @@ from gateway.app.reload import (
     write_pid_file,
     write_status,
 )
+from gateway.app.tasks import stop_tasks
 from gateway.config import ConfigProblems, load_config
 from gateway.config.changes import ConfigChanges
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.errors import ConfigError, GatewayError
-from gateway.profiles import get_profile
 from gateway.publish.host_clock import trust_from_environment
 from gateway.publish.state import GatewayState
 
@@ -59,7 +55,7 @@ if TYPE_CHECKING:
     from collections.abc import Coroutine, Sequence
     from pathlib import Path
 
-    from gateway.config import BusConfig, DeviceConfig, GatewayConfig
+    from gateway.config import GatewayConfig
     from gateway.control.command_router import CommandRouter
     from gateway.control.feeds import FeedEngine
     from gateway.control.shared_bus import SharedBusServer
@@ -73,7 +69,6 @@ if TYPE_CHECKING:
     from gateway.web.calibration import Calibrations
 
 _LOGGER = logging.getLogger(__name__)
-SHUTDOWN_S = 5.0  # bound on stopping: finish the frame in flight, close the ports
 
 
 class RunningGateway:
@@ -102,15 +97,10 @@ class RunningGateway:
         self.sparkplug: SparkplugSink | None = (
             sparkplug_sink(config, state) if config.sparkplug.enabled else None
         )
-        self.workers: dict[str, BusWorker] = {
-            bus.name: build_worker(config, bus, self._sinks(), state) for bus in config.buses
-        }
-        self.writers: dict[str, SafeWriter] = {
-            device.name: build_writer(
-                device, self.workers[device.bus], self.ledger, self.state.clock
-            )
-            for device in config.devices
-        }
+        self.buses = Buses(config, state, self.ledger, self._sinks)
+        # The same dictionaries for the whole run: a reload changes them in place.
+        self.workers: dict[str, BusWorker] = self.buses.workers
+        self.writers: dict[str, SafeWriter] = self.buses.writers
         self.feeds: FeedEngine | None = wire_feeds(
             config, state, list(self.workers.values()), self.writers, self.mqtt
         )
@@ -121,7 +111,6 @@ class RunningGateway:
         wire_sparkplug_commands(config, self.writers, self.sparkplug)
         self.page: WebServer | None = web_page(config, state, self.workers, self.writers)
         self.metrics: MetricsServer | None = None
-        self._bus_tasks: dict[str, asyncio.Task[None]] = {}
         self._tasks: dict[str, asyncio.Task[None]] = {}  # the sinks', the feeds', the page's
         # A reload's, while the page is rebuilt.
         self._kept_sessions: Sessions | None = None
@@ -142,16 +131,14 @@ class RunningGateway:
         stack.callback(self.ledger.close)
         self._start_metrics()
         stack.callback(self._stop_metrics)
-        stack.push_async_callback(self._close_lines)
+        stack.push_async_callback(self.buses.close_lines)
         # The ports first: a port another master holds stops the start here, with the
         # remedy, before the shared bus's listeners or the sinks are up.
-        for worker in self.workers.values():
-            await worker.claim_port()
+        await self.buses.claim_ports()
         if self.shared is not None:
             await self.shared.start()
         stack.push_async_callback(self._close_shared)
-        for name, worker in self.workers.items():
-            self._bus_tasks[name] = asyncio.create_task(worker.run(), name=f"bus[{name}]")
+        self.buses.start()
         self._start_task("mqtt", self.mqtt)
         self._start_task("sparkplug", self.sparkplug)
         self._start_task("feeds", self.feeds)
@@ -160,7 +147,7 @@ class RunningGateway:
 
     def tasks(self) -> list[asyncio.Task[None]]:
         """The tasks that run now: a bus's or a sink's ending is the gateway's failure."""
-        return [*self._bus_tasks.values(), *self._tasks.values()]
+        return [*self.buses.tasks(), *self._tasks.values()]
 
     async def stop(self) -> None:
         """Stop the buses, then the sinks.
@@ -168,12 +155,7 @@ class RunningGateway:
         The buses first, after the frame in flight, so that their last samples still reach
         the sinks; then the sinks (MQTT says offline, the queue stays on disk).
         """
-        for worker in self.workers.values():
-            worker.request_stop()
-        bus_tasks = list(self._bus_tasks.values())
-        if bus_tasks:
-            await asyncio.wait(bus_tasks, timeout=SHUTDOWN_S)
-        await stop_tasks(bus_tasks)
+        await self.buses.stop()
         await stop_tasks(list(self._tasks.values()))
         if self.page is not None:
             with contextlib.suppress(Exception):
@@ -199,10 +181,6 @@ class RunningGateway:
         if self.metrics is not None:
             self.metrics.stop()
             self.metrics = None
-
-    async def _close_lines(self) -> None:
-        for worker in self.workers.values():
-            await worker.line.close()
 
     async def _close_shared(self) -> None:
         if self.shared is not None:
@@ -274,153 +252,18 @@ class RunningGateway:
         self.config = new
         self.state.clock.trust_unsynchronised = _trusted(new)
         self.state.writes.flash_budgets = flash_budgets(new)
-        rebuilt = await self._change_buses(changes, old)
+        self.buses.config = new
+        rebuilt = await self.buses.change(changes, old, self.mqtt)
         await self._stop_sections(changes, old)
-        coming = self._build_buses({*changes.buses_added, *rebuilt})
+        coming = {*changes.buses_added, *rebuilt}
+        self.buses.build(coming)
         if "care" in changes.sections:
             for name, worker in self.workers.items():
                 if name not in coming:
                     care_for(new, self.state, worker)
         await self._start_sections(changes)
-        for name in coming:
-            task = asyncio.create_task(self.workers[name].run(), name=f"bus[{name}]")
-            self._bus_tasks[name] = task
+        self.buses.start()
         return changes
-
-    async def _change_buses(self, changes: ConfigChanges, old: GatewayConfig) -> set[str]:
-        """Stop the buses that go, change those that changed in their running workers.
-
-        Then forget the devices that went (after their worker stopped polling them, so
-        that no late sample brings their retained topics back) and those now on another
-        bus or at another address or of another profile; and show the devices that
-        changed or came. A bus whose worker cannot change (its line is paused for a scan)
-        is stopped and built anew, its name returned.
-        """
-        new = self.config
-        rebuilt: set[str] = set()
-        for name in changes.buses_removed:
-            await self._stop_bus(name)
-        for name in changes.buses_changed:
-            if not await self._change_bus(name, old):
-                await self._stop_bus(name)
-                rebuilt.add(name)
-        self._announce_changed(changes, old)
-        stopped = {*changes.buses_removed, *rebuilt}
-        after = {device.name: device for device in new.devices}
-        for device in old.devices:
-            now = after.get(device.name)
-            if now is None:
-                self._forget_device(device.bus, device.name, gone=True)
-            elif device.bus in stopped or _another_sensor(device, now):
-                self._forget_device(device.bus, device.name, gone=False)
-        touched = {*changes.devices_changed, *changes.devices_added}
-        for device in new.devices:
-            if device.name not in touched or device.bus not in changes.buses_changed:
-                continue  # unchanged, or on a bus built anew (whose builder shows it)
-            if device.bus in rebuilt:
-                continue
-            worker = self.workers[device.bus]
-            register_device(self.state, device.bus, worker.devices[device.name].target)
-            care_for(new, self.state, worker, devices={device.name})
-            self.writers[device.name] = build_writer(device, worker, self.ledger, self.state.clock)
-        return rebuilt
-
-    def _announce_changed(self, changes: ConfigChanges, old: GatewayConfig) -> None:
-        """MQTT: each changed device announced anew at its next cycle, as it is polled now.
-
-        The points it no longer polls lose their retained values and their Home Assistant
-        entities; a device of another profile now loses all of the former's.
-        """
-        if self.mqtt is None:
-            return
-        after = {device.name: device for device in self.config.devices}
-        for device in old.devices:
-            info = self.state.devices.get((device.bus, device.name))
-            if device.name not in changes.devices_changed or info is None:
-                continue
-            now = after[device.name]
-            profile = get_profile(info.profile)
-            if now.profile != device.profile:
-                self.mqtt.forget(device.bus, device.name, profile, info.intervals)
-                continue
-            polled = device_target(now, self.config.bus(now.bus)).intervals
-            dropped = [point for point in info.intervals if point not in polled]
-            self.mqtt.replan(device.bus, device.name, profile, dropped)
-
-    async def _change_bus(self, name: str, old: GatewayConfig) -> bool:
-        """One bus changed in its running worker; what it polls and runs otherwise goes on.
-
-        A new line if its settings changed; the devices added, re-planned and removed.
-        False if its line is paused for a scan: nothing changed, the caller rebuilds it.
-        """
-        new = self.config
-        worker = self.workers[name]
-        bus = next(each for each in new.buses if each.name == name)
-        if _line_of(bus) != _line_of(next(each for each in old.buses if each.name == name)):
-            line = bus_line(new, bus)
-            if not await worker.use_line(line):
-                return False
-            self.state.remove_line(name)
-            self.state.add_line(name, line.stats, worker.health)
-        worker.reconnect_max_s = bus.reconnect_max_s
-        # A device the reload did not change keeps its target as it is (its phase among
-        # them: another device on the bus must not shift its slot); the worker tells a
-        # re-plan of the same sensor from another sensor.
-        unchanged = {
-            device.name
-            for device in old.devices_on(name)
-            if device in new.devices and device.bus == name
-        }
-        targets = [
-            worker.devices[target.name].target
-            if target.name in unchanged and target.name in worker.devices
-            else target
-            for target in bus_targets(new, bus)
-        ]
-        try:
-            async with asyncio.timeout(SHUTDOWN_S):
-                await worker.change_devices(targets)
-        except TimeoutError:
-            _LOGGER.warning(
-                "reload: %s takes its new devices after the transaction in flight", name
-            )
-        return True
-
-    async def _stop_bus(self, name: str) -> None:
-        """A bus removed or changed: its worker stops after the frame in flight, its port closes."""
-        worker = self.workers.pop(name)
-        worker.request_stop()
-        task = self._bus_tasks.pop(name, None)
-        if task is not None:
-            await asyncio.wait([task], timeout=SHUTDOWN_S)
-            await stop_tasks([task])
-        await worker.line.close()
-        self.state.remove_line(name)
-
-    def _forget_device(self, bus: str, name: str, *, gone: bool) -> None:
-        """A device whose bus stops: forgotten by the state; gone for good: by MQTT too."""
-        info = self.state.devices.get((bus, name))
-        self.state.remove_device(bus, name)
-        if not gone:
-            return
-        self.writers.pop(name, None)
-        if info is not None and self.mqtt is not None:
-            self.mqtt.forget(bus, name, get_profile(info.profile), info.intervals)
-
-    def _build_buses(self, names: set[str]) -> set[str]:
-        """The workers and write paths of the buses added or changed (not started yet)."""
-        new = self.config
-        for bus in new.buses:
-            if bus.name in names:
-                worker = build_worker(new, bus, self._sinks(), self.state)
-                worker.in_use_is_fatal = False  # a port another master holds is retried
-                self.workers[bus.name] = worker
-        for device in new.devices:
-            if device.bus in names:
-                self.writers[device.name] = build_writer(
-                    device, self.workers[device.bus], self.ledger, self.state.clock
-                )
-        return names
 
     async def _stop_sections(self, changes: ConfigChanges, old: GatewayConfig) -> None:
         """Stop the parts whose own section changed; the others keep their connections."""
@@ -562,38 +405,10 @@ def _trusted(config: GatewayConfig) -> bool:
     return config.clock.trust_unsynchronised or trust_from_environment()
 
 
-def _line_of(bus: BusConfig) -> tuple[object, ...]:
-    """What a bus's line is built from: another value of any takes a new line."""
-    return (bus.port, bus.line, bus.echo, bus.rs485, bus.tcp)
-
-
-def _another_sensor(before: DeviceConfig, after: DeviceConfig) -> bool:
-    """Whether a device the reload kept by name is another sensor: moved, readdressed, other."""
-    return (
-        before.bus != after.bus
-        or before.address != after.address
-        or before.profile != after.profile
-    )
-
-
 def _sign_in(config: GatewayConfig) -> tuple[object, ...]:
     """What a session was signed in with: the same after a reload keeps the sessions."""
     web = config.web
     return (web.password, web.password_sha256, web.session_minutes)
-
-
-async def stop_tasks(tasks: Sequence[asyncio.Task[Any]]) -> None:
-    """Cancel and wait, but never for longer than ``SHUTDOWN_S``: stopping must not hang."""
-    if not tasks:
-        return
-    for task in tasks:
-        task.cancel()
-    done, pending = await asyncio.wait(tasks, timeout=SHUTDOWN_S)
-    for task in pending:
-        _LOGGER.warning("%s did not stop within %.0f s; leaving it", task.get_name(), SHUTDOWN_S)
-    for task in done:
-        if not task.cancelled() and (exc := task.exception()) is not None:
-            _LOGGER.debug("%s ended with %r", task.get_name(), exc)
 
 
 async def run(
