@@ -308,7 +308,7 @@ def toggle(signum, frame):
 signal.signal(signal.SIGUSR1, toggle)
 signal.signal(signal.SIGUSR2, toggle)
 sys.argv = ["gateway", *sys.argv[2:]]
-from gateway.cli.root import main
+from gateway.cli import main
 main()
 """
 

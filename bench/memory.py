@@ -18,8 +18,15 @@ With --trace N the gateway runs under tracemalloc, and at the scrape writes the 
 allocation sites (by line) to bench/results/memory-trace-BxD.txt: where the memory above
 the floor is. Tracing costs memory of its own, so a traced run's RSS is not a figure.
 
+With --reference N, instead: a plain `gateway run` of the reference plant of bench/peers.py
+(five sensors on one simulated line at 9600 8E1, every process and status point at 1 s, MQTT
+and metrics on, nothing optional), started as a user starts it, N times in a row; the RSS
+after the peers' warm-up and --seconds (default 30) more of polling, and its peak, every run
+printed, then the median. Issue 29's target: <= 45 MiB.
+
 Printed, and written to bench/results/memory.json. Run from the repository root:
 .venv/bin/python -m bench.memory [--sizes 4x16,16x16] [--seconds 10] [--trace 40]
+.venv/bin/python -m bench.memory --reference 3 [--seconds 30]
 """
 
 from __future__ import annotations
@@ -29,12 +36,14 @@ import asyncio
 import json
 import os
 import signal
+import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Final
 
+from bench import peers
 from bench.publish import (
     gateway_config,
     healthz,
@@ -46,9 +55,12 @@ from bench.publish import (
 )
 from gateway.app import device_target
 from gateway.config import load_config
+from gateway.wire.timing import LineFormat
 
 RESULTS = Path(__file__).parent / "results"
 WARM_UP_S = 5.0  # identity reads: every point read once at the start
+REFERENCE_TARGET_MIB: Final = 45.0  # issue 29: a plain run of the reference plant
+REFERENCE_LINE: Final = LineFormat(baudrate=9600, parity="E", stopbits=1)  # as bench.peers
 FLOOR_ALLOWANCE_MIB: Final = 12.0  # issue 23, target 3
 BYTES_PER_POINT: Final = 300  # issue 23, target 3
 MIB = 1024 * 1024
@@ -206,6 +218,57 @@ def verdict(sizes: list[dict[str, float]]) -> dict[str, object]:
     }
 
 
+def reference_line(directory: Path) -> tuple[Path, list[str]]:
+    """The peers' simulated line on a clean phase, in ``directory``: its port and command."""
+    directory.mkdir()
+    port, frames, line = directory / "tty", directory / "line.json", directory / "line.yaml"
+    line.write_text(
+        json.dumps(peers.simulator_config(REFERENCE_LINE, peers.PHASES[0])), encoding="utf-8"
+    )
+    simulate = [sys.executable, "-m", "bench.peer_line", "--config", str(line)]
+    return port, [*simulate, "--pty", str(port), "--out", str(frames)]
+
+
+async def reference_run(broker: int, directory: Path, seconds: float) -> dict[str, float]:
+    """One plain `gateway run` of the peers' plant on a clean line: its RSS and peak."""
+    port, simulate = reference_line(directory)
+    log = directory / "gateway.log"
+    async with peers.child(simulate, log=directory / "line.log", ready=b"ready"):
+        argv = peers.gateway_command(port, REFERENCE_LINE, broker, directory)
+        async with peers.child(argv, log=log) as process:
+            await asyncio.sleep(peers.WARM_UP_S + seconds)
+            if process.returncode is not None:
+                raise RuntimeError(f"the gateway stopped:\n{log.read_text(encoding='utf-8')}")
+            return {
+                "rss_mib": rss_mib(process.pid),
+                "peak_rss_mib": rss_mib(process.pid, "VmHWM"),
+            }
+
+
+async def reference(runs: int, seconds: float) -> dict[str, object]:
+    """``runs`` plain runs of the reference plant, one after the other on one broker."""
+    results = []
+    with tempfile.TemporaryDirectory() as tmp:
+        directory = Path(tmp)
+        async with peers.mosquitto(directory) as broker:
+            for index in range(runs):
+                result = await reference_run(broker, directory / f"run-{index}", seconds)
+                print(
+                    f"run {index + 1}: RSS {result['rss_mib']:.1f} MiB, "
+                    f"peak {result['peak_rss_mib']:.1f}",
+                    flush=True,
+                )
+                results.append(result)
+    median = statistics.median(r["rss_mib"] for r in results)
+    return {
+        "runs": results,
+        "seconds": seconds,
+        "median_rss_mib": median,
+        "target_mib": REFERENCE_TARGET_MIB,
+        "met": median <= REFERENCE_TARGET_MIB,
+    }
+
+
 async def main_async(args: argparse.Namespace) -> dict[str, object]:
     sizes = [tuple(int(n) for n in size.split("x")) for size in args.sizes.split(",")]
     results = []
@@ -224,11 +287,22 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--sizes", default="4x16,16x16", help="BUSESxDEVICES, smallest first")
-    parser.add_argument("--seconds", type=float, default=10.0, help="after the warm-up")
+    parser.add_argument(
+        "--seconds", type=float, help="after the warm-up (default 10; 30 with --reference)"
+    )
     parser.add_argument("--trace", type=int, default=0, help="top allocation sites to write")
+    parser.add_argument(
+        "--reference", type=int, default=0, metavar="N", help="N plain runs of the reference plant"
+    )
     args = parser.parse_args()
     os.environ.setdefault("COLUMNS", "200")
     RESULTS.mkdir(exist_ok=True)
+    if args.reference:
+        plain = asyncio.run(reference(args.reference, args.seconds or 30.0))
+        (RESULTS / "memory-reference.json").write_text(json.dumps(plain, indent=2), "utf-8")
+        print(f"median RSS {plain['median_rss_mib']:.1f} MiB (target <= {REFERENCE_TARGET_MIB:g})")
+        return
+    args.seconds = args.seconds or 10.0
     result = asyncio.run(main_async(args))
     (RESULTS / "memory.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
     if result["traced"]:

@@ -281,7 +281,7 @@ def dump():
         json.dump(handed, out)
 atexit.register(dump)
 sys.argv = ["gateway", "run", "--config", config, "--no-print"]
-from gateway.cli.root import main
+from gateway.cli import main
 main()
 """
 

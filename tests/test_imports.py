@@ -4,8 +4,13 @@ The gateway runs as a user runs it, as its own process on a simulated line with 
 broker, polls, is scraped once and is stopped; at its exit it writes the names of every
 module it imported. A plain config (MQTT and Prometheus) must not have imported the web
 page (aiohttp), Sparkplug (protobuf), the shared bus, the feeds or any other command's
-module; a config that switches them on must have (so that the check sees what it claims
-to: a rename or a lazy import that never happens fails here too).
+module, nor the command line's libraries (typer, rich) or pymodbus; a config that switches
+them on must have (so that the check sees what it claims to: a rename or a lazy import
+that never happens fails here too).
+
+A plain ``gateway run`` is read without typer (``gateway/cli/run.py``); every command line
+that reader takes must be read by typer the same way, whatever the options' order and
+spelling, and every other one left to typer.
 """
 
 from __future__ import annotations
@@ -18,7 +23,12 @@ import urllib.request
 from typing import TYPE_CHECKING
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
+from gateway.cli import root
+from gateway.cli.run import plain_run
+from tests.fuzzing import fuzz
 from tests.mqtt_broker import free_port
 from tests.rigs import simulate_process
 from tests.unretrieved import reported_in
@@ -57,6 +67,10 @@ OTHER_COMMANDS = (
     "pymodbus.server",  # pymodbus's servers and clients: the gateway has its own
     "pymodbus.client",
 )
+
+# Never in a plain run: the command line's libraries, there only to read `run --config`
+# (cli/run reads it), and pymodbus, which only the shared bus and the simulator use.
+NOT_IN_A_PLAIN_RUN = ("typer", "rich", "click", "shellingham", "pymodbus")
 
 # Each optional feature's modules: imported if and only if it is configured.
 OPTIONAL = {
@@ -136,6 +150,7 @@ def test_a_plain_config_imports_no_optional_feature(
     optional = tuple(name for names in OPTIONAL.values() for name in names)
     assert loaded(modules, optional) == set()
     assert loaded(modules, OTHER_COMMANDS) == set()
+    assert loaded(modules, NOT_IN_A_PLAIN_RUN) == set()
 
 
 def test_each_configured_feature_imports_its_own(
@@ -156,3 +171,71 @@ def test_each_configured_feature_imports_its_own(
         for name in names:
             assert name in modules, f"{feature}: {name} not imported"
     assert loaded(modules, OTHER_COMMANDS) == set()
+
+
+# --- a plain run's command line, read without typer -----------------------------------------
+
+# The options of `run` in every spelling, their values, and what a plain run is not.
+TOKENS = (
+    *("run", "--config", "-c", "a.yaml", "b c.yaml", "--config=d.yaml", "--config="),
+    *("--print", "--no-print", "--help", "--version", "-x", "--", "", "-", "--conf", "scan"),
+)
+
+
+def typer_reads(args: list[str]) -> tuple[Path, bool | None] | None:
+    """What typer hands the run command for ``args``; ``None`` if it runs no gateway."""
+    handed: list[tuple[Path, bool | None]] = []
+
+    def record(config: Path, *, show: bool | None) -> None:
+        handed.append((config, show))
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(root, "run_command", record)
+        try:
+            root.app(args, prog_name="gateway", standalone_mode=False)
+        except Exception:  # noqa: BLE001 - a usage error, help, a missing file: no run
+            return None
+    return handed[0] if handed else None
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["run", "--config", "a.yaml"],
+        ["run", "-c", "a.yaml", "--print"],
+        ["run", "--no-print", "--config=d.yaml"],
+        ["run", "--config", "a.yaml", "--print", "-c", "b c.yaml", "--no-print"],
+    ],
+)
+def test_the_usual_plain_runs_are_read_without_typer_as_typer_reads_them(args: list[str]) -> None:
+    assert plain_run(args, {}) is not None
+    assert plain_run(args, {}) == typer_reads(args)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["run", "--config", "a.yaml", "--help"],
+        ["run", "--print"],
+        ["run", "--config", "-x"],
+        ["run", "--config="],
+        ["--version", "run", "--config", "a.yaml"],
+        ["scan", "--config", "a.yaml"],
+    ],
+)
+def test_help_mistakes_and_other_commands_are_left_to_typer(args: list[str]) -> None:
+    assert plain_run(args, {}) is None
+
+
+def test_a_shell_asking_for_completions_is_left_to_typer() -> None:
+    args = ["run", "--config", "a.yaml"]
+    assert plain_run(args, {"_GATEWAY_COMPLETE": "bash_complete"}) is None
+
+
+@fuzz(400)
+@given(st.lists(st.sampled_from(TOKENS), max_size=7))
+def test_every_command_line_read_without_typer_is_read_so_by_typer(tail: list[str]) -> None:
+    args = ["run", *tail]
+    plain = plain_run(args, {})
+    if plain is not None:
+        assert plain == typer_reads(args)

@@ -16,11 +16,9 @@ from rich.markup import escape
 from typer.core import TyperGroup
 
 from gateway import __version__
-from gateway.app import configure_logging
-from gateway.app import run as run_gateway
 from gateway.cli.device import fail
-from gateway.cli.heap import return_large_blocks
-from gateway.config import load_config, review_config
+from gateway.cli.run import run_command
+from gateway.config import review_config
 from gateway.control.link import open_link
 from gateway.control.ports import port_advice
 from gateway.errors import ConfigError, GatewayError
@@ -28,7 +26,7 @@ from gateway.line.devices import DeviceTarget
 from gateway.line.port_names import SystemRoots
 from gateway.line.samples import Quality, Sample, hex_registers, json_value
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
-from gateway.publish.console import ConsoleSink, format_sample
+from gateway.publish.console import format_sample
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat
 
@@ -517,15 +515,9 @@ def run(
 
     SIGHUP (or ``gateway reload``) reads the config again and applies what changed.
     """
+    # The same body as a plain run's without typer (cli/run): only reading differs.
     try:
-        settings = load_config(config)
-    except GatewayError as exc:
-        raise fail(exc) from exc
-    configure_logging(settings.logging)
-    return_large_blocks()
-    console = show if show is not None else sys.stdout.isatty()
-    try:
-        asyncio.run(run_gateway(settings, [ConsoleSink()] if console else [], config_path=config))
+        run_command(config, show=show)
     except GatewayError as exc:
         raise fail(exc) from exc
 
@@ -637,5 +629,5 @@ def scan_command(
 
 
 def main() -> None:
-    """Run the command line."""
+    """Any command line, through typer (``gateway.cli.main`` reads a plain run itself)."""
     app()

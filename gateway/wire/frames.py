@@ -1,38 +1,27 @@
-"""Modbus RTU frames: requests built and responses parsed with pymodbus's framer and PDUs.
+"""Modbus RTU frames: requests built and responses parsed for a strict master, and a slave's.
 
-pymodbus does the Modbus part well (PDU classes, ``FramerRTU``); this module adds what a
-strict master needs on top and what pymodbus's client cannot give us: matching a
-response against the request in flight (device, function, byte count, length),
-classifying every failure as its own error, the frame length expected from the first
-bytes, and the digiLine string quirk as an explicit, reported tolerance. The
-server-side helpers serve the simulator.
+What a strict master needs and a general client does not give: a response matched against
+the request in flight (device, function, byte count, length), every failure classified as
+its own error, the frame length expected from the first bytes, and the digiLine string
+quirk as an explicit, reported tolerance. The server-side helpers serve the simulator.
 
-The transaction path, every answer of every poll, does not go through pymodbus: the CRC
-is our own table (:func:`crc_value`) and a read's answer is unpacked by a struct per
-register count (:func:`read_answer`). pymodbus's framer and decoder cost more per
-answer than the rest of a transaction's own work; read requests are built through it
-once per planned block and reused, and it still builds writes and one-off requests and
-parses everything but the plain read answer.
+The four functions the sensors speak (03, 04, 06, 16) and their exception answers are
+framed and read here with :mod:`struct`, the CRC from our own table (:func:`crc_value`),
+a read's answer by a struct per register count (:func:`read_answer`). They were
+pymodbus's framer and PDUs once; its decoder took a third of a transaction's CPU, and a
+gateway that only polls held all of pymodbus (its framers, PDUs, datastore and simulator:
+some 1 MiB, ``bench/memory.py --reference``) for frames it builds with a few bytes. What
+is read here is read as pymodbus read it, the same verdicts and messages (the fuzzing
+tests hold both to an oracle of the manuals). Only a function code outside the four, which
+no poll asks for, still goes to pymodbus's decoder, imported then, to tell a PDU of
+another function from garbage as before.
 """
 
 from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final
-
-from pymodbus.framer import FramerRTU
-from pymodbus.pdu import DecodePDU, ExceptionResponse
-from pymodbus.pdu.register_message import (
-    ReadHoldingRegistersRequest,
-    ReadHoldingRegistersResponse,
-    ReadInputRegistersRequest,
-    ReadInputRegistersResponse,
-    WriteMultipleRegistersRequest,
-    WriteMultipleRegistersResponse,
-    WriteSingleRegisterRequest,
-    WriteSingleRegisterResponse,
-)
+from typing import TYPE_CHECKING, Final
 
 from gateway.errors import (
     CrcError,
@@ -72,9 +61,8 @@ STANDARD_EXCEPTIONS: Final[Mapping[int, str]] = {
     4: "device_failure",
 }
 
-_CLIENT_DECODER = DecodePDU(is_server=False)
-_SERVER_DECODER = DecodePDU(is_server=True)
-_FRAMER = FramerRTU(_CLIENT_DECODER)
+_ADDRESS_COUNT: Final = struct.Struct(">HH")  # address and count, or address and value
+_WRITE_HEAD: Final = struct.Struct(">HHB")  # function 16: address, count, byte count
 
 
 def _crc_table() -> tuple[int, ...]:
@@ -151,8 +139,23 @@ class Response:
     tolerated: str | None = None  # name of the documented quirk the frame needed
 
 
-def _build(pdu: Any) -> bytes:  # noqa: ANN401 - pymodbus PDUs are untyped
-    return bytes(_FRAMER.buildFrame(pdu))
+def _frame(device: int, function: int, payload: bytes) -> bytes:
+    """An RTU frame: device, function, payload, CRC (Modbus over serial line 2.5.1)."""
+    body = bytes((device, function)) + payload
+    return body + crc16(body)
+
+
+def _decodes(pdu: bytes, *, is_server: bool) -> bool:
+    """Whether pymodbus reads ``pdu``, of a function code outside the four, as a PDU.
+
+    Only a frame no poll asks for reaches this (another function from a confused
+    converter, another master's request to the simulator), so pymodbus is imported here,
+    the first time one comes: the verdict stays the one it gave, and a gateway that only
+    polls does not hold it.
+    """
+    from pymodbus.pdu import DecodePDU  # noqa: PLC0415
+
+    return DecodePDU(is_server=is_server).decode(pdu) is not None
 
 
 def _check_device(device: int, *, broadcast_ok: bool) -> None:
@@ -175,8 +178,7 @@ def read_request(device: int, address: int, count: int, *, function: int = READ_
         raise EncodeError(f"cannot read {count} registers (1..{MAX_READ_REGISTERS})")
     if not 0 <= address <= MAX_ADDRESS - count + 1:
         raise EncodeError(f"address {address} with {count} registers is outside the map")
-    cls = ReadHoldingRegistersRequest if function == READ_HOLDING else ReadInputRegistersRequest
-    frame = _build(cls(address=address, count=count, dev_id=device))
+    frame = _frame(device, function, _ADDRESS_COUNT.pack(address, count))
     return Request(device=device, function=function, address=address, count=count, frame=frame)
 
 
@@ -184,7 +186,7 @@ def write_single_request(device: int, address: int, value: int) -> Request:
     """Build a function 06 write of one register (device 0 broadcasts)."""
     _check_device(device, broadcast_ok=True)
     _check_register(value)
-    frame = _build(WriteSingleRegisterRequest(address=address, registers=[value], dev_id=device))
+    frame = _frame(device, WRITE_SINGLE, _ADDRESS_COUNT.pack(address, value))
     return Request(
         device=device, function=WRITE_SINGLE, address=address, count=1, values=(value,), frame=frame
     )
@@ -197,14 +199,15 @@ def write_multiple_request(device: int, address: int, values: Sequence[int]) -> 
         raise EncodeError(f"cannot write {len(values)} registers (1..{MAX_WRITE_REGISTERS})")
     for value in values:
         _check_register(value)
-    pdu = WriteMultipleRegistersRequest(address=address, registers=list(values), dev_id=device)
+    count = len(values)
+    payload = _WRITE_HEAD.pack(address, count, 2 * count) + _WORDS[count].pack(*values)
     return Request(
         device=device,
         function=WRITE_MULTIPLE,
         address=address,
-        count=len(values),
+        count=count,
         values=tuple(values),
-        frame=_build(pdu),
+        frame=_frame(device, WRITE_MULTIPLE, payload),
     )
 
 
@@ -273,10 +276,19 @@ def parse_response(
         and frame[2] == 2 * count
         and len(frame) == 5 + 2 * count
     ):
-        # The answer to nearly every request: registers as pymodbus would decode them
-        # (big-endian words), read straight from the frame. Its decoder took a third of
-        # a transaction's CPU; everything else still goes through it below.
+        # The answer to nearly every request: big-endian words read straight from the
+        # frame; everything else is read below.
         return read_answer(request, frame)
+    return _other_answer(request, frame, exceptions=exceptions, byte_count_16bit=byte_count_16bit)
+
+
+def _other_answer(
+    request: Request, frame: bytes, *, exceptions: Mapping[int, str], byte_count_16bit: bool
+) -> Response:
+    """Any answer but a plain read's, its CRC and device already checked.
+
+    An exception, a write's echo, the digiLine two-byte byte count, or a malformed frame.
+    """
     tolerated = None
     if (
         byte_count_16bit
@@ -288,18 +300,24 @@ def parse_response(
     ):
         frame = frame[:2] + frame[3:]  # the standard form; the CRC was checked above
         tolerated = QUIRK_STRING_BYTE_COUNT
-    pdu = _CLIENT_DECODER.decode(frame[1:-2])
-    if pdu is None:
-        raise MalformedFrameError(f"cannot decode response {frame.hex(' ')}")
-    if isinstance(pdu, ExceptionResponse):
-        raise _exception_error(request, frame, pdu, exceptions)
-    if pdu.function_code != request.function:
+    function = frame[1]
+    if function > EXCEPTION_FLAG:  # an exception to some function (0x80 itself is none)
+        raise _exception_error(request, frame, function & ~EXCEPTION_FLAG, exceptions)
+    undecodable = MalformedFrameError(f"cannot decode response {frame.hex(' ')}")
+    if function != request.function:
+        if not _decodes(frame[1:-2], is_server=False):
+            raise undecodable
         raise MalformedFrameError(
-            f"function {pdu.function_code:#04x} does not answer {request.function:#04x}"
+            f"function {function:#04x} does not answer {request.function:#04x}"
         )
-    if request.function in READ_FUNCTIONS:
-        return _read_response(request, frame, tuple(pdu.registers), tolerated)
-    return _write_response(request, frame, pdu)
+    data = frame[2:-2]  # what follows the function code; at least one byte
+    if function in READ_FUNCTIONS:
+        if data[0] >= len(data):  # the byte count announces more than there is
+            raise undecodable
+        return _read_response(request, frame, tolerated)
+    if len(data) < _ADDRESS_COUNT.size:
+        raise undecodable
+    return _write_response(request, frame)
 
 
 # A struct per register count a byte count can announce (255 bytes: 127 registers).
@@ -324,22 +342,18 @@ def read_answer(request: Request, frame: bytes | bytearray | memoryview) -> Resp
 
 
 def _exception_error(
-    request: Request,
-    frame: bytes,
-    pdu: Any,  # noqa: ANN401 - pymodbus PDUs are untyped
-    exceptions: Mapping[int, str],
+    request: Request, frame: bytes, function: int, exceptions: Mapping[int, str]
 ) -> GatewayError:
     """The error an exception response stands for: the device's, or a malformed frame."""
-    function = pdu.function_code & ~EXCEPTION_FLAG
     if function != request.function:
         return MalformedFrameError(
             f"exception for function {function:#04x} while {request.function:#04x} was asked"
         )
     if len(frame) != EXCEPTION_FRAME_LENGTH:
-        # pymodbus decodes what it needs and ignores the rest, and a frame followed by
-        # 0x00 passes the CRC again shifted by one byte: so the length is checked here.
+        # A frame followed by 0x00 passes the CRC again shifted by one byte: so the
+        # length is checked, not only the code read.
         return MalformedFrameError(f"{len(frame)} bytes for an exception response")
-    code = int(pdu.exception_code)
+    code = frame[2]
     return DeviceExceptionError(
         device=request.device,
         function=function,
@@ -348,35 +362,34 @@ def _exception_error(
     )
 
 
-def _read_response(
-    request: Request, frame: bytes, registers: tuple[int, ...], tolerated: str | None
-) -> Response:
-    if frame[2] != 2 * request.count or len(frame) != 5 + 2 * request.count:
+def _read_response(request: Request, frame: bytes, tolerated: str | None) -> Response:
+    count = request.count
+    if frame[2] != 2 * count or len(frame) != 5 + 2 * count:
         raise MalformedFrameError(
-            f"{len(frame)} bytes with byte count {frame[2]} for {request.count} registers"
+            f"{len(frame)} bytes with byte count {frame[2]} for {count} registers"
         )
     return Response(
         device=request.device,
         function=request.function,
         address=request.address,
-        count=request.count,
-        registers=registers,
+        count=count,
+        registers=_WORDS[count].unpack_from(frame, 3),
         tolerated=tolerated,
     )
 
 
-def _write_response(request: Request, frame: bytes, pdu: Any) -> Response:  # noqa: ANN401
-    if len(frame) != WRITE_RESPONSE_LENGTH:  # as for exceptions: trailing bytes are ignored
+def _write_response(request: Request, frame: bytes) -> Response:
+    if len(frame) != WRITE_RESPONSE_LENGTH:  # an echo is exactly 8 bytes, nothing after it
         raise MalformedFrameError(f"{len(frame)} bytes for a write confirmation")
-    address = int(pdu.address)
+    address, value = _ADDRESS_COUNT.unpack_from(frame, 2)  # a value, or a count for 16
     if request.function == WRITE_SINGLE:
-        echoed = (address, tuple(pdu.registers))
+        echoed = (address, (value,))
         if echoed != (request.address, request.values):
             raise MalformedFrameError(f"write echo {echoed} differs from the request")
         return Response(device=request.device, function=WRITE_SINGLE, address=address, count=1)
-    if (address, int(pdu.count)) != (request.address, request.count):
+    if (address, value) != (request.address, request.count):
         raise MalformedFrameError(
-            f"write confirmation {address:#06x}/{pdu.count} differs from the request"
+            f"write confirmation {address:#06x}/{value} differs from the request"
         )
     return Response(
         device=request.device, function=WRITE_MULTIPLE, address=address, count=request.count
@@ -410,41 +423,33 @@ def parse_request(frame: bytes) -> Request:
     device, function = frame[0], frame[1]
     known = function in READ_FUNCTIONS or function in {WRITE_SINGLE, WRITE_MULTIPLE}
     if known and len(frame) != request_length(frame):
-        # pymodbus ignores bytes after what it decodes; a slave must not act on them.
+        # Bytes after what the function needs: a slave must not act on them.
         raise MalformedFrameError(f"{len(frame)} bytes for a function {function:#04x} request")
     if function in READ_FUNCTIONS:
-        # pymodbus refuses counts outside 1..125 while decoding; a slave must instead
-        # answer them with exception 02, so the two fields are read here.
-        address, count = struct.unpack(">HH", frame[2:6])
+        # Counts outside 1..125 are read too: a slave answers them with exception 02.
+        address, count = _ADDRESS_COUNT.unpack_from(frame, 2)
         return Request(device=device, function=function, address=address, count=count, frame=frame)
-    pdu = _SERVER_DECODER.decode(frame[1:-2])
-    if pdu is None:
-        raise MalformedFrameError(f"cannot decode request {frame.hex(' ')}")
     if function == WRITE_SINGLE:
-        values = tuple(pdu.registers)
+        address, value = _ADDRESS_COUNT.unpack_from(frame, 2)
         return Request(
-            device=device,
-            function=function,
-            address=pdu.address,
-            count=1,
-            values=values,
-            frame=frame,
+            device=device, function=function, address=address, count=1, values=(value,), frame=frame
         )
     if function == WRITE_MULTIPLE:
-        values = tuple(pdu.registers)
-        byte_count = frame[6]
-        if byte_count != 2 * pdu.count or len(values) != pdu.count:
-            raise MalformedFrameError(
-                f"write of {pdu.count} registers with byte count {byte_count}"
-            )
+        address, count, byte_count = _WRITE_HEAD.unpack_from(frame, 2)
+        # The words the byte count covers (its length checked above): half of it, rounded down.
+        values = _WORDS[byte_count // 2].unpack_from(frame, 7)
+        if byte_count != 2 * count or len(values) != count:
+            raise MalformedFrameError(f"write of {count} registers with byte count {byte_count}")
         return Request(
             device=device,
             function=function,
-            address=pdu.address,
-            count=pdu.count,
+            address=address,
+            count=count,
             values=values,
             frame=frame,
         )
+    if not _decodes(frame[1:-2], is_server=True):
+        raise MalformedFrameError(f"cannot decode request {frame.hex(' ')}")
     raise MalformedFrameError(f"function {function:#04x} is not supported")
 
 
@@ -452,8 +457,9 @@ def read_response(
     device: int, function: int, registers: Sequence[int], *, byte_count_16bit: bool = False
 ) -> bytes:
     """A slave's answer to a read; optionally with the digiLine two-byte byte count."""
-    cls = ReadHoldingRegistersResponse if function == READ_HOLDING else ReadInputRegistersResponse
-    frame = _build(cls(registers=list(registers), dev_id=device))
+    function = READ_HOLDING if function == READ_HOLDING else READ_INPUT
+    count = len(registers)
+    frame = _frame(device, function, bytes((2 * count,)) + _WORDS[count].pack(*registers))
     if not byte_count_16bit:
         return frame
     body = frame[:2] + b"\x00" + frame[2:-2]
@@ -462,14 +468,14 @@ def read_response(
 
 def write_single_response(device: int, address: int, value: int) -> bytes:
     """A slave's echo of a function 06 write."""
-    return _build(WriteSingleRegisterResponse(address=address, registers=[value], dev_id=device))
+    return _frame(device, WRITE_SINGLE, _ADDRESS_COUNT.pack(address, value))
 
 
 def write_multiple_response(device: int, address: int, count: int) -> bytes:
     """A slave's confirmation of a function 16 write."""
-    return _build(WriteMultipleRegistersResponse(address=address, count=count, dev_id=device))
+    return _frame(device, WRITE_MULTIPLE, _ADDRESS_COUNT.pack(address, count))
 
 
 def exception_response(device: int, function: int, code: int) -> bytes:
     """A slave's exception answer."""
-    return _build(ExceptionResponse(function, code, device_id=device))
+    return _frame(device, function | EXCEPTION_FLAG, bytes((code,)))
