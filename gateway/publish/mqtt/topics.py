@@ -217,17 +217,7 @@ class Topics:
         dropped = tuple(dropped)
         clear = [f"{self.base}/{device}/{point}" for point in dropped]
         if dropped and (bus, device) in self._discovered:
-            announced = discovery_messages(
-                prefix=self.settings.discovery.prefix,
-                base_topic=self.base,
-                gateway_id=self.client_id,
-                device=device,
-                profile=profile,
-                points=dropped,
-                identity={},
-                units={},
-            )
-            clear += [message.topic for message in announced]
+            clear += self._entity_topics(device, profile, dropped)
         self._discovered = {known for known in self._discovered if known[1] != device}
         self._layouts.pop(device, None)
         for topic in clear:
@@ -235,6 +225,20 @@ class Topics:
         return [
             Message(topic=topic, payload=b"", qos=self.settings.qos, retain=True) for topic in clear
         ]
+
+    def _entity_topics(self, device: str, profile: Profile, points: Iterable[str]) -> list[str]:
+        """The discovery topics of the points' Home Assistant entities (to clear them)."""
+        announced = discovery_messages(
+            prefix=self.settings.discovery.prefix,
+            base_topic=self.base,
+            gateway_id=self.client_id,
+            device=device,
+            profile=profile,
+            points=points,
+            identity={},
+            units={},
+        )
+        return [message.topic for message in announced]
 
     def forget(
         self, bus: str, device: str, profile: Profile, points: Iterable[str]
@@ -245,21 +249,14 @@ class Topics:
         availability, and its Home Assistant discovery, so that the entities go too. What
         was remembered of it goes: a device added again later starts afresh.
         """
+        points = tuple(points)
         clear = [f"{self.base}/{device}/{point}" for point in points] + [
             f"{self.base}/{device}/status/{flag}" for flag in self._flags.pop(device, {})
         ]
         clear += [f"{self.base}/{device}/state", f"{self.base}/{device}/{CARE_TOPIC_SUFFIX}"]
         if (bus, device) in self._discovered or device in self._care_sent:
-            announced = discovery_messages(
-                prefix=self.settings.discovery.prefix,
-                base_topic=self.base,
-                gateway_id=self.client_id,
-                device=device,
-                profile=profile,
-                points=points,
-                identity={},
-                units={},
-            ) + care_discovery_messages(
+            clear += self._entity_topics(device, profile, points)
+            announced = care_discovery_messages(
                 prefix=self.settings.discovery.prefix,
                 base_topic=self.base,
                 gateway_id=self.client_id,
