@@ -14,6 +14,7 @@ that hold them see the change.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from typing import TYPE_CHECKING
 
@@ -199,16 +200,17 @@ class Buses:
             self.state.remove_line(name)
             self.state.add_line(name, line.stats, worker.health)
         worker.reconnect_max_s = bus.reconnect_max_s
-        # A device the reload did not change keeps its target as it is (its phase among
-        # them: another device on the bus must not shift its slot); the worker tells a
-        # re-plan of the same sensor from another sensor.
+        # A device the reload did not change keeps its target as it is, its phase among
+        # it (another device on the bus must not shift its slot), unless the bus's own
+        # settings give it another (its timeout or retries); the worker tells a re-plan
+        # of the same sensor from another sensor.
         unchanged = {device.name for device in old.devices_on(name) if device in new.devices}
-        targets = [
-            worker.devices[target.name].target
-            if target.name in unchanged and target.name in worker.devices
-            else target
-            for target in bus_targets(new, bus)
-        ]
+        targets = []
+        for built in bus_targets(new, bus):
+            state = worker.devices.get(built.name)
+            kept = state.target if state is not None and built.name in unchanged else None
+            same = kept is not None and dataclasses.replace(built, phase=kept.phase) == kept
+            targets.append(kept if same and kept is not None else built)
         try:
             async with asyncio.timeout(SHUTDOWN_S):
                 await worker.change_devices(targets)
