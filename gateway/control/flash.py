@@ -39,7 +39,7 @@ from gateway.control.commands import require_writable
 from gateway.errors import CommandRejectedError, ConfigError
 from gateway.profiles.model import Storage
 from gateway.publish.state import FlashCounts
-from gateway.publish.storage import RETRY_S, StoreHealth, failure_cause
+from gateway.publish.storage import RETRY_S, StoreHealth, failure_cause, open_database
 
 if TYPE_CHECKING:
     from gateway.config import FlashPolicy
@@ -143,14 +143,7 @@ class FlashLedger:
         path = self.path
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-        db = sqlite3.connect(path or ":memory:", isolation_level=None, timeout=_BUSY_TIMEOUT_S)
-        try:
-            for pragma in _PRAGMAS:
-                db.execute(pragma)
-            db.executescript(_SCHEMA)
-        except sqlite3.Error:
-            db.close()
-            raise
+        db = open_database(path or ":memory:", _PRAGMAS, _SCHEMA, timeout_s=_BUSY_TIMEOUT_S)
         self._db = db
         return db
 

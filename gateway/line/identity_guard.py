@@ -58,7 +58,7 @@ class IdentityVerdict(StrEnum):
 
 
 @dataclass(slots=True)
-class _Pin:
+class Pin:
     """One pinned device's identity as the line knows it."""
 
     expected: PinnedSerial
@@ -89,13 +89,13 @@ class IdentityGuard:
         self.availability = availability
         self.schedule = schedule
         self._announce = announce
-        self._pins: dict[str, _Pin] = {}
+        self._pins: dict[str, Pin] = {}
         for state in devices.values():
             self.add(state)
 
     # --- a reload's changes ------------------------------------------------------------
 
-    def add(self, state: DeviceState, *, keep: _Pin | None = None) -> None:
+    def add(self, state: DeviceState, *, keep: Pin | None = None) -> None:
         """Guard a device if its serial is pinned; ``keep``: its verdict before a re-plan.
 
         A re-planned device pinned to the same serial keeps its verdict: it is the same
@@ -108,9 +108,9 @@ class IdentityGuard:
         if keep is not None and keep.expected == expected and keep.point == point:
             self._pins[state.target.name] = keep
         else:
-            self._pins[state.target.name] = _Pin(expected=expected, point=point)
+            self._pins[state.target.name] = Pin(expected=expected, point=point)
 
-    def remove(self, device: str) -> _Pin | None:
+    def remove(self, device: str) -> Pin | None:
         """Stop guarding a device (a reload removed or re-plans it); its pin, if it had one."""
         return self._pins.pop(device, None)
 
@@ -227,7 +227,7 @@ class IdentityGuard:
     # --- verdicts ----------------------------------------------------------------------
 
     async def _hold(
-        self, state: DeviceState, pin: _Pin, verdict: IdentityVerdict, answered: str
+        self, state: DeviceState, pin: Pin, verdict: IdentityVerdict, answered: str
     ) -> None:
         """Stop publishing and polling the device; say why, loudly, once per streak."""
         new_streak = not pin.held or pin.verdict is not verdict or pin.answered != answered
@@ -244,7 +244,7 @@ class IdentityGuard:
         await self._announce(state, online=False, reason=self._reason(pin))
 
     def _still_held(
-        self, state: DeviceState, pin: _Pin, verdict: IdentityVerdict, answered: str, now: float
+        self, state: DeviceState, pin: Pin, verdict: IdentityVerdict, answered: str, now: float
     ) -> None:
         """A held device's check found no pinned serial again: the next check later."""
         new_streak = pin.verdict is not verdict or pin.answered != answered
@@ -252,7 +252,7 @@ class IdentityGuard:
         self._log(state, pin, loud=new_streak)
         self.availability.probe_unanswered(state, now)
 
-    async def _confirm(self, state: DeviceState, pin: _Pin, answered: str) -> None:
+    async def _confirm(self, state: DeviceState, pin: Pin, answered: str) -> None:
         """The pinned serial answered in a poll: publish, and say the device is online."""
         was = pin.verdict
         pin.verdict, pin.answered = IdentityVerdict.CONFIRMED, answered
@@ -263,7 +263,7 @@ class IdentityGuard:
             reason, pin.deferred = pin.deferred, None
             await self._announce(state, online=True, reason=reason)
 
-    async def _release(self, state: DeviceState, pin: _Pin, answered: str) -> None:
+    async def _release(self, state: DeviceState, pin: Pin, answered: str) -> None:
         """The pinned serial answers again: the device is polled in full and published."""
         _LOGGER.info(
             "%s/%s (address %d): serial number %s answers again: it is the configured "
@@ -279,7 +279,7 @@ class IdentityGuard:
         await self.availability.answered(state, f"serial number {answered} confirmed")
         self.schedule.restart_device(state, time.monotonic())
 
-    def _reason(self, pin: _Pin) -> str:
+    def _reason(self, pin: Pin) -> str:
         """The availability reason of a held device (MQTT, ``/healthz``)."""
         if pin.verdict is IdentityVerdict.MISMATCH:
             return (
@@ -288,7 +288,7 @@ class IdentityGuard:
             )
         return f"identity not confirmed: its serial number could not be read ({pin.answered})"
 
-    def _log(self, state: DeviceState, pin: _Pin, *, loud: bool) -> None:
+    def _log(self, state: DeviceState, pin: Pin, *, loud: bool) -> None:
         """The first verdict of a streak at ERROR, with both serials and the remedy."""
         log = _LOGGER.error if loud else _LOGGER.debug
         target = state.target

@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from gateway.line.boundary import Line
     from gateway.line.devices import DeviceTarget
     from gateway.line.health import DeviceHealth
+    from gateway.line.identity_guard import Pin
     from gateway.line.plan import ReadBlock
     from gateway.line.samples import Sample, Sink
     from gateway.profiles import Profile
@@ -399,31 +400,29 @@ class BusWorker:
         self._wake.set()
 
     def _remove_device(self, name: str, reason: str) -> None:
-        state = self.devices.pop(name)
+        """A device that goes: its queued work fails with ``reason``."""
         gone = GatewayError(reason)
         self.jobs.fail_device(name, gone)
         self.foreign.fail_device(name, gone)
+        self._forget_device(self.devices.pop(name))
+
+    def _forget_device(self, state: DeviceState) -> Pin | None:
+        """Out of the schedule, the plans and the pins (its queued work untouched)."""
         self.schedule.remove(state)
         self.transactions.remove(state)
-        self.identity.remove(name)
+        return self.identity.remove(state.target.name)
 
-    def _add_device(self, state: DeviceState, now: float) -> None:
+    def _add_device(self, state: DeviceState, now: float, pin: Pin | None = None) -> None:
         self.devices[state.target.name] = state
         self.transactions.add(state)
-        self.identity.add(state)
+        self.identity.add(state, keep=pin)
         self.schedule.add(state, now)
 
     def _replan_device(self, former: DeviceState, target: DeviceTarget, now: float) -> None:
         """The same sensor with other settings: new deadlines, what it is and said kept."""
         kept = {name: getattr(former, name) for name in _KEPT_BY_REPLAN}
-        state = DeviceState(target=target, **kept)
-        self.schedule.remove(former)
-        self.transactions.remove(former)
-        pin = self.identity.remove(target.name)
-        self.devices[target.name] = state
-        self.transactions.add(state)
-        self.identity.add(state, keep=pin)
-        self.schedule.add(state, now)
+        pin = self._forget_device(former)
+        self._add_device(DeviceState(target=target, **kept), now, pin)
 
     async def use_line(self, line: Line) -> bool:
         """Go on with ``line`` in place of the line (a reload changed the bus's settings).

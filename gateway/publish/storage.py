@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
 RETRY_S: Final = 5.0  # how often a file that cannot be written is tried again
 
@@ -103,6 +103,25 @@ def failure_cause(path: Path, exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.errno in _OS_CAUSES:
         return f"{_OS_CAUSES[exc.errno]} ({exc.strerror or said})"
     return said
+
+
+def open_database(
+    path: Path | str, pragmas: Sequence[str], schema: str, *, timeout_s: float = 5.0
+) -> sqlite3.Connection:
+    """An SQLite file opened in autocommit, its settings and schema applied, or closed again.
+
+    ``timeout_s``: how long a statement waits for another process's lock (SQLite's busy
+    timeout). The MQTT queue and the flash-write ledger open their files this way.
+    """
+    db = sqlite3.connect(path, isolation_level=None, timeout=timeout_s)
+    try:
+        for pragma in pragmas:
+            db.execute(pragma)
+        db.executescript(schema)
+    except sqlite3.Error:
+        db.close()
+        raise
+    return db
 
 
 def can_write(directory: Path, min_free_bytes: int) -> bool:

@@ -40,6 +40,7 @@ from gateway.publish.storage import (
     StoreHealth,
     can_write,
     failure_cause,
+    open_database,
 )
 
 if TYPE_CHECKING:
@@ -222,12 +223,12 @@ class MessageStore:
         """Open the file afresh: the queue on disk, its count, and the next id."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
-            db = _connect(self.path)
+            db = open_database(self.path, _PRAGMAS, _SCHEMA)
         except sqlite3.DatabaseError as exc:
             if getattr(exc, "sqlite_errorcode", None) not in _DAMAGED:
                 raise
             _set_aside(self.path, exc)
-            db = _connect(self.path)
+            db = open_database(self.path, _PRAGMAS, _SCHEMA)
         try:
             # Prove the file is writable now, not at the first outage.
             db.execute("BEGIN IMMEDIATE")
@@ -470,18 +471,6 @@ class MessageStore:
         self._next_id = first + len(memory)
         self._disk = count - dropped
         self.dropped += dropped
-
-
-def _connect(path: Path) -> sqlite3.Connection:
-    db = sqlite3.connect(path, isolation_level=None)
-    try:
-        for pragma in _PRAGMAS:
-            db.execute(pragma)
-        db.executescript(_SCHEMA)
-    except sqlite3.Error:
-        db.close()
-        raise
-    return db
 
 
 def _rollback(db: sqlite3.Connection) -> None:
