@@ -367,8 +367,26 @@ def _decode_enum32(fmt: Format, regs: Sequence[int], _order: WordOrder) -> Decod
     return _enum_value(fmt, _u32(regs))
 
 
+# Each bit field's named bits in bit order, by the mapping (kept with it, so that a reused id
+# is told apart): a status word is decoded on every poll, and sorting its bits every time
+# was most of the work.
+_BITS_IN_ORDER: dict[int, tuple[Mapping[int, str], tuple[tuple[int, str], ...]]] = {}
+_BITS_IN_ORDER_MAX: Final = 1024  # bit fields kept; past this many they are sorted anew
+
+
+def _bits_in_order(bits: Mapping[int, str]) -> tuple[tuple[int, str], ...]:
+    known = _BITS_IN_ORDER.get(id(bits))
+    if known is not None and known[0] is bits:
+        return known[1]
+    ordered = tuple(sorted(bits.items()))
+    if len(_BITS_IN_ORDER) >= _BITS_IN_ORDER_MAX:
+        _BITS_IN_ORDER.clear()
+    _BITS_IN_ORDER[id(bits)] = (bits, ordered)
+    return ordered
+
+
 def _bitfield_value(fmt: Format, raw: int) -> BitfieldValue:
-    flags = tuple((name, bool(raw >> bit & 1)) for bit, name in sorted(fmt.bits.items()))
+    flags = tuple([(name, bool(raw >> bit & 1)) for bit, name in _bits_in_order(fmt.bits)])
     return BitfieldValue(raw=raw, flags=flags)
 
 
