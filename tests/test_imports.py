@@ -69,8 +69,21 @@ OTHER_COMMANDS = (
 )
 
 # Never in a plain run: the command line's libraries, there only to read `run --config`
-# (cli/run reads it), and pymodbus, which only the shared bus and the simulator use.
-NOT_IN_A_PLAIN_RUN = ("typer", "rich", "click", "shellingham", "pymodbus")
+# (cli/run reads it); pymodbus, which only the shared bus and the simulator use; the MQTT
+# operations, until one is asked for; the network lines, unless a port names one; difflib,
+# which only hints at a config's mistakes.
+NOT_IN_A_PLAIN_RUN = (
+    "typer",
+    "rich",
+    "click",
+    "shellingham",
+    "pymodbus",
+    "gateway.control.operations",
+    "gateway.line.modbus_tcp",
+    "gateway.line.rtu_over_tcp",
+    "gateway.line.tcp_session",
+    "difflib",
+)
 
 # Each optional feature's modules: imported if and only if it is configured.
 OPTIONAL = {

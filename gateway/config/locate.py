@@ -6,7 +6,6 @@ no secret echoed.
 
 from __future__ import annotations
 
-import difflib
 import types
 from typing import (
     TYPE_CHECKING,
@@ -87,6 +86,8 @@ def _unknown_key(path: KeyPath) -> str:
     allowed = list(model.model_fields) if model is not None else []
     if not allowed:
         return "unknown key"
+    import difflib  # noqa: PLC0415 - a mistake's hint only: a valid config never needs it
+
     close = difflib.get_close_matches(key, allowed, n=1)
     hint = f"; did you mean {close[0]}?" if close else ""
     return f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})"

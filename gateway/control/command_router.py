@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.control import operations
 from gateway.control.commands import parse_json, parse_set_payload
 from gateway.errors import CommandRejectedError, GatewayError
 from gateway.line.samples import json_value
@@ -211,6 +210,10 @@ class CommandRouter:
             )
             return body, "ok" if done.written else "unchanged"
         arguments, command_id = _parse_arguments(payload)
+        # The operations (clock, measurement, calibration log and offers) are imported
+        # with the first one asked: a plant that never asks keeps none of their code.
+        from gateway.control import operations  # noqa: PLC0415
+
         try:
             result = await operations.run_operation(
                 route.name, writer, arguments, now=self._clock()

@@ -12,8 +12,6 @@ from urllib.parse import urlsplit
 
 from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP, MBAP_URL_SCHEME, RTU_OVER_TCP_SCHEME
-from gateway.line.modbus_tcp import ModbusTcpLine
-from gateway.line.rtu_over_tcp import RtuOverTcpLine
 from gateway.line.serial_line import SerialLine
 
 if TYPE_CHECKING:
@@ -45,8 +43,13 @@ def build_line(
     """
     scheme = urlsplit(port).scheme if "://" in port else ""
     settings = tcp if tcp is not None else DEFAULT_TCP
+    # The network kinds are imported when a port names one: a serial plant keeps none of them.
     if scheme == MBAP_URL_SCHEME:
+        from gateway.line.modbus_tcp import ModbusTcpLine  # noqa: PLC0415
+
         return ModbusTcpLine(port=port, line=line, stats=stats, tcp=settings, bus=bus)
     if scheme == RTU_OVER_TCP_SCHEME:
+        from gateway.line.rtu_over_tcp import RtuOverTcpLine  # noqa: PLC0415
+
         return RtuOverTcpLine(port=port, line=line, stats=stats, tcp=settings, bus=bus, echo=echo)
     return SerialLine(port=port, line=line, stats=stats, bus=bus, echo=echo, options=options)
