@@ -21,6 +21,9 @@ queued; the quota slows that too), for ``--seconds``, with a scrape of ``/metric
 - deadlines missed, from the gateway's ``gateway_missed_deadlines_total`` (and the worst
   ``gateway_poll_lag_seconds`` seen), in the window and since the start;
 - timing violations, from the simulators' referees, in the window and since the start;
+- the transactions that failed in the window, by kind (``gateway_errors_total``): a
+  missed deadline after a timeout is a device held for its late-answer window, not a
+  gateway short of CPU;
 - the CPU the group used (share of one core, and of the quota) and the throttling:
   periods in which the quota ran out, and the time the gateway was held for it;
 - latency p50 / p99 from the cycle's first answer (the state document's ``time``) to the
@@ -382,7 +385,12 @@ def _tail(log: Path) -> str:
 Scrape = dict[tuple[str, tuple[tuple[str, str], ...]], float]
 
 
-WANTED: Final = ("gateway_missed_deadlines_total", "gateway_requests_total", "gateway_poll_lag_")
+WANTED: Final = (
+    "gateway_missed_deadlines_total",
+    "gateway_requests_total",
+    "gateway_poll_lag_",
+    "gateway_errors_total",
+)
 SAMPLE: Final = re.compile(r"([a-z_:]+)(?:\{(.*)\})? (\S+)")
 
 
@@ -401,6 +409,23 @@ def scrape(port: int) -> Scrape:
             labels = tuple(sorted(re.findall(r'(\w+)="([^"]*)"', match[2] or "")))
             metrics[match[1], labels] = float(match[3])
     return metrics
+
+
+def failed_by_kind(before: Scrape, after: Scrape) -> dict[str, int]:
+    """The transactions that failed between two scrapes, by kind (none: left out)."""
+    kinds = {
+        dict(labels)["kind"]
+        for name, labels in after
+        if name == "gateway_errors_total" and "kind" in dict(labels)
+    }
+    failed = {
+        kind: int(
+            total(after, "gateway_errors_total", kind=kind)
+            - total(before, "gateway_errors_total", kind=kind)
+        )
+        for kind in sorted(kinds)
+    }
+    return {kind: n for kind, n in failed.items() if n}
 
 
 def worst_lag(metrics: Scrape) -> float:
@@ -493,6 +518,7 @@ async def one_plant(
         "deadlines_missed": int(delta("gateway_missed_deadlines_total")),
         "deadlines_missed_run": int(total(after, "gateway_missed_deadlines_total")),
         "worst_poll_lag_s": lag,
+        "errors_by_kind": failed_by_kind(before, after),
         **violations(stats, t0, t1),
         "cpu_share": cpu / window,
         "cpu_share_of_quota": cpu / window / quota,
@@ -546,6 +572,10 @@ async def run_all(
 # --- report ------------------------------------------------------------------------------
 
 
+def _kinds(errors: dict[str, int]) -> str:
+    return ", ".join(f"{n} {kind}" for kind, n in errors.items()) or "none"
+
+
 def table(results: list[Figures]) -> str:
     """One row per plant, and the verdict on target 5."""
     header = (
@@ -573,6 +603,7 @@ def table(results: list[Figures]) -> str:
         f"{r['plant']}: since the start {r['deadlines_missed_run']} missed, "
         f"{r['violations_run']} violations, {r['unjudged_frames']} frames unjudged "
         f"(in the window by rule: {r['violations_by_rule'] or 'none'}); "
+        f"failed transactions in the window: {_kinds(r['errors_by_kind'])}; "
         f"start took {r['start_s']:.0f} s; MQTT queue {r['mqtt_queue_at_start']} at the "
         f"window's start, {r['mqtt_queue_at_end']} at its end; "
         f"{r['state_documents_per_s']:.0f} state documents/s"

@@ -170,3 +170,40 @@ async def test_a_pseudo_terminal_bound_at_another_path_opens_with_parity(
     await line.open()
     assert line.is_open
     await line.close()
+
+
+async def test_an_answer_the_kernel_holds_at_the_deadline_is_taken(tmp_path: Path) -> None:
+    """The answer is in the port's buffer when the wait's timer wakes the transaction.
+
+    A process held up by a CPU quota comes back to its timer and the answer at once; the
+    event loop runs the timer first when it was due in the pass the process was held in,
+    and the bytes come only in the next. Here: a callback due a microsecond before the
+    wait's timer writes the answer and holds the loop 10 ms. Giving up then counted a
+    timeout and a stale frame, and held the device for its late-answer window
+    (bench/budget.py under a 40 % quota: 2-5 missed deadlines a run, every one after one).
+    """
+    async with hand_wired(tmp_path) as (line, master):
+        request = frames.read_request(1, 0x2620, 2)
+        inbox = line._inbox
+        assert inbox is not None
+        loop = asyncio.get_running_loop()
+        wait = inbox.wait
+        held: list[float] = []
+
+        def answer_and_hold() -> None:
+            os.write(master, answer(1, (0x0000, 0x41A2)))
+            time.sleep(0.01)  # held up: the bytes reach the kernel, the loop does not run
+            held.append(time.monotonic())
+
+        async def wait_after_the_answer(timeout_s: float) -> None:
+            if not held:  # the wait for the answer: due just before its timer
+                loop.call_at(loop.time() + timeout_s - 1e-6, answer_and_hold)
+            await wait(timeout_s)
+
+        inbox.wait = wait_after_the_answer  # type: ignore[method-assign]
+        exchange = await line.transact(request, timeout_s=0.05, gap_s=LINE.frame_gap_s())
+        assert held, "the answer was never written: the test did not set the race up"
+        assert exchange is not None
+        assert exchange.response.registers == (0x0000, 0x41A2)
+        assert line.stats.errors[1, ErrorKind.TIMEOUT] == 0
+        assert line.stats.errors[1, ErrorKind.STALE] == 0

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import math
 import socket
+import struct
 import time
 from typing import TYPE_CHECKING, Any
 
@@ -259,6 +260,48 @@ async def test_0a_older_transactions_and_a_good_answer() -> None:
     assert line.stats.errors[1, ErrorKind.STALE] == 1
     assert line.stats.errors[1, ErrorKind.TIMEOUT] == 1
     assert line.stats.responses[1] == 1
+
+
+async def test_an_answer_the_socket_holds_at_the_deadline_is_taken() -> None:
+    """As on an RTU line (tests/test_bus.py): the answer is in the socket when the wait's
+    timer wakes the transaction, the loop held up in the pass the timer was due in. It
+    is the answer, not a timeout and a stale frame."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    line = build_line(port=f"tcp://127.0.0.1:{listener.getsockname()[1]}", line=LineFormat())
+    await line.open()
+    peer, _ = listener.accept()
+    loop = asyncio.get_running_loop()
+    assert isinstance(line, ModbusTcpLine)
+    inbox = line._session
+    assert inbox is not None
+    wait = inbox.wait
+    held: list[float] = []
+
+    def answer_and_hold() -> None:
+        request = peer.recv(256)
+        pdu = frames.read_response(1, 3, (0x0000, 0x41A2))[1:-2]
+        peer.sendall(struct.pack(">HHHB", *struct.unpack(">H", request[:2]), 0, len(pdu) + 1, 1))
+        peer.sendall(pdu)
+        time.sleep(0.01)  # held up: the bytes reach the socket, the loop does not run
+        held.append(time.monotonic())
+
+    async def wait_after_the_answer(timeout_s: float) -> None:
+        if not held:  # the wait for the answer: due just before its timer
+            loop.call_at(loop.time() + timeout_s - 1e-6, answer_and_hold)
+        await wait(timeout_s)
+
+    inbox.wait = wait_after_the_answer  # type: ignore[method-assign]
+    try:
+        exchange = await line.transact(frames.read_request(1, 0x2620, 2), timeout_s=0.05, gap_s=0.0)
+    finally:
+        await line.close()
+        peer.close()
+        listener.close()
+    assert held, "the answer was never sent: the test did not set the race up"
+    assert exchange is not None
+    assert exchange.response.registers == (0x0000, 0x41A2)
+    assert line.stats.errors[1, ErrorKind.TIMEOUT] == 0
+    assert line.stats.errors[1, ErrorKind.STALE] == 0
 
 
 # --- the session --------------------------------------------------------------------------

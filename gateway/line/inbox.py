@@ -11,6 +11,16 @@ from __future__ import annotations
 import asyncio
 import math
 import time
+from typing import Final
+
+# Past an answer's deadline, while the kernel holds bytes the event loop has not handed
+# over: this many more passes of the loop, each waiting at most this long for them. A
+# process held up (a CPU quota, a busy machine) comes back to a wait's timer and the
+# answer at once, and the loop may run the timer first; the answer the port already holds
+# is then taken, not counted a timeout. A line that keeps sending (noise) cannot keep a
+# transaction open for longer than the passes.
+LAST_LOOKS: Final = 3
+LAST_LOOK_S: Final = 0.05
 
 
 class Inbox(asyncio.Protocol):

@@ -45,9 +45,15 @@ from gateway.errors import (
     MalformedFrameError,
 )
 from gateway.line.boundary import Exchange
-from gateway.line.inbox import Inbox
+from gateway.line.inbox import LAST_LOOK_S, LAST_LOOKS, Inbox
 from gateway.line.stats import ErrorKind, LineStats, failure_kind
-from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect, session_ended
+from gateway.line.tcp_session import (
+    MS_PER_S,
+    SilenceWatch,
+    connect,
+    session_ended,
+    unread_bytes,
+)
 from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames, mbap
 
@@ -288,6 +294,7 @@ class ModbusTcpLine:
         """Read frames until the one with ``transaction`` (and when it came); older are stale."""
         noise = False
         others: list[int] = []  # the transaction ids of the answers dropped meanwhile
+        looks = 0  # at the deadline, for bytes the kernel holds that the loop has not handed over
         while True:
             session = self._live()
             try:
@@ -315,6 +322,12 @@ class ModbusTcpLine:
                 return answer, session.last_byte_at
             now = time.monotonic()
             if now >= deadline:
+                if looks < LAST_LOOKS and unread_bytes(self.tcp_socket()):
+                    # As on an RTU line (gateway.line.rtu): the answer waits in the socket,
+                    # and the loop ran this wait's timer first. It is taken, not a timeout.
+                    looks += 1
+                    await session.wait(LAST_LOOK_S)
+                    continue
                 held = bytes(session.buffer)
                 session.buffer.clear()
                 raise _no_answer(

@@ -11,10 +11,7 @@ the gateway cannot see.
 
 from __future__ import annotations
 
-import array
-import fcntl
 import math
-import termios
 import time
 from typing import TYPE_CHECKING
 from urllib.parse import urlsplit
@@ -23,7 +20,13 @@ from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP
 from gateway.errors import BusClosedError, BusTimeoutError, DeviceExceptionError, FrameError
 from gateway.line.rtu import RtuLine
-from gateway.line.tcp_session import MS_PER_S, SilenceWatch, connect, session_ended
+from gateway.line.tcp_session import (
+    MS_PER_S,
+    SilenceWatch,
+    connect,
+    session_ended,
+    unread_bytes,
+)
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -90,15 +93,7 @@ class RtuOverTcpLine(RtuLine):
 
     def _unread_input(self) -> bool:
         """Whether the kernel holds received bytes the inbox has not seen (FIONREAD)."""
-        sock = self.tcp_socket()
-        if sock is None:
-            return False
-        waiting = array.array("i", [0])
-        try:
-            fcntl.ioctl(sock.fileno(), termios.FIONREAD, waiting)
-        except (OSError, ValueError):
-            return False  # closed meanwhile: the write or the inbox will say so
-        return waiting[0] > 0
+        return unread_bytes(self.tcp_socket())
 
     async def wait_gap(self, gap_s: float, *, not_before: float = 0.0, device: int = 0) -> float:
         """The line's gap, at least ``tcp.request_pause_ms``, and not within the connect pause."""

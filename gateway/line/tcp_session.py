@@ -15,11 +15,14 @@ Both network lines use this module: :class:`gateway.line.rtu_over_tcp.RtuOverTcp
 
 from __future__ import annotations
 
+import array
 import asyncio
 import errno
+import fcntl
 import logging
 import os
 import socket
+import termios
 import time
 from typing import TYPE_CHECKING, Final
 
@@ -69,6 +72,22 @@ def _reason(exc: OSError, mode: str) -> str:
     if exc.errno is not None and exc.errno > 0:
         return os.strerror(exc.errno)
     return exc.strerror or str(exc)  # a name that does not resolve: the resolver's words
+
+
+def unread_bytes(sock: socket.socket | TransportSocket | None) -> bool:
+    """Whether the kernel holds received bytes that the event loop has not read (FIONREAD).
+
+    One ioctl, no read: the bytes stay for the transport, which hands them over in the
+    loop's next pass. A closed socket holds none.
+    """
+    if sock is None:
+        return False
+    waiting = array.array("i", [0])
+    try:
+        fcntl.ioctl(sock.fileno(), termios.FIONREAD, waiting)
+    except (OSError, ValueError):
+        return False  # closed meanwhile: the write or the inbox will say so
+    return waiting[0] > 0
 
 
 def configure_socket(sock: socket.socket | TransportSocket, settings: TcpSettings) -> None:
