@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import pytest
 import serial
 
+from gateway.config.echo import EchoMode
 from gateway.errors import BusClosedError
 from gateway.line.serial_line import SerialLine
 from gateway.line.stats import ErrorKind
@@ -26,7 +27,7 @@ from gateway.wire.timing import LineFormat
 from tests import unretrieved
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Iterator
+    from collections.abc import AsyncIterator, Callable, Iterator
     from pathlib import Path
 
 LINE = LineFormat(baudrate=9600, parity="N", stopbits=1)
@@ -37,13 +38,15 @@ def answer(device: int, registers: tuple[int, ...]) -> bytes:
 
 
 @contextlib.asynccontextmanager
-async def hand_wired(tmp_path: Path) -> AsyncIterator[tuple[SerialLine, int]]:
+async def hand_wired(
+    tmp_path: Path, *, echo: EchoMode = EchoMode.AUTO
+) -> AsyncIterator[tuple[SerialLine, int]]:
     """A line open on a pty whose other end (the file descriptor yielded) the test writes."""
     master, slave = os.openpty()
     tty.setraw(slave)
     port = tmp_path / "ttyHAND"
     port.symlink_to(os.ttyname(slave))
-    line = SerialLine(port=str(port), line=LINE)
+    line = SerialLine(port=str(port), line=LINE, echo=echo)
     await line.open()
     try:
         yield line, master
@@ -172,38 +175,61 @@ async def test_a_pseudo_terminal_bound_at_another_path_opens_with_parity(
     await line.close()
 
 
+def held_up_at_the_next_wait(line: SerialLine, write: Callable[[], object]) -> list[float]:
+    """At the line's next wait: ``write`` and hold the loop 10 ms, due just before its timer.
+
+    The loop then runs the wait's timer in the pass it was held in, and hands the bytes
+    over only in the next: as a process held by a CPU quota comes back to both at once.
+    Returns the list that gets the moment of the hold's end (empty: it never ran).
+    """
+    inbox = line._inbox
+    assert inbox is not None
+    loop = asyncio.get_running_loop()
+    wait = inbox.wait
+    held: list[float] = []
+
+    def write_and_hold() -> None:
+        write()
+        time.sleep(0.01)  # held up: the bytes reach the kernel, the loop does not run
+        held.append(time.monotonic())
+
+    async def wait_after_the_bytes(timeout_s: float) -> None:
+        if not held:
+            loop.call_at(loop.time() + timeout_s - 1e-6, write_and_hold)
+        await wait(timeout_s)
+
+    inbox.wait = wait_after_the_bytes  # type: ignore[method-assign]
+    return held
+
+
 async def test_an_answer_the_kernel_holds_at_the_deadline_is_taken(tmp_path: Path) -> None:
     """The answer is in the port's buffer when the wait's timer wakes the transaction.
 
-    A process held up by a CPU quota comes back to its timer and the answer at once; the
-    event loop runs the timer first when it was due in the pass the process was held in,
-    and the bytes come only in the next. Here: a callback due a microsecond before the
-    wait's timer writes the answer and holds the loop 10 ms. Giving up then counted a
-    timeout and a stale frame, and held the device for its late-answer window
-    (bench/budget.py under a 40 % quota: 2-5 missed deadlines a run, every one after one).
+    Giving up then counted a timeout and a stale frame, and held the device for its
+    late-answer window (bench/budget.py under a 40 % quota: 1-5 missed deadlines in 7
+    runs of 35, every one after such a timeout).
     """
     async with hand_wired(tmp_path) as (line, master):
+        held = held_up_at_the_next_wait(line, lambda: os.write(master, answer(1, (0x0000, 0x41A2))))
         request = frames.read_request(1, 0x2620, 2)
-        inbox = line._inbox
-        assert inbox is not None
-        loop = asyncio.get_running_loop()
-        wait = inbox.wait
-        held: list[float] = []
-
-        def answer_and_hold() -> None:
-            os.write(master, answer(1, (0x0000, 0x41A2)))
-            time.sleep(0.01)  # held up: the bytes reach the kernel, the loop does not run
-            held.append(time.monotonic())
-
-        async def wait_after_the_answer(timeout_s: float) -> None:
-            if not held:  # the wait for the answer: due just before its timer
-                loop.call_at(loop.time() + timeout_s - 1e-6, answer_and_hold)
-            await wait(timeout_s)
-
-        inbox.wait = wait_after_the_answer  # type: ignore[method-assign]
         exchange = await line.transact(request, timeout_s=0.05, gap_s=LINE.frame_gap_s())
         assert held, "the answer was never written: the test did not set the race up"
         assert exchange is not None
         assert exchange.response.registers == (0x0000, 0x41A2)
         assert line.stats.errors[1, ErrorKind.TIMEOUT] == 0
         assert line.stats.errors[1, ErrorKind.STALE] == 0
+
+
+async def test_an_echo_the_kernel_holds_at_its_deadline_is_read(tmp_path: Path) -> None:
+    """``echo: on``, and the echo and the answer wait in the port's buffer at the echo's
+    deadline: read, not "this adapter does not echo ... set `echo: off`" (wrong advice)."""
+    async with hand_wired(tmp_path, echo=EchoMode.ON) as (line, master):
+        request = frames.read_request(1, 0x2620, 2)
+        held = held_up_at_the_next_wait(
+            line, lambda: os.write(master, request.frame + answer(1, (0x0000, 0x41A2)))
+        )
+        exchange = await line.transact(request, timeout_s=0.05, gap_s=LINE.frame_gap_s())
+        assert held, "the echo was never written: the test did not set the race up"
+        assert exchange is not None
+        assert exchange.response.registers == (0x0000, 0x41A2)
+        assert line.stats.errors[1, ErrorKind.ECHO_MISMATCH] == 0
