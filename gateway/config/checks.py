@@ -31,6 +31,7 @@ from gateway.config.model import (
     FeedConfig,
     FeedSource,
 )
+from gateway.config.problems import close_matches
 from gateway.config.serial_pin import check_serial_number
 from gateway.profiles import Profile, builtin_profiles
 from gateway.profiles.model import Storage
@@ -207,7 +208,7 @@ def _check_sparkplug_deadbands(
         for point in points:
             if not profile.has_point(point):
                 names = [p.name for p in profile.points]
-                close = _close_matches(str(point), names, n=1)
+                close = close_matches(str(point), names, n=1)
                 hint = f"; did you mean {close[0]!r}?" if close else ""
                 yield (*here, point), f"{profile.id} has no point {point!r}{hint}"
 
@@ -377,17 +378,10 @@ def _unique_names(section: str, entries: Sequence[_Entry[Any]]) -> Iterator[tupl
             first[name] = entry.index
 
 
-def _close_matches(word: str, known: Sequence[str], n: int, cutoff: float = 0.6) -> list[str]:
-    """``difflib``'s close matches, imported with the first mistake: a valid config needs none."""
-    import difflib  # noqa: PLC0415
-
-    return difflib.get_close_matches(word, known, n=n, cutoff=cutoff)
-
-
 def _unknown_bus(name: str, known: Sequence[str]) -> str:
     if not known:
         return f"unknown bus {name!r}; no bus is defined under buses"
-    close = _close_matches(name, known, n=1)
+    close = close_matches(name, known, n=1)
     hint = f"did you mean {close[0]}? " if close else ""
     return f"unknown bus {name!r}; {hint}buses: {', '.join(known)}"
 
@@ -396,7 +390,7 @@ def _check_profile(here: KeyPath, profile_id: str, points: object) -> Iterator[t
     profiles = builtin_profiles()
     profile = profiles.get(profile_id)
     if profile is None:
-        close = _close_matches(profile_id, list(profiles), n=2)
+        close = close_matches(profile_id, list(profiles), n=2)
         hint = f"did you mean {' or '.join(close)}? " if close else ""
         yield (
             (*here, "profile"),
@@ -408,7 +402,7 @@ def _check_profile(here: KeyPath, profile_id: str, points: object) -> Iterator[t
     names = [point.name for point in profile.points]
     for name in points:
         if isinstance(name, str) and not profile.has_point(name):
-            close = _close_matches(name, names, n=3) or [n for n in names if name in n][:3]
+            close = close_matches(name, names, n=3) or [n for n in names if name in n][:3]
             hint = f"; did you mean {', '.join(close)}?" if close else ""
             yield (
                 (*here, "points", name),

@@ -21,7 +21,7 @@ from pydantic import (
 )
 
 from gateway.config.model import ENV_NESTED_DELIMITER, ENV_PREFIX, GatewayConfig
-from gateway.config.problems import KeyPath, Problem, format_key
+from gateway.config.problems import KeyPath, Problem, close_matches, format_key
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Mapping
@@ -86,9 +86,7 @@ def _unknown_key(path: KeyPath) -> str:
     allowed = list(model.model_fields) if model is not None else []
     if not allowed:
         return "unknown key"
-    import difflib  # noqa: PLC0415 - a mistake's hint only: a valid config never needs it
-
-    close = difflib.get_close_matches(key, allowed, n=1)
+    close = close_matches(key, allowed, n=1)
     hint = f"; did you mean {close[0]}?" if close else ""
     return f"unknown key {key!r}{hint} (allowed: {', '.join(allowed)})"
 

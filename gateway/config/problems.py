@@ -23,6 +23,13 @@ KeyPart: TypeAlias = str | int
 KeyPath: TypeAlias = tuple[KeyPart, ...]
 
 
+def close_matches(word: str, known: Sequence[str], n: int, cutoff: float = 0.6) -> list[str]:
+    """``difflib``'s close matches, imported with the first mistake: a valid config needs none."""
+    import difflib  # noqa: PLC0415
+
+    return difflib.get_close_matches(word, known, n=n, cutoff=cutoff)
+
+
 # --- problems ---------------------------------------------------------------------------
 
 
