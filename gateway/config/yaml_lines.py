@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Final, TypeAlias
 
 import yaml
 
@@ -29,6 +29,7 @@ class YamlDocument:
 # marks on the nodes and the same constructor. A file it refuses is read again by PyYAML's
 # own parser, whose words for the mistake the problems have always used.
 _FAST_SAFE_LOADER: Final = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_Loader: TypeAlias = yaml.SafeLoader | yaml.CSafeLoader
 
 
 def parse_yaml(text: str) -> YamlDocument:
@@ -50,7 +51,7 @@ def parse_yaml(text: str) -> YamlDocument:
         return YamlDocument(None, {}, [Problem("", None, f"not valid YAML: {exc}")])
 
 
-def _parse(loader: yaml.SafeLoader) -> YamlDocument:
+def _parse(loader: _Loader) -> YamlDocument:
     """The document ``loader`` reads, with its lines and duplicate keys; YAML errors raised."""
     index = _LineIndex(loader)
     try:
@@ -72,7 +73,7 @@ class _LineIndex:
     PyYAML would silently collapse) are still visible and reported.
     """
 
-    def __init__(self, loader: yaml.SafeLoader) -> None:
+    def __init__(self, loader: _Loader) -> None:
         self._loader = loader
         self.lines: dict[KeyPath, int] = {}
         self.problems: list[Problem] = []
