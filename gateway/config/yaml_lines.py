@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Final, TypeAlias
+from typing import (
+    TYPE_CHECKING,
+)
 
 import yaml
 
@@ -25,21 +27,17 @@ class YamlDocument:
     problems: list[Problem]
 
 
-# libyaml's parser, where PyYAML has it (its wheels do): some ten times faster, with the same
-# marks on the nodes and the same constructor. A file it refuses is read again by PyYAML's
-# own parser, whose words for the mistake the problems have always used.
-_FAST_SAFE_LOADER: Final = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-_Loader: TypeAlias = yaml.SafeLoader | yaml.CSafeLoader
-
-
 def parse_yaml(text: str) -> YamlDocument:
     """Parse ``text``; a file that is not valid YAML is one located problem, not an error."""
+    loader = yaml.SafeLoader(text)
+    index = _LineIndex(loader)
     try:
-        return _parse(_FAST_SAFE_LOADER(text))
-    except yaml.YAMLError:
-        pass  # read again below, for PyYAML's own words on the mistake
-    try:
-        return _parse(yaml.SafeLoader(text))
+        node = loader.get_single_node()
+        if node is None:
+            return YamlDocument(None, {}, [])
+        index.lines[()] = node.start_mark.line + 1
+        index.walk(node)
+        data = loader.construct_document(node)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         what = exc.problem or "cannot parse"
@@ -49,18 +47,6 @@ def parse_yaml(text: str) -> YamlDocument:
         return YamlDocument(None, {}, [Problem("", line, f"not valid YAML: {what}")])
     except yaml.YAMLError as exc:
         return YamlDocument(None, {}, [Problem("", None, f"not valid YAML: {exc}")])
-
-
-def _parse(loader: _Loader) -> YamlDocument:
-    """The document ``loader`` reads, with its lines and duplicate keys; YAML errors raised."""
-    index = _LineIndex(loader)
-    try:
-        node = loader.get_single_node()
-        if node is None:
-            return YamlDocument(None, {}, [])
-        index.lines[()] = node.start_mark.line + 1
-        index.walk(node)
-        data = loader.construct_document(node)
     finally:
         loader.dispose()
     return YamlDocument(data, index.lines, index.problems)
@@ -73,7 +59,7 @@ class _LineIndex:
     PyYAML would silently collapse) are still visible and reported.
     """
 
-    def __init__(self, loader: _Loader) -> None:
+    def __init__(self, loader: yaml.SafeLoader) -> None:
         self._loader = loader
         self.lines: dict[KeyPath, int] = {}
         self.problems: list[Problem] = []

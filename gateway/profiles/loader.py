@@ -14,7 +14,7 @@ import itertools
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Final, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -160,20 +160,11 @@ def _describe(exc: ValidationError) -> str:
     return "; ".join(parts)
 
 
-# libyaml's parser, where PyYAML has it (its wheels do): the built-in files are read in 11 ms
-# instead of 100, at every start and every command. The same constructor builds the data.
-_FAST_SAFE_LOADER: Final = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-
-
 def _read_yaml(path: Path) -> dict[str, Any]:
-    text = path.read_text(encoding="utf-8")
     try:
-        data = yaml.load(text, Loader=_FAST_SAFE_LOADER)  # noqa: S506 - a safe loader
-    except yaml.YAMLError:
-        try:
-            data = yaml.safe_load(text)  # PyYAML's own words for the mistake, as before
-        except yaml.YAMLError as exc:
-            raise ProfileError(f"not valid YAML: {exc}", source=path.name) from exc
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ProfileError(f"not valid YAML: {exc}", source=path.name) from exc
     if not isinstance(data, dict):
         raise ProfileError("the file must be a mapping of profile keys", source=path.name)
     if data.get("family") != path.stem:
