@@ -59,9 +59,10 @@ from typing import TYPE_CHECKING, Any, Final
 import aiomqtt
 
 from bench import cgroups, peers
-from bench.publish import free_port, healthz, mosquitto, percentile_ms, plant_config
+from bench.publish import healthz, mosquitto, percentile_ms, plant_config
 from bench.soak import LINES, process_figures, total
 from gateway.wire.timing import LineFormat
+from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Mapping

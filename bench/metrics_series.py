@@ -43,7 +43,8 @@ from typing import TYPE_CHECKING, Any, Final
 
 import yaml
 
-from bench.publish import free_port, healthz, mosquitto, plant_config, simulators
+from bench.publish import healthz, mosquitto, plant_config, simulators
+from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator

@@ -50,6 +50,7 @@ from gateway.profiles import get_profile
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import GatewayCollector
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator, Sequence
@@ -58,12 +59,6 @@ RESULTS = Path(__file__).parent / "results"
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 WARM_BACKLOG = 50  # messages still queued when the latency measurement starts, at most
 POINTS = ("oxygen", "temperature", "status", "concentration", "cell_current", "pressure")
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 @contextlib.contextmanager

@@ -5,27 +5,55 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import getpass
+import random
 import shutil
 import socket
 import subprocess
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import aiomqtt
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable
-    from pathlib import Path
 
 MOSQUITTO = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
 MOSQUITTO_PASSWD = shutil.which("mosquitto_passwd") or "/usr/bin/mosquitto_passwd"
 
 
+# Ports are drawn below the kernel's ephemeral range where it leaves room: a port that
+# bind(("", 0)) gives is one an outgoing connection (a client reconnecting to a broker, a
+# scrape) may take in the second before the process under test binds it.
+_LOWEST_PORT = 20000
+_EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_handed_out: set[int] = set()
+# Its own generator: pytest-randomly reseeds the shared one alike before every test.
+_draw = random.Random()  # noqa: S311 - a port number, not a secret
+
+
 def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+    """A port on 127.0.0.1 free a moment ago and not handed out before in this process."""
+    try:
+        ephemeral_low = int(_EPHEMERAL_RANGE.read_text(encoding="ascii").split()[0])
+    except (OSError, ValueError, IndexError):
+        ephemeral_low = 0
+    while True:
+        wanted = (
+            _draw.randrange(_LOWEST_PORT, ephemeral_low)
+            if ephemeral_low - _LOWEST_PORT >= 1000
+            else 0
+        )
+        with socket.socket() as probe:
+            try:
+                probe.bind(("127.0.0.1", wanted))
+            except OSError:
+                continue  # taken: draw again
+            port = int(probe.getsockname()[1])
+        if port not in _handed_out:
+            _handed_out.add(port)
+            return port
 
 
 @dataclass(frozen=True)

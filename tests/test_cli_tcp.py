@@ -6,13 +6,13 @@ from __future__ import annotations
 import json
 import re
 import signal
-import socket
 import subprocess
 import sys
 from typing import TYPE_CHECKING
 
 import pytest
 
+from tests.mqtt_broker import free_port
 from tests.rigs import run_gateway, stats_of
 from tests.unretrieved import reported_in
 
@@ -85,13 +85,6 @@ def test_read_of_an_absent_device_names_the_converters_0b(
     assert result.returncode == 1
     assert json.loads(result.stdout)["concentration"]["comms_error"] == "gateway_target_failed"
     assert "1 of 1 points could not be read" in result.stderr
-
-
-def free_port() -> int:
-    """A port that was free a moment ago, which nothing listens on."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def test_read_of_a_converter_that_is_not_there(tmp_path: Path) -> None:

@@ -79,13 +79,22 @@ async def demo(
             line = await asyncio.wait_for(process.stdout.readline(), timeout=30)
             assert line, f"the demo ended before its banner: {banner}"
             banner += line.decode()
-        await get_when_up(f"http://127.0.0.1:{metrics_port}/healthz")
+        await get_when_up(f"http://127.0.0.1:{metrics_port}/healthz", process=process)
         yield banner, process.stdout
-    finally:
-        if process.returncode is None:
-            process.send_signal(signal.SIGINT)
-        _, err = await asyncio.wait_for(process.communicate(), timeout=15)
+    except BaseException as exc:
+        # What the demo said of it, next to the test's own failure.
+        exc.add_note(f"the demo's stderr:\n{(await _stopped(process)).decode()}")
+        raise
+    err = await _stopped(process)
     assert process.returncode == 0, err.decode()
+
+
+async def _stopped(process: asyncio.subprocess.Process) -> bytes:
+    """Ctrl-C the demo if it still runs; its stderr once it has ended."""
+    if process.returncode is None:
+        process.send_signal(signal.SIGINT)
+    _, err = await asyncio.wait_for(process.communicate(), timeout=15)
+    return err
 
 
 def listening_addresses(port: int) -> set[str]:
@@ -121,13 +130,25 @@ def get(url: str) -> str:
             return str(exc.read().decode())
 
 
-async def get_when_up(url: str, *, timeout_s: float = 15) -> str:
-    """GET ``url`` once the gateway serves it (it starts after the banner)."""
+async def get_when_up(
+    url: str, *, timeout_s: float = 15, process: asyncio.subprocess.Process | None = None
+) -> str:
+    """GET ``url`` once the gateway serves it (it starts after the banner).
+
+    A ``process`` that ends meanwhile fails the wait at once with its own words: a demo
+    that could not start (a port taken, a failed import) is not a slow one.
+    """
     async with asyncio.timeout(timeout_s):
         while True:
             try:
                 return await asyncio.to_thread(get, url)
             except OSError:
+                if process is not None and process.returncode is not None:
+                    _, err = await process.communicate()
+                    pytest.fail(
+                        f"the demo ended (exit status {process.returncode}) before it "
+                        f"served {url}:\n{err.decode()}"
+                    )
                 await asyncio.sleep(0.2)
 
 

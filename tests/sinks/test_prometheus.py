@@ -37,6 +37,7 @@ from gateway.publish.prometheus import MetricsServer, ValueNaming, value_naming
 from gateway.publish.state import DeviceInfo, GatewayState, MqttStatus
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.codec import BitfieldValue, EnumValue
+from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator
@@ -758,13 +759,6 @@ async def test_identity_is_one_info_series_with_the_sensors_own_values(tmp_path:
 
 
 # --- a real Prometheus server --------------------------------------------------------------
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port: int = probe.getsockname()[1]
-        return port
 
 
 @contextlib.contextmanager
