@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import urllib.request
 from typing import TYPE_CHECKING
 
+import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import run
 from gateway.config import parse_config
+from gateway.errors import ConfigError
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, free_port, recording
 from tests.rigs import ListSink
@@ -80,6 +83,40 @@ async def test_two_buses_poll_in_parallel_one_over_tcp(tmp_path: Path) -> None:
     assert [s.value for s in sink.good("basin_chlorine", "concentration")][:1] == [0.168]
     assert [s.value for s in sink.good("aeration_oxygen", "temperature")][:1] == [20.25]
     assert {s.bus for s in sink.samples} == {"basin", "aeration"}
+
+
+async def test_a_start_that_fails_half_way_stops_what_it_started(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # The web page's port is taken: the start fails after the buses are polling. Their
+    # workers stop before the ports close: no "not open; retrying" ahead of the real error,
+    # and no task left behind to poll on.
+    line = SimulatorServer(
+        build_bus(parse_settings({"devices": [{"profile": "reiss-m0c", "address": 10}]}))
+    )
+    port = tmp_path / "ttyA"
+    line.open_pty(port)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        config = parse_config(
+            f"buses: [{{name: basin, port: {port}}}]\n"
+            "devices: [{name: basin_chlorine, bus: basin, address: 10, profile: reiss-m0c}]\n"
+            "mqtt: {enabled: false}\n"
+            "prometheus: {enabled: false}\n"
+            f"web: {{enabled: true, port: {taken.getsockname()[1]}}}\n",
+            environ={},
+        )
+        before = asyncio.all_tasks()
+        try:
+            with pytest.raises(ConfigError, match="web: cannot listen on") as info:
+                await asyncio.wait_for(run(config, stop=asyncio.Event()), timeout=10)
+            assert info.value.key == "web.port"
+            left = {t.get_name() for t in asyncio.all_tasks() - before if not t.done()}
+            assert left == set()
+            assert [r.getMessage() for r in caplog.records if "retrying" in r.getMessage()] == []
+        finally:
+            await line.close()
 
 
 # An S10 clock block (6.9: year, month ... second, time-zone offset) dated month 13.

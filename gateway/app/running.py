@@ -139,6 +139,9 @@ class RunningGateway:
             await self.shared.start()
         stack.push_async_callback(self._close_shared)
         self.buses.start()
+        # Unwound first: the workers stop before their ports close, also when a part
+        # started after them (the web page on a taken port) fails the start.
+        stack.push_async_callback(self.stop)
         self._start_task("mqtt", self.mqtt)
         self._start_task("sparkplug", self.sparkplug)
         self._start_task("feeds", self.feeds)
@@ -452,7 +455,6 @@ async def run(
                     asked = asyncio.create_task(reloads.next(), name="gateway.reload")
         finally:
             asked.cancel()
-            await gateway.stop()
             await stop_tasks([stopping])
     _LOGGER.info("stopped")
 
