@@ -1,14 +1,21 @@
-"""Why a poll was late: the line busy with transactions, or the gateway's process busy elsewhere.
+"""Why a poll was late: the line busy with transactions, or the gateway's process held.
 
 A poll is late when its deadline passed before the bus task got to it. Either the line
 carried transactions all along (it cannot keep up: too many points for its speed, a
-device that times out), or the line was idle while the bus task did not run: the event
-loop that runs every bus, sink and server was busy (another master's requests, a sink),
-or the bus task waited on something else. The remedies differ (fewer points or a faster
-line; a limit on who loads the process), so the log says which, from two measures over
-the time the poll was late: the line's busy time (``LineStats.busy_s``) and how late the
-event loop ran a timer (:class:`LoopWatch`). Work that knows it holds the loop (the shared
-bus answering requests itself) charges its time to the watch, so the report names it.
+device that times out), or the event loop that runs every bus, sink and server did not
+run on time, or the bus task waited on something else. The remedies differ (fewer points
+or a faster line; a limit on who loads the process; more CPU for the service), so the log
+says which, from three measures over the time the poll was late: the line's busy time
+(``LineStats.busy_s``), how late the event loop ran a timer (:class:`LoopWatch`), and the
+CPU the process used meanwhile. Work that knows it holds the loop (the shared bus
+answering requests itself) charges its time to the watch, so the report names it.
+
+A late loop comes first: a transaction lasts until its answer is read, so while the
+process does not run (a machine short of CPU, a CPU quota spent: the process is not
+scheduled at all) the line's busy time grows with the stall, and a line that had time to
+spare would read as one that cannot keep up. The CPU used tells the two kinds of stall
+apart: a process that held its loop computing used about as much CPU as the stall lasted;
+one that was not scheduled, or sat in a call that blocked, used less.
 """
 
 from __future__ import annotations
@@ -32,15 +39,29 @@ SLOT_S: Final = 0.1  # charges are summed per source in slots this long
 HISTORY: Final = 4096  # stalls, charge slots and busy marks kept (minutes of history)
 LINE_BUSY_SHARE: Final = 0.5  # the line carried transactions this much of the lateness: its fault
 LOOP_BUSY_SHARE: Final = 0.5  # the loop was late this much of the line's idle time: the process's
+LOOP_HELD_SHARE: Final = 0.5  # the loop was late this much of the lateness: not the line's fault
 NAMED_SHARE: Final = 0.5  # a source charged this much of the loop's lateness is named
+# CPU used under this much of the loop's lateness: the process did not run for much of it.
+# A process held by a CPU quota of 40 % uses some 0.67 s of CPU per second its loop is
+# late; one that computes while another process takes a fifth of its core, some 0.8.
+RAN_SHARE: Final = 0.75
+CPU_QUOTA_HINT: Final = (
+    "it waited for a CPU (a busy machine, or a CPU quota too small: systemd's CPUQuota=, "
+    "a container's --cpus) or in a call that blocked (a slow disk)"
+)
 
 
 @dataclass(frozen=True, slots=True)
 class LoopLoad:
-    """How late the event loop ran, over a stretch of time, and who said it held it."""
+    """How late the event loop ran, over a stretch of time, and who said it held it.
+
+    ``cpu_s`` is the CPU the process used over about that stretch, from the watch's last
+    sample before it (None when the watch has none that old).
+    """
 
     stalled_s: float
     charged_s: dict[str, float] = field(default_factory=dict)
+    cpu_s: float | None = None
 
 
 @dataclass(slots=True, kw_only=True)
@@ -72,6 +93,10 @@ class LoopWatch:
         self._due = 0.0
         self._stalls: deque[tuple[float, float]] = deque(maxlen=HISTORY)  # (end, seconds)
         self._charges: deque[_Charge] = deque(maxlen=HISTORY)
+        # The process's CPU time (when, cpu_s) at the watch's ticks and as the loop goes
+        # idle: a base for the CPU used over a late poll. process_time costs some 0.3 us,
+        # at most 20 times a second and once per sleep, not per frame.
+        self._cpu: deque[tuple[float, float]] = deque(maxlen=HISTORY)
 
     def attach(self) -> None:
         """A worker runs: watch (the first starts the timer)."""
@@ -92,6 +117,7 @@ class LoopWatch:
         if self._sleepers >= self._users and self._handle is not None:
             self._handle.cancel()
             self._handle = None
+            self._cpu.append((time.monotonic(), time.process_time()))
 
     def awake(self, due: float, now: float) -> None:
         """A worker's timed wait due at ``due`` ended at ``now`` (early, when woken by work).
@@ -115,6 +141,7 @@ class LoopWatch:
         late = now - self._due
         if late > STALL_MIN_S:
             self._stalls.append((now, late))
+        self._cpu.append((now, time.process_time()))
         self._arm(now)
 
     def charge(self, source: str, seconds: float, now: float) -> None:
@@ -127,13 +154,22 @@ class LoopWatch:
             self._charges.append(_Charge(slot=slot, source=source, seconds=seconds))
 
     def since(self, start: float) -> LoopLoad:
-        """How late the loop ran from ``start`` until now, and who charged time meanwhile."""
+        """How late the loop ran from ``start`` until now, and who charged time meanwhile.
+
+        With the CPU the process used since the watch's last sample before ``start``.
+        """
         stalled = sum(min(late, end - start) for end, late in self._stalls if end > start)
         charged: defaultdict[str, float] = defaultdict(float)
         for charge in self._charges:
             if (charge.slot + 1) * SLOT_S > start:
                 charged[charge.source] += charge.seconds
-        return LoopLoad(stalled_s=stalled, charged_s=dict(charged))
+        base: float | None = None
+        for when, cpu in self._cpu:
+            if when > start:
+                break
+            base = cpu
+        cpu_s = None if base is None else time.process_time() - base
+        return LoopLoad(stalled_s=stalled, charged_s=dict(charged), cpu_s=cpu_s)
 
 
 _WATCHES: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, LoopWatch] = (
@@ -198,22 +234,45 @@ class Lateness:
         head = f"{late.point} is {lag:.2f} s late (interval {late.interval_s:.2f} s)"
         # The mark before the lateness began may fall inside a transaction: at most the lag.
         busy = min(lag, self.busy_since(now - lag))
-        if busy >= LINE_BUSY_SHARE * lag:
-            return (
-                f"the line cannot keep up: {head}; it carried transactions {busy:.2f} s "
-                f"of those {lag:.2f} s; see the poll lag metric"
-            )
         watch = self.watch or loop_watch()
         load = watch.since(now - lag)
+        if busy >= LINE_BUSY_SHARE * lag:
+            if load.stalled_s < LOOP_HELD_SHARE * lag:
+                return (
+                    f"the line cannot keep up: {head}; it carried transactions {busy:.2f} s "
+                    f"of those {lag:.2f} s; see the poll lag metric"
+                )
+            # The transactions lasted as long as the process took to read their answers.
+            return self._held(f"{head}, {busy:.2f} s of it in transactions", load)
         idle = f"{head} while the line was idle ({busy:.2f} s busy of {lag:.2f} s)"
         if load.stalled_s < LOOP_BUSY_SHARE * (lag - busy):
             return (
                 f"{idle} and the event loop on time ({load.stalled_s:.2f} s late): "
                 "the bus task waited on something else (its sinks, a pause)"
             )
-        text = f"{idle}: the gateway's process was busy, its event loop {load.stalled_s:.2f} s late"
+        return self._held(idle, load)
+
+    @staticmethod
+    def _held(context: str, load: LoopLoad) -> str:
+        """Why the loop ran late: work that named itself, the process's own, or neither.
+
+        Neither: the process did not run (not scheduled, or in a call that blocked).
+        """
+        stalled = f"its event loop {load.stalled_s:.2f} s late"
         if load.charged_s:
             source, seconds = max(load.charged_s.items(), key=lambda item: item[1])
             if seconds >= NAMED_SHARE * load.stalled_s:
-                text += f", {seconds:.2f} s of it {source}"
-        return text
+                named = f"{seconds:.2f} s of it {source}"
+                return f"{context}: the gateway's process was busy, {stalled}, {named}"
+        if load.cpu_s is None:
+            return f"{context}: the gateway's process was held, {stalled}"
+        # Had it computed all the while its loop was late, it would have used that much CPU
+        # at least (more with its other work); much less, and it did not run for part of it.
+        if load.cpu_s < RAN_SHARE * load.stalled_s:
+            return (
+                f"{context}: the gateway's process was held, {stalled} while it used "
+                f"{load.cpu_s:.2f} s of CPU: {CPU_QUOTA_HINT}"
+            )
+        return (
+            f"{context}: the gateway's process was busy, {stalled}, using {load.cpu_s:.2f} s of CPU"
+        )
