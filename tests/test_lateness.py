@@ -124,6 +124,14 @@ async def test_an_idle_line_and_a_loop_on_time_say_the_bus_task_waited() -> None
     ), text
 
 
+def _only_warning(pattern: str, warnings: list[str]) -> re.Match[str]:
+    """The one warning of a late poll, matched whole by ``pattern``."""
+    assert len(warnings) == 1, warnings
+    match = re.fullmatch(pattern, warnings[0])
+    assert match is not None, warnings[0]
+    return match
+
+
 def _compute(seconds: float) -> None:
     """Hold the loop as code that computes does: until it has used ``seconds`` of CPU."""
     end = time.process_time() + seconds
@@ -192,13 +200,11 @@ async def test_a_poll_made_late_by_a_loop_held_computing_blames_the_process_busy
     longer by the clock, and the process also waited for a CPU; from some 1.3 s for the
     second (RAN_SHARE), that is what the log says, and it is checked as such."""
     warnings, held_s = await _late_warnings(tmp_path, caplog, _compute)
-    assert len(warnings) == 1, warnings
-    match = re.fullmatch(
+    match = _only_warning(
         IDLE_AND_HELD + r"the gateway's process was (?P<verdict>busy|held), its event loop "
         r"(?P<loop>\d\.\d\d) s late(?:, using| while it used) (?P<cpu>\d\.\d\d) s of CPU.*",
-        warnings[0],
+        warnings,
     )
-    assert match is not None, warnings[0]
     lag, busy, loop, cpu = (float(match[name]) for name in ("lag", "busy", "loop", "cpu"))
     # Late by the part of the hold after its deadline; the loop late as much.
     assert held_s - 0.2 - 0.2 <= lag <= held_s + 0.1
@@ -215,15 +221,13 @@ async def test_a_poll_made_late_by_a_loop_held_not_running_says_it_waited_for_a_
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     warnings, held_s = await _late_warnings(tmp_path, caplog, _block)
-    assert len(warnings) == 1, warnings
-    match = re.fullmatch(
+    match = _only_warning(
         IDLE_AND_HELD + r"the gateway's process was held, its event loop (?P<loop>\d\.\d\d) s "
         r"late while it used (?P<cpu>\d\.\d\d) s of CPU: it waited for a CPU \(a busy "
         r"machine, or a CPU quota too small: systemd's CPUQuota=, a container's --cpus\) or "
         r"in a call that blocked \(a slow disk\)",
-        warnings[0],
+        warnings,
     )
-    assert match is not None, warnings[0]
     lag, loop, cpu = (float(match[name]) for name in ("lag", "loop", "cpu"))
     assert held_s - 0.2 - 0.2 <= lag <= held_s + 0.1
     assert loop >= lag - 0.1
@@ -267,20 +271,49 @@ async def test_a_process_held_while_its_request_is_answered_is_not_a_line_that_c
     timeouts = sum(n for (_, kind), n in line.stats.errors.items() if kind == ErrorKind.TIMEOUT)
     assert timeouts == 0  # the answer was read after the hold, as a starved process reads it
     warnings = [r.getMessage() for r in caplog.records if "late" in r.getMessage()]
-    assert len(warnings) == 1, warnings
-    match = re.fullmatch(
+    match = _only_warning(
         r"line1/cl2: \w+ is (?P<lag>\d\.\d\d) s late \(interval 0\.20 s\), "
         r"(?P<busy>\d\.\d\d) s of it in transactions: the gateway's process was held, its "
         r"event loop (?P<loop>\d\.\d\d) s late while it used (?P<cpu>\d\.\d\d) s of CPU: "
         r"it waited for a CPU .*",
-        warnings[0],
+        warnings,
     )
-    assert match is not None, warnings[0]
     lag, busy, loop, cpu = (float(match[name]) for name in ("lag", "busy", "loop", "cpu"))
     assert 0.8 - 0.2 <= lag <= 1.0 + 0.1
     assert busy >= 0.5 * lag  # what read as "the line cannot keep up" before
     assert loop >= 0.5 * lag
     assert cpu < 0.5 * loop
+
+
+async def test_a_poll_made_late_by_the_window_after_a_timeout_says_the_device_was_held(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """After a request it did not answer, nothing goes to the device for its late answer's
+    window (1 s): its next poll is late by about that, with the line idle and the loop on
+    time. The log says the device was held, not that the bus task waited on something."""
+    caplog.set_level(logging.WARNING, logger="gateway.line.worker")
+    silent = {"animate": False, "faults": {"silences": [(1.0, 0.1)]}}
+    devices = [{"profile": "jumo-tecline-cl2", "address": 20, **silent}]
+    targets = [target("cl2", "jumo-tecline-cl2", 20, interval=0.2)]
+    async with rig(tmp_path, devices, targets) as bench:
+        await bench.run_for(3.0)
+        timeouts = sum(
+            n for (_, kind), n in bench.line.stats.errors.items() if kind == ErrorKind.TIMEOUT
+        )
+    assert timeouts >= 1
+    warnings = [r.getMessage() for r in caplog.records if " s late (interval" in r.getMessage()]
+    match = _only_warning(
+        r"line1/cl2: \w+ is (?P<lag>\d\.\d\d) s late \(interval 0\.20 s\) while the line was "
+        r"idle \((?P<busy>0\.\d\d) s busy of (?P=lag) s\) and the event loop on time "
+        r"\(0\.0\d s late\): nothing was to be sent to the device for (?P<held>\d\.\d\d) s "
+        r"of it \(the window for a late answer after a transaction that failed, see the warning before; or the "
+        r"wait after a write\)",
+        warnings,
+    )
+    lag, busy, held = (float(match[name]) for name in ("lag", "busy", "held"))
+    # The window after the failed transaction (and its retry), less the interval it overlaps.
+    assert 1.0 - 0.2 - 0.1 <= lag <= 1.0 + busy + 0.1
+    assert lag - busy - 0.1 <= held <= lag - busy + 0.01  # the idle time, nearly all held
 
 
 async def test_while_every_worker_sleeps_the_watch_rests_and_the_sleeper_measures_the_loop() -> (

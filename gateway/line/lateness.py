@@ -3,12 +3,15 @@
 A poll is late when its deadline passed before the bus task got to it. Either the line
 carried transactions all along (it cannot keep up: too many points for its speed, a
 device that times out), or the event loop that runs every bus, sink and server did not
-run on time, or the bus task waited on something else. The remedies differ (fewer points
-or a faster line; a limit on who loads the process; more CPU for the service), so the log
-says which, from three measures over the time the poll was late: the line's busy time
-(``LineStats.busy_s``), how late the event loop ran a timer (:class:`LoopWatch`), and the
-CPU the process used meanwhile. Work that knows it holds the loop (the shared bus
-answering requests itself) charges its time to the watch, so the report names it.
+run on time, or the device was held back (the window for a late answer after a failed
+transaction, the wait after a write), or the bus task waited on something else. The
+remedies differ (fewer points or a faster line; a limit on who loads the process; more
+CPU for the service; the device's timeout), so the log says which, from three measures
+over the time the poll was late: the line's busy time (``LineStats.busy_s``), how late
+the event loop ran a timer (:class:`LoopWatch`), and the CPU the process used meanwhile
+(and the device's own waits, from the worker). Work that knows it holds the loop (the
+shared bus answering requests itself) charges its time to the watch, so the report
+names it.
 
 A late loop comes first: a transaction lasts until its answer is read, so while the
 process does not run (a machine short of CPU, a CPU quota spent: the process is not
@@ -45,6 +48,11 @@ NAMED_SHARE: Final = 0.5  # a source charged this much of the loop's lateness is
 # A process held by a CPU quota of 40 % uses some 0.67 s of CPU per second its loop is
 # late; one that computes while another process takes a fifth of its core, some 0.8.
 RAN_SHARE: Final = 0.75
+DEVICE_HELD_SHARE: Final = 0.5  # the device was held back this much of the idle time: its wait
+HELD_DEVICE: Final = (
+    "nothing was to be sent to the device for {held:.2f} s of it (the window for a late "
+    "answer after a transaction that failed, see the warning before; or the wait after a write)"
+)
 CPU_QUOTA_HINT: Final = (
     "it waited for a CPU (a busy machine, or a CPU quota too small: systemd's CPUQuota=, "
     "a container's --cpus) or in a call that blocked (a slow disk)"
@@ -228,8 +236,12 @@ class Lateness:
             before = busy
         return self.line.stats.busy_s - before
 
-    def explain(self, late: Late, now: float) -> str:
-        """What made ``late`` late, in words for the log."""
+    def explain(self, late: Late, now: float, *, held_until: float = 0.0) -> str:
+        """What made ``late`` late, in words for the log.
+
+        ``held_until``: the end of the device's last wait (after a write, or the window for
+        a late answer after a failed transaction), when nothing was to be sent to it.
+        """
         lag = late.lag_s
         head = f"{late.point} is {lag:.2f} s late (interval {late.interval_s:.2f} s)"
         # The mark before the lateness began may fall inside a transaction: at most the lag.
@@ -246,10 +258,12 @@ class Lateness:
             return self._held(f"{head}, {busy:.2f} s of it in transactions", load)
         idle = f"{head} while the line was idle ({busy:.2f} s busy of {lag:.2f} s)"
         if load.stalled_s < LOOP_BUSY_SHARE * (lag - busy):
-            return (
-                f"{idle} and the event loop on time ({load.stalled_s:.2f} s late): "
-                "the bus task waited on something else (its sinks, a pause)"
-            )
+            on_time = f"{idle} and the event loop on time ({load.stalled_s:.2f} s late)"
+            # Of the time the line was idle: the failed transactions came before the window.
+            held = min(lag - busy, max(0.0, held_until - (now - lag)))
+            if held >= DEVICE_HELD_SHARE * (lag - busy):
+                return f"{on_time}: {HELD_DEVICE.format(held=held)}"
+            return f"{on_time}: the bus task waited on something else (its sinks, a pause)"
         return self._held(idle, load)
 
     @staticmethod

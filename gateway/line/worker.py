@@ -561,6 +561,7 @@ class BusWorker:
 
     async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
         self.lateness.mark(now)
+        held_until = state.not_before  # a wait after a write or a failure, ended by now
         names = self.schedule.due_points(state, now, slow=slow)
         samples: list[Sample] = []
         reads = self.transactions
@@ -579,7 +580,10 @@ class BusWorker:
         if late is not None:
             # The line, or the process: what took the time decides the remedy.
             _LOGGER.warning(
-                "%s/%s: %s", self.name, state.target.name, self.lateness.explain(late, now)
+                "%s/%s: %s",
+                self.name,
+                state.target.name,
+                self.lateness.explain(late, now, held_until=held_until),
             )
         # Only a pinned device's samples wait on its identity: the others go as they are.
         published = (
