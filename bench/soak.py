@@ -248,13 +248,16 @@ async def send_commands(soak: Soak, seen: Recorder, stop: asyncio.Event) -> None
                         "compensation_pressure": 900.0 + number,
                     }[point]
                     command = Command(f"c{number}", device, point, value, valid, soak.now())
+                    pressure = 950.0 + (number % 64) / 4
+                    # Each id once, whatever fails after: a publish that failed when the
+                    # broker went away (the pressure's, after the command's went) sent the
+                    # same id again after the reconnection, and both got their results.
+                    number += 1
                     payload = json.dumps({"value": value, "id": command.id})
                     await c.publish(f"{BASE}/{device}/{point}/set", payload, qos=1)
                     soak.commands.append(command)
-                    pressure = 950.0 + (number % 64) / 4
                     await c.publish(PRESSURE_TOPIC, json.dumps({"value": pressure}), qos=1)
                     soak.pressures.add(pressure)
-                    number += 1
                     with contextlib.suppress(TimeoutError):
                         await asyncio.wait_for(stop.wait(), COMMAND_EVERY_S)
         await asyncio.sleep(0.5)  # the broker is away: try again
