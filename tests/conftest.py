@@ -1,8 +1,10 @@
-"""Fixtures shared by the test modules: a real mosquitto broker, and the guard every test
-runs under against asyncio exceptions nobody retrieved."""
+"""Fixtures shared by the test modules: a real mosquitto broker, the guard every test runs
+under against asyncio exceptions nobody retrieved, and the check of its tier's markers
+(:mod:`tests.tiers`)."""
 
 from __future__ import annotations
 
+import gc
 import inspect
 import os
 from typing import TYPE_CHECKING
@@ -10,17 +12,18 @@ from typing import TYPE_CHECKING
 import pytest
 
 from gateway.publish.host_clock import TRUST_VARIABLE
-from tests import unretrieved
+from tests import tiers, unretrieved
 from tests.mqtt_broker import Broker
 
 if TYPE_CHECKING:
-    from collections.abc import Iterator
+    from collections.abc import Generator, Iterator
     from pathlib import Path
+
 
 # The test host's kernel does not hold its clock synchronised, and no test may change that;
 # the gateway would refuse every date written into a simulated sensor (set-clock, the
 # calibrations' stamps). The tests run as a plant without time sync that trusts its clock;
-# tests/test_clock_trust.py and tests/test_clock_step.py take the override away.
+# tests/control/test_clock_trust.py and tests/app/test_clock_step.py take the override away.
 os.environ.setdefault(TRUST_VARIABLE, "true")
 
 
@@ -30,7 +33,14 @@ def no_unretrieved_exceptions_at_all() -> Iterator[None]:
 
     Only asyncio's reports: a ResourceWarning that the last collection sets off there
     belongs to no test (pytest's own directory iterators among them).
+
+    What exists before the first test (the modules, the collected tests, their
+    parameters) is frozen out of the collections: they run after hundreds of tests, and
+    a full one went through all of it each time (0.14 s on average, 22 s of CPU in the
+    quick tier). Only what the tests make can hold an unretrieved exception.
     """
+    gc.collect()
+    gc.freeze()
     with unretrieved.guard(other_warnings=False):
         yield
 
@@ -61,3 +71,33 @@ def broker(tmp_path: Path) -> Iterator[Broker]:
     running.start()
     yield running
     running.stop()
+
+
+# --- tiers: what a test needs, declared by its markers and checked (tests/tiers.py) --------
+
+
+def pytest_configure(config: pytest.Config) -> None:  # noqa: ARG001 - pytest's hook signature
+    tiers.install()
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> Generator[None]:  # noqa: ARG001
+    """Note from the first fixture on: a fixture's broker or pty is the test's need too."""
+    tiers.USAGE.start()
+    return (yield)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """A test that passed but used what its markers do not declare fails."""
+    report = yield
+    if call.when == "call" or (call.when == "setup" and report.outcome != "passed"):
+        used = tiers.USAGE.stop()
+        tiers.record(item, used)
+        why = tiers.failure(item, used)
+        if why is not None and report.outcome == "passed":
+            report.outcome = "failed"
+            report.longrepr = why
+    return report

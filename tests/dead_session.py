@@ -4,7 +4,7 @@ Run as ``unshare -rn python -m tests.dead_session SCHEME busy|idle USER_TIMEOUT_
 simulator serves on the namespace's loopback, a line connects to it, answers once, and then
 every packet to the simulator is dropped (iptables, as a pulled cable or a powered-off
 converter does it: no FIN, no RST). Prints, as JSON, how long the session lasted after
-that and how many requests failed meanwhile. Only ``tests/test_tcp_session.py`` runs it.
+that and how many requests failed meanwhile. Only ``tests/line/test_tcp_session.py`` runs it.
 """
 
 from __future__ import annotations

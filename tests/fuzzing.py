@@ -1,10 +1,10 @@
-"""Hypothesis settings and frame strategies shared by the fuzz tests (``tests/test_fuzz_*.py``).
+"""Hypothesis settings and frame strategies shared by the fuzz tests (``tests/*/test_fuzz_*.py``).
 
 Each fuzz test names the example count that keeps the whole fuzz suite within about a
 minute of a normal test run. ``FUZZ_SCALE=N`` multiplies every count by ``N`` for a
 longer hunt, e.g. before a release or after touching the frame or command code::
 
-    FUZZ_SCALE=20 .venv/bin/python -m pytest -q tests/test_fuzz_*.py
+    FUZZ_SCALE=20 .venv/bin/python -m pytest -q tests/*/test_fuzz_*.py
 
 Deadlines are off: the I/O tests spend real time on a pseudo-terminal by design, and a
 slow CI machine must not turn that into a failure.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import getpass
+import os
 import random
 import shutil
 import socket
@@ -34,17 +35,14 @@ _draw = random.Random()  # noqa: S311 - a port number, not a secret
 
 
 def free_port() -> int:
-    """A port on 127.0.0.1 free a moment ago and not handed out before in this process."""
-    try:
-        ephemeral_low = int(_EPHEMERAL_RANGE.read_text(encoding="ascii").split()[0])
-    except (OSError, ValueError, IndexError):
-        ephemeral_low = 0
+    """A port on 127.0.0.1 free a moment ago and not handed out before in this run.
+
+    Under pytest-xdist each worker draws from its own slice of the range, so that two
+    tests running at once never get the same port between its probe and its bind.
+    """
+    low, high = _port_range()
     while True:
-        wanted = (
-            _draw.randrange(_LOWEST_PORT, ephemeral_low)
-            if ephemeral_low - _LOWEST_PORT >= 1000
-            else 0
-        )
+        wanted = _draw.randrange(low, high) if high - low >= 100 else 0
         with socket.socket() as probe:
             try:
                 probe.bind(("127.0.0.1", wanted))
@@ -54,6 +52,22 @@ def free_port() -> int:
         if port not in _handed_out:
             _handed_out.add(port)
             return port
+
+
+def _port_range() -> tuple[int, int]:
+    """This process's ports: below the ephemeral range, its worker's slice of them."""
+    try:
+        ephemeral_low = int(_EPHEMERAL_RANGE.read_text(encoding="ascii").split()[0])
+    except (OSError, ValueError, IndexError):
+        ephemeral_low = 0
+    if ephemeral_low - _LOWEST_PORT < 1000:
+        return 0, 0
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")  # gw0, gw1, ... (pytest-xdist)
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    index = int(worker.removeprefix("gw")) if worker.removeprefix("gw").isdigit() else 0
+    width = (ephemeral_low - _LOWEST_PORT) // max(workers, 1)
+    low = _LOWEST_PORT + index * width
+    return low, low + width
 
 
 @dataclass(frozen=True)

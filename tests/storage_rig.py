@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING, Any, Self
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
+from tests.waiting import wait_until
+
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
     from pathlib import Path
@@ -218,18 +220,6 @@ def metric(port: int, name: str, **labels: str) -> float | None:
         if line.startswith(prefix):
             return float(line.split()[-1])
     return None
-
-
-def wait_until(check: Callable[[], object], *, within_s: float, every_s: float = 0.1) -> Any:
-    """Call ``check`` until it returns something true; that, or an AssertionError."""
-    deadline = time.monotonic() + within_s
-    while True:
-        found = check()
-        if found:
-            return found
-        if time.monotonic() > deadline:
-            raise AssertionError(f"not within {within_s} s: {check}")
-        time.sleep(every_s)
 
 
 # --- the subscriber ---------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 # commands, the feeds, Sparkplug with protobuf, the shared bus, the web page with aiohttp)
 # is imported where that feature is configured, not here: `gateway run` holds in memory,
 # for as long as it runs, only the libraries of what its config switches on
-# (tests/test_imports.py checks it).
+# (tests/cli/test_imports.py checks it).
 if TYPE_CHECKING:
     from collections.abc import Collection, Iterable, Mapping, Sequence
 
@@ -353,7 +353,7 @@ def web_page(
     if not config.web.enabled:
         return None
     # Here, not at the top: without the page, `gateway run` holds neither aiohttp nor the
-    # calibrations and the scan in memory (tests/test_imports.py checks it).
+    # calibrations and the scan in memory (tests/cli/test_imports.py checks it).
     from gateway.web import LineScans, WebServer  # noqa: PLC0415
 
     scans = LineScans(list(workers.values()), {})

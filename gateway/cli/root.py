@@ -38,7 +38,7 @@ if TYPE_CHECKING:
 # What only one command needs (tables, progress bars, the simulator, the bus scan) is
 # imported in that command, so that `gateway run` does not hold it in memory for as long
 # as the gateway runs. The commands of a module of their own are imported only when one
-# of them is run or listed (tests/test_imports.py checks what `gateway run` imports).
+# of them is run or listed (tests/cli/test_imports.py checks what `gateway run` imports).
 LAZY_COMMANDS: Final = {
     "demo": "gateway.cli.demo",
     "write": "gateway.cli.write",

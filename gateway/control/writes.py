@@ -14,7 +14,7 @@ and feeds change a device's registers:
    (allowed by name, unchanged values skipped, the daily budget), and an accepted flash
    write is counted in the persistent ledger *before* it is sent, on the disk itself (a
    power cut after the write cannot leave it uncounted; a ledger that cannot be written
-   refuses the write, tests/test_power_cut.py and tests/test_full_disk.py);
+   refuses the write, tests/app/test_power_cut.py and tests/app/test_full_disk.py);
 3. the registers go out with function 06 or 16, and the post-write wait is kept;
 4. the point is read back, so the caller sees what the device now holds.
 

@@ -47,6 +47,7 @@ def run(*args: str) -> subprocess.CompletedProcess[str]:
     )
 
 
+@pytest.mark.line
 def test_simulate_serves_until_ctrl_c_and_writes_stats(tmp_path: Path) -> None:
     port, stats = tmp_path / "ttySIM", tmp_path / "stats.json"
     config = tmp_path / "plant.yaml"
@@ -133,12 +134,14 @@ def test_simulate_serves_until_ctrl_c_and_writes_stats(tmp_path: Path) -> None:
         (["-d", "reiss-m0c:300", "--tcp", "127.0.0.1:0"], "address"),
     ],
 )
+@pytest.mark.line
 def test_bad_input_is_a_clear_error_and_non_zero_exit(args: list[str], message: str) -> None:
     result = run(*args)
     assert result.returncode == 2
     assert message in result.stderr
 
 
+@pytest.mark.line
 def test_existing_file_is_not_replaced(tmp_path: Path) -> None:
     target = tmp_path / "precious"
     target.write_text("keep", encoding="utf-8")

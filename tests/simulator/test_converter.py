@@ -22,6 +22,8 @@ from tests.simulator.test_wire import DEVICES, mbpoll, mbpoll_values
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
+pytestmark = [pytest.mark.line]
+
 
 @contextlib.asynccontextmanager
 async def converter(

@@ -72,6 +72,7 @@ def simulator(line: dict[str, Any]) -> SimulatorServer:
 
 
 @pytest.mark.parametrize("address", sorted(DEVICES))
+@pytest.mark.line
 async def test_a_sensor_reports_the_line_it_is_served_on(tmp_path: Path, address: int) -> None:
     line = LineFormat(baudrate=19200, parity="E", stopbits=1)
     server = simulator({"baudrate": 19200, "parity": "E", "stopbits": 1})
@@ -83,6 +84,7 @@ async def test_a_sensor_reports_the_line_it_is_served_on(tmp_path: Path, address
     assert labels(values, DEVICES[address]) == (address, "baud_19200", "8e1")
 
 
+@pytest.mark.line
 async def test_over_tcp_a_sensor_reports_the_line_format_it_was_given() -> None:
     # RTU over TCP has no baud rate: the sensor stands behind a converter set to this line.
     address = 31  # Reiss M3c, whose factory line is 9600 8N2 (2.3.2)

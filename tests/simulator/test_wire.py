@@ -24,6 +24,8 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator
     from pathlib import Path
 
+pytestmark = [pytest.mark.line, pytest.mark.timing]
+
 MBPOLL = shutil.which("mbpoll")
 DEVICES = [
     {

@@ -15,7 +15,7 @@ itself does so with ``…/set`` under the flash guard.
 
 The catalogue is imported here when the operation runs, not with the MQTT command router:
 a gateway without its web page does not hold the calibration flows in memory
-(``tests/test_imports.py``).
+(``tests/cli/test_imports.py``).
 """
 
 from __future__ import annotations

@@ -153,7 +153,7 @@ def offers_calibrations(profile: Profile) -> bool:
 
     The catalogue, and with it the calibration flows, is imported when this is asked (a
     ``command/…`` message), not with the MQTT command router: a gateway without its web
-    page does not hold the flows in memory (``tests/test_imports.py``).
+    page does not hold the flows in memory (``tests/cli/test_imports.py``).
     """
     from gateway.control.calibration import catalogue  # noqa: PLC0415 - see above
 

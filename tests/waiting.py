@@ -1,0 +1,39 @@
+"""Waiting for a condition, not for a fixed time: as long as a slow machine needs, no longer.
+
+A fixed sleep is either too short on a loaded CI machine (a flaky test) or too long
+everywhere else (a slow suite); these return as soon as the condition holds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+
+def wait_until(check: Callable[[], object], *, within_s: float, every_s: float = 0.1) -> Any:
+    """Call ``check`` until it returns something true; that, or an AssertionError."""
+    deadline = time.monotonic() + within_s
+    while True:
+        found = check()
+        if found:
+            return found
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {within_s} s: {check}")
+        time.sleep(every_s)
+
+
+async def eventually(check: Callable[[], object], *, within_s: float, every_s: float = 0.02) -> Any:
+    """Await until ``check`` returns something true; that, or an AssertionError."""
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + within_s
+    while True:
+        found = check()
+        if found:
+            return found
+        if loop.time() > deadline:
+            raise AssertionError(f"not within {within_s} s: {check}")
+        await asyncio.sleep(every_s)
