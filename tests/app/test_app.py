@@ -17,6 +17,7 @@ from gateway.errors import ConfigError
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, free_port, recording
 from tests.rigs import ListSink
+from tests.waiting import eventually
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -75,7 +76,13 @@ async def test_two_buses_poll_in_parallel_one_over_tcp(tmp_path: Path) -> None:
     sink = ListSink()
     stop = asyncio.Event()
     task = asyncio.create_task(run(config, [sink], stop=stop))
-    await asyncio.sleep(1.5)
+    await eventually(
+        lambda: (
+            sink.good("basin_chlorine", "concentration")
+            and sink.good("aeration_oxygen", "temperature")
+        ),
+        within_s=15,
+    )
     names = {t.get_name() for t in asyncio.all_tasks()}
     stop.set()
     await asyncio.wait_for(task, timeout=6)

@@ -16,6 +16,7 @@ from tests import paths
 from tests.profiles.test_profiles import PROFILE_IDS
 from tests.rigs import run_gateway, simulate_process, stats_of
 from tests.unretrieved import reported_in
+from tests.waiting import wait_until
 
 
 def gateway(*args: str) -> subprocess.CompletedProcess[str]:
@@ -249,7 +250,11 @@ def test_run_polls_until_ctrl_c(simulated_line: tuple[Path, Path], tmp_path: Pat
         stderr=subprocess.PIPE,
         text=True,
     ) as process:
-        time.sleep(3.0)
+        # Polled a few times over: each sensor's identity, then its values again and again.
+        wait_until(
+            lambda: all(d["requests"] >= 6 for d in stats_of(stats)["devices"].values()),
+            within_s=20,
+        )
         process.send_signal(signal.SIGINT)
         out, err = process.communicate(timeout=10)
     assert process.returncode == 0, err

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator
     from pathlib import Path
 
-pytestmark = [pytest.mark.line, pytest.mark.timing]
+pytestmark = [pytest.mark.line]
 
 LINE = LineFormat(baudrate=9600, parity="N", stopbits=1)
 

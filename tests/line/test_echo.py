@@ -31,7 +31,7 @@ from tests.shimmed import LINE, shimmed
 if TYPE_CHECKING:
     from pathlib import Path
 
-pytestmark = [pytest.mark.line, pytest.mark.timing]
+pytestmark = [pytest.mark.line]
 
 S10 = {"profile": "jumo-digiline-odo-s10", "address": 1, "animate": False}
 S10_VALUES = {**S10, "values": {"temperature": 21.5}}

@@ -33,6 +33,11 @@ from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
 
+# A sweep asks dozens of silent addresses back to back, each held to its timeout and its
+# inter-frame gap, which the simulator referees as the bytes come: alone, or a starved
+# referee reads two requests as one gap-less burst.
+pytestmark = pytest.mark.timing
+
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 

@@ -25,6 +25,7 @@ from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.publish.prometheus.test_prometheus import sample
 from tests.rigs import ListSink
+from tests.waiting import eventually
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
@@ -201,9 +202,8 @@ async def test_outage_and_restart_lose_nothing_and_repeat_nothing(
             await asyncio.sleep(2.0)
         # The gateway is restarted during the outage: the queue is on disk.
         async with gateway(gateway_yaml(tmp_path, broker.port), [cycles]) as state:
-            await asyncio.sleep(2.0)
+            await eventually(lambda: state.mqtt.queue_depth > 10, within_s=15)
             assert state.mqtt.connected is False
-            assert state.mqtt.queue_depth > 10
             outage_ends = len(cycles.cycles)
             broker.start()
             deadline = asyncio.get_running_loop().time() + 20
@@ -346,10 +346,9 @@ async def test_refused_credentials_are_reported_and_polling_goes_on(tmp_path: Pa
             text = gateway_yaml(tmp_path, secured.port, mqtt=", username: plant, password: wrong")
             cycles = ListSink()
             async with gateway(text, [cycles]) as state:
-                await asyncio.sleep(2.0)
+                error = await eventually(lambda: state.mqtt.last_error, within_s=15)
                 assert state.mqtt.connected is False
-                assert state.mqtt.last_error is not None
-                assert "refused the credentials of plant" in state.mqtt.last_error
+                assert "refused the credentials of plant" in error
         assert any(s.good for s in cycles.samples)
     finally:
         secured.stop()

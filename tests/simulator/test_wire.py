@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator
     from pathlib import Path
 
-pytestmark = [pytest.mark.line, pytest.mark.timing]
+pytestmark = [pytest.mark.line]
 
 MBPOLL = shutil.which("mbpoll")
 DEVICES = [

@@ -701,10 +701,11 @@ async def polled_s10(tmp_path: Path) -> AsyncIterator[MetricsServer]:
 
 @pytest.mark.line
 async def test_gateway_polling_the_simulator_is_scraped(tmp_path: Path) -> None:
-    async with polled_s10(tmp_path) as server:
-        await asyncio.sleep(2.0)
-        metrics = await asyncio.to_thread(scrape, server)
     device = {"bus": "line1", "device": "tank1_oxygen"}
+    async with polled_s10(tmp_path) as server:
+        # Polled, its identity read, and its oxygen published in the unit its register names.
+        series = ("gateway_temperature_celsius", "gateway_device_info", "gateway_oxygen")
+        metrics = await scrape_until(server, lambda m: all(m.find(s, **device) for s in series))
     assert metrics.value("gateway_temperature_celsius", **device, profile=S10) == 20.25
     assert metrics.value("gateway_requests_total", **device) > 0
     assert metrics.value("gateway_responses_total", **device) > 0

@@ -487,6 +487,8 @@ async def test_primary_host_offline_stores_and_its_return_births_and_forwards(
                     for m in d.metrics
                 )
             )
+            # The first historical DDATA is out; the rest of what was stored follows it.
+            await seen.wait_until(lambda: state.sparkplug.queue_depth == 0)
     assert state.sparkplug.queue_depth == 0  # forwarded
     assert state.sparkplug.births == 2
     births = seen.on(f"{NODE}/NBIRTH/{EDGE}")
