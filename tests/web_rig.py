@@ -106,7 +106,12 @@ def _config(
         )
     secret = f", password: {json.dumps(password)}" if password else ""
     return (
-        f"buses:\n  - {{name: basin, port: {json.dumps(str(tty))}, baudrate: 19200, parity: E}}\n"
+        # The bus waits 0.3 s for an answer (the default at 19200 baud is under 0.1 s): the
+        # page is under test, not the line, and on a machine running tests side by side the
+        # simulator in this process answers late now and then (a write that timed out
+        # stopped a calibration on the page).
+        f"buses:\n  - {{name: basin, port: {json.dumps(str(tty))}, baudrate: 19200, parity: E,"
+        " timeout: 0.3}\n"
         f"devices:\n{devices}"
         "mqtt: {enabled: false}\n"
         "prometheus: {enabled: false}\n"

@@ -514,8 +514,13 @@ def _calibrate_uncut(command: list[str], environ: dict[str, str], log: Path) -> 
     return time.monotonic() - started
 
 
+RUNS = 50  # calibrations started at least
+MOST_OF_RUNS = 25  # more than this many of them killed
+
+
 def test_kills_while_calibrating_never_undercount(writing_plant: Plant) -> None:
-    """50 runs, most killed, of ``gateway calibrate nominal`` (three flash writes) on the tecLine."""
+    """50 runs or more, over 25 killed, of ``gateway calibrate nominal`` (three flash writes)
+    on the tecLine."""
     plant = writing_plant
     command = [
         *(sys.executable, "-m", "gateway", "calibrate", "nominal"),
@@ -527,10 +532,16 @@ def test_kills_while_calibrating_never_undercount(writing_plant: Plant) -> None:
     environ = {**os.environ, "GATEWAY_CLOCK__TRUST_UNSYNCHRONISED": "true"}
     # The three writes come in the last 0.1 s of a calibration: the kills fall from 0.35 s
     # before its end to 0.15 s after it, on this machine's clock (two whole calibrations, the
-    # quicker: the first start of all reads cold files).
-    whole_s = min(_calibrate_uncut(command, environ, log) for _ in range(2))
-    kills = 0
-    for number in range(1, 51):
+    # quicker: the first start of all reads cold files). A busy machine's pace changes while
+    # the test runs (the suite runs tests side by side): each calibration that ends uncut is
+    # timed too, and the windows follow the quickest of the last three. The runs go on past
+    # 50 (up to 100) until more than 25 were killed.
+    recent = [_calibrate_uncut(command, environ, log) for _ in range(2)]
+    whole_s = min(recent)
+    kills = number = 0
+    while number < RUNS or (kills <= MOST_OF_RUNS and number < 2 * RUNS):
+        number += 1
+        started = time.monotonic()
         with (
             log.open("ab") as errors,
             subprocess.Popen(
@@ -545,12 +556,14 @@ def test_kills_while_calibrating_never_undercount(writing_plant: Plant) -> None:
                 kills += 1
             else:
                 assert code == 0, log.read_text(encoding="utf-8")[-2000:]
+                recent = [*recent[-2:], time.monotonic() - started]
+                whole_s = min(recent)
         if number % 10 == 0:
             check_ledger(plant, kills, f"seed {SEED}, run {number}")
     reached = check_ledger(plant, kills, f"seed {SEED}, at the end")
     print(  # noqa: T201
-        f"calibrations: {whole_s:.2f} s whole, {kills} of 50 killed, "
+        f"calibrations: {whole_s:.2f} s whole, {kills} of {number} killed, "
         f"{reached} writes reached the sensor"
     )
-    assert kills > 25, f"only {kills} of 50 calibrations were killed"
+    assert kills > MOST_OF_RUNS, f"only {kills} of {number} calibrations were killed"
     assert reached > 30, f"only {reached} flash writes reached the sensor"
