@@ -10,10 +10,16 @@ A test is marked by what it needs from the machine (``pyproject.toml`` lists the
 - ``root``: mounts, loop devices, network namespaces and packet filters.
 
 ``scripts/test --quick`` runs the tests that need none of these. So that the quick tier
-stays what it says, every test runs under a guard that notes what it used: a pty opened,
-a serial port or TCP line opened, the simulator served on TCP, or a program started
-(``mosquitto``, ``gateway simulate``, ``podman``, ``mount``, ...). A test that used what its
-markers do not declare fails at its teardown, naming the marker it lacks and what it used.
+stays what it says, every test runs under a guard that notes what it used, from the setup
+of its first fixture to the end of its body: a pty opened, a serial port or TCP line
+opened, the simulator served on TCP, or a program started (``mosquitto``, ``gateway
+simulate``, ``podman``, ``mount``, ...). A test that passed but used what its markers do
+not declare fails, naming the marker it lacks and what it used. What a process the test
+started does on its own (``gateway run`` opening its port) is that process's: the test
+started the simulator or the broker it talks to, and that is what the guard sees.
+
+One more marker is not a need but an order: ``timing`` marks the tests that hold a line, a
+sensor or the gateway's CPU to times, which ``scripts/test`` runs after the others, alone.
 """
 
 from __future__ import annotations
