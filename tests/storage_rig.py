@@ -321,7 +321,10 @@ def _copy(state_dir: Path, name: str, into: Path) -> Path | None:
 def spool_rows(state_dir: Path, scratch: Path) -> list[tuple[int, str, bytes]]:
     """The MQTT queue as it is on disk now (a copy is opened): id, topic, payload in order.
 
-    The copy must pass SQLite's integrity check: a kill never leaves a damaged queue.
+    The copy must pass SQLite's integrity check: a kill never leaves a damaged queue. A
+    file with no table at all is one a kill cut between its creation and its schema (the
+    gateway opens it with its settings first, then creates the table): nothing was queued
+    in it yet, and the next start creates the table.
     """
     copy = _copy(state_dir, QUEUE_FILE, scratch)
     if copy is None:
@@ -329,6 +332,8 @@ def spool_rows(state_dir: Path, scratch: Path) -> list[tuple[int, str, bytes]]:
     db = sqlite3.connect(copy)
     try:
         assert db.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+        if db.execute("SELECT count(*) FROM sqlite_master").fetchone() == (0,):
+            return []
         rows = db.execute("SELECT id, topic, payload FROM queue ORDER BY id").fetchall()
     finally:
         db.close()
