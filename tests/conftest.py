@@ -76,7 +76,8 @@ def broker(tmp_path: Path) -> Iterator[Broker]:
 # --- tiers: what a test needs, declared by its markers and checked (tests/tiers.py) --------
 
 
-def pytest_configure(config: pytest.Config) -> None:  # noqa: ARG001 - pytest's hook signature
+def pytest_configure(config: pytest.Config) -> None:
+    tiers.register(config)
     tiers.install()
 
 

@@ -68,3 +68,10 @@ def test_a_pseudo_terminal_opened_by_a_test_is_noted_as_a_line() -> None:
 def test_nothing_is_noted_for_a_test_that_stays_in_python() -> None:
     assert tiers.USAGE.active
     assert tiers.USAGE.used == {}
+
+
+def test_every_need_the_quick_tier_leaves_out_is_a_declared_marker(
+    pytestconfig: pytest.Config,
+) -> None:
+    declared = {line.split(":", 1)[0] for line in pytestconfig.getini("markers")}
+    assert set(tiers.NEEDS) | {"timing"} <= declared

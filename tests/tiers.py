@@ -1,13 +1,7 @@
 """The tests' tiers: what each test needs beyond Python, declared by markers and checked.
 
-A test is marked by what it needs from the machine (``pyproject.toml`` lists the markers):
-
-- ``line``: a line in real time: a pseudo-terminal or a TCP socket with the simulator, a
-  converter or a misbehaving peer at the other end, and the gateway's own timing on it;
-- ``broker``: a real MQTT broker (mosquitto, or the demo's embedded one);
-- ``browser``: headless chromium, driven by playwright;
-- ``podman``: the container image built or run, or the unit under a real systemd;
-- ``root``: mounts, loop devices, network namespaces and packet filters.
+A test is marked by what it needs from the machine (:data:`MARKERS`, registered with pytest
+here, and nowhere else): a line in real time, a broker, the browser, podman, root.
 
 ``scripts/test --quick`` runs the tests that need none of these. So that the quick tier
 stays what it says, every test runs under a guard that notes what it used, from the setup
@@ -36,7 +30,17 @@ if TYPE_CHECKING:
 
     import pytest
 
-NEEDS: Final = ("line", "broker", "browser", "podman", "root")
+MARKERS: Final[dict[str, str]] = {
+    "line": "a line in real time: a pseudo-terminal or a TCP socket with the simulator, a"
+    " converter or a misbehaving peer at its end, and the gateway's own timing on it",
+    "broker": "a real MQTT broker (mosquitto, or the demo's embedded one)",
+    "browser": "headless chromium, driven by playwright",
+    "podman": "the container image built or run with podman, or the unit under a real systemd",
+    "root": "mounts, loop devices, network namespaces, packet filters",
+    "timing": "holds a line, a sensor or the gateway's CPU to times: runs after the others,"
+    " alone (an order, not a need)",
+}
+NEEDS: Final = ("line", "broker", "browser", "podman", "root")  # what the quick tier leaves out
 # Where to note every test's needs as JSON lines (nodeid, used), for a survey of the suite.
 RECORD_VARIABLE: Final = "GATEWAY_TEST_NEEDS_RECORD"
 
@@ -130,6 +134,12 @@ def _wrap(owner: Any, name: str, note: Callable[..., None]) -> None:
 
     noted.__wrapped__ = original  # type: ignore[attr-defined]
     setattr(owner, name, noted)
+
+
+def register(config: pytest.Config) -> None:
+    """Declare the markers to pytest (``--strict-markers`` refuses any other)."""
+    for name, meaning in MARKERS.items():
+        config.addinivalue_line("markers", f"{name}: {meaning}")
 
 
 def install() -> None:

@@ -29,6 +29,7 @@ from tests import sparkplug_decoder
 from tests.mqtt_broker import free_port, recording, subscribed
 from tests.rigs import simulate_process
 from tests.unretrieved import reported_in
+from tests.waiting import wait_until
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -117,13 +118,7 @@ def requests_of(text: str, bus: str) -> float:
     return total
 
 
-def wait_until(check: object, within_s: float = 15.0) -> None:
-    deadline = time.monotonic() + within_s
-    while time.monotonic() < deadline:
-        if check():  # type: ignore[operator]
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"not within {within_s} s: {check}")
+WAIT_S = 15.0  # how long a reload's effect may take to show
 
 
 @pytest.fixture
@@ -191,7 +186,7 @@ def gateway(tmp_path: Path, lines: tuple[Path, Path], broker: Broker) -> Iterato
     running.write(CL2 + M3C)
     running.start()
     try:
-        wait_until(lambda: running.online("oxygen", "basin", "chlorine", "dioxide"), 30)
+        wait_until(lambda: running.online("oxygen", "basin", "chlorine", "dioxide"), within_s=30)
         yield running
     finally:
         stderr = running.stop()
@@ -208,7 +203,10 @@ def test_a_file_with_a_problem_is_refused_and_the_running_config_stays(gateway: 
     text = gateway.config.read_text(encoding="utf-8")
     gateway.config.write_text(text.replace("address: 10,", "address: 1,"), encoding="utf-8")
     gateway.process.send_signal(signal.SIGHUP)
-    wait_until(lambda: healthz(gateway.metrics)["config"]["reloads"] == 1)  # type: ignore[index]
+    wait_until(
+        lambda: healthz(gateway.metrics)["config"]["reloads"] == 1,  # type: ignore[index]
+        within_s=WAIT_S,
+    )
     after = scrape(gateway.metrics)
     assert sample(after, "gateway_config_last_reload_successful") == 0.0
     config = healthz(gateway.metrics)["config"]
@@ -262,7 +260,7 @@ async def test_an_unchanged_bus_runs_on_and_a_removed_device_leaves_no_trace(
     # line2 lost a device: the same worker and port go on without it, counters running on.
     assert requests_of(after, "line2") >= requests_of(before, "line2")
     assert sample(after, "gateway_device_online", device="dioxide") is None
-    await asyncio.to_thread(wait_until, lambda: gateway.online("chlorine"))
+    await asyncio.to_thread(wait_until, lambda: gateway.online("chlorine"), within_s=WAIT_S)
     # The removed device's retained messages are gone: a new subscriber gets none.
     await asyncio.sleep(0.5)
     async with recording(broker.port, "gw/dioxide/#", name="after") as left:
@@ -295,7 +293,10 @@ def test_gateway_reload_of_a_file_with_a_problem_exits_2_and_the_gateway_says_so
     assert "bogus (line 12): unknown key 'bogus'" in result.stderr, result.stderr
     assert "not reloaded: the running gateway keeps its config" in result.stderr
     # Told all the same, so that what is watched (log, metrics, /healthz) says so.
-    wait_until(lambda: healthz(gateway.metrics)["config"]["reloads"] == 1)  # type: ignore[index]
+    wait_until(
+        lambda: healthz(gateway.metrics)["config"]["reloads"] == 1,  # type: ignore[index]
+        within_s=WAIT_S,
+    )
     assert sample(scrape(gateway.metrics), "gateway_config_last_reload_successful") == 0.0
     assert gateway.online("oxygen", "basin", "chlorine", "dioxide")
 
@@ -310,8 +311,11 @@ def test_an_added_bus_is_started_and_a_removed_one_stopped(gateway: Running) -> 
         encoding="utf-8",
     )
     gateway.process.send_signal(signal.SIGHUP)
-    wait_until(lambda: healthz(gateway.metrics)["config"]["reloads"] == 1)  # type: ignore[index]
-    wait_until(lambda: gateway.online("chlorine", "dioxide"))
+    wait_until(
+        lambda: healthz(gateway.metrics)["config"]["reloads"] == 1,  # type: ignore[index]
+        within_s=WAIT_S,
+    )
+    wait_until(lambda: gateway.online("chlorine", "dioxide"), within_s=WAIT_S)
     metrics = scrape(gateway.metrics)
     assert requests_of(metrics, "line3") > 0
     assert requests_of(metrics, "line2") == 0  # its line's counters went with it
@@ -367,7 +371,7 @@ async def test_sparkplug_hears_only_the_devices_that_changed(
             await asyncio.to_thread(
                 wait_until,
                 lambda: {"oxygen", "basin", "chlorine", "dioxide"} <= set(births("DBIRTH")),
-                30,
+                within_s=30,
             )
             # birth_wait_s 0: a first DBIRTH at once, a second once the units are read.
             # The reloads are judged from when the births have settled.
@@ -384,13 +388,16 @@ async def test_sparkplug_hears_only_the_devices_that_changed(
             assert running.process is not None
             running.process.send_signal(signal.SIGHUP)
             await asyncio.to_thread(
-                wait_until, lambda: any(t.endswith("/DDEATH/gw1/dioxide") for t, _ in heard[start:])
+                wait_until,
+                lambda: any(t.endswith("/DDEATH/gw1/dioxide") for t, _ in heard[start:]),
+                within_s=WAIT_S,
             )
             running.write(CL2 + M3C.replace("poll_interval: 0.5", "poll_interval: 1"))
             running.process.send_signal(signal.SIGHUP)
             await asyncio.to_thread(
                 wait_until,
                 lambda: any(t.endswith("/DBIRTH/gw1/dioxide") for t, _ in heard[start:]),
+                within_s=WAIT_S,
             )
             await asyncio.sleep(1.0)
             end = len(heard)
@@ -478,7 +485,9 @@ async def test_a_calibration_under_way_goes_on_through_a_reload_of_its_bus(
     running.start()
     url = f"http://127.0.0.1:{web}"
     try:
-        await asyncio.to_thread(wait_until, lambda: running.online("chlorine", "dioxide"), 30)
+        await asyncio.to_thread(
+            wait_until, lambda: running.online("chlorine", "dioxide"), within_s=30
+        )
         async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as http:
             headers, run_id = await start_slope(http, url)
             run = await calibration(http, url, run_id, past={"running"})
@@ -492,6 +501,7 @@ async def test_a_calibration_under_way_goes_on_through_a_reload_of_its_bus(
             await asyncio.to_thread(
                 wait_until,
                 lambda: healthz(running.metrics)["config"]["reloads"] == 1,  # type: ignore[index]
+                within_s=WAIT_S,
             )
             after = scrape(running.metrics)
             assert sample(after, "gateway_config_last_reload_successful") == 1.0
@@ -513,7 +523,9 @@ async def test_a_calibration_under_way_goes_on_through_a_reload_of_its_bus(
         assert outcome["status"] == "calibrated", outcome
         written = [w["point"] for w in outcome["writes"]]
         assert written == ["x_zero", "x_span", "calibration_stamp"], written
-        await asyncio.to_thread(wait_until, lambda: running.online("chlorine", "dioxide"))
+        await asyncio.to_thread(
+            wait_until, lambda: running.online("chlorine", "dioxide"), within_s=WAIT_S
+        )
     finally:
         stderr = running.stop()
     assert "Traceback" not in stderr, stderr
