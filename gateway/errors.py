@@ -25,6 +25,7 @@
     │   └── BusBusyError            no bus time for another master's request now
     ├── PublishError                a sink could not deliver
     ├── CommandRejectedError        a write command failed validation; nothing was sent
+    ├── RecordError                 the record store cannot be written or read
     ├── CalibrationInterruptedError a calibration stopped part-way (what was written)
     └── OperationTimeoutError       an operation's device did not get there in time
 
@@ -199,6 +200,10 @@ class CommandRejectedError(GatewayError):
         self.reason = reason
         self.point = point
         super().__init__(f"{point}: {reason}" if point else reason)
+
+
+class RecordError(GatewayError):
+    """The record store cannot be written (so the act it would record is not done) or read."""
 
 
 class CalibrationInterruptedError(GatewayError):

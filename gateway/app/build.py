@@ -27,6 +27,7 @@ from gateway.line.schedule import spread_phase
 from gateway.line.worker import BusWorker
 from gateway.profiles.serial_number import pinned_serial
 from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from gateway.records.actor import Actor, Via
 
 # What only an optional feature needs (MQTT and its client, Prometheus and its server, the
 # commands, the feeds, Sparkplug with protobuf, the shared bus, the web page with aiohttp)
@@ -51,6 +52,7 @@ if TYPE_CHECKING:
     from gateway.publish.host_clock import HostClock
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.sparkplug import SparkplugSink
+    from gateway.records import FeedCounts, RecordStore
     from gateway.web import LineScans, Sessions, WebServer
     from gateway.web.calibration import Calibrations
 
@@ -178,11 +180,22 @@ def care_for(
 
 
 def build_writer(
-    device: DeviceConfig, worker: BusWorker, ledger: FlashLedger, clock: HostClock | None = None
+    device: DeviceConfig,
+    worker: BusWorker,
+    ledger: FlashLedger,
+    clock: HostClock | None = None,
+    *,
+    records: RecordStore | None = None,
+    feeds: FeedCounts | None = None,
 ) -> SafeWriter:
-    """The write path of one configured device, with its flash policy and the host clock."""
+    """The write path of one configured device: flash policy, host clock, the records."""
     return SafeWriter(
-        DeviceLink(worker, device.name), policy=device.flash_policy(), ledger=ledger, clock=clock
+        DeviceLink(worker, device.name),
+        policy=device.flash_policy(),
+        ledger=ledger,
+        clock=clock,
+        records=records,
+        feeds=feeds,
     )
 
 
@@ -241,13 +254,24 @@ def wire_commands(
     # The router brings the sensor operations' catalogue: only with commands on.
     from gateway.control.command_router import CommandRouter  # noqa: PLC0415
 
-    router = CommandRouter(config.mqtt.base_topic, writers, state=state, qos=config.mqtt.qos)
+    actor = Actor(
+        user=config.mqtt.username or "mqtt",
+        via=Via.MQTT,
+        detail=f"client id {mqtt.client_id}",
+    )
+    router = CommandRouter(
+        config.mqtt.base_topic, writers, state=state, qos=config.mqtt.qos, actor=actor
+    )
     mqtt.listeners.append(router)
     return router
 
 
 def shared_bus_server(
-    config: GatewayConfig, workers: Sequence[BusWorker], ledger: FlashLedger, state: GatewayState
+    config: GatewayConfig,
+    workers: Sequence[BusWorker],
+    ledger: FlashLedger,
+    state: GatewayState,
+    records: RecordStore | None = None,
 ) -> SharedBusServer | None:
     """Other masters on the buses (``shared_bus:``), if configured; their share opened."""
     shared = config.shared_bus
@@ -265,6 +289,7 @@ def shared_bus_server(
         flash_budgets=_flash_budgets_by_device(config),
         state=state,
         clock=state.clock,
+        records=records,
     )
 
 
@@ -334,7 +359,12 @@ def wire_sparkplug_commands(
     if sparkplug is not None and config.commands.enabled:
         from gateway.control.sparkplug_commands import SparkplugCommands  # noqa: PLC0415
 
-        sparkplug.session.commands = SparkplugCommands(sparkplug, writers)
+        actor = Actor(
+            user=config.mqtt.username or "sparkplug",
+            via=Via.SPARKPLUG,
+            detail=f"client id {sparkplug.session.client_id}; DCMD",
+        )
+        sparkplug.session.commands = SparkplugCommands(sparkplug, writers, actor=actor)
 
 
 def web_page(
@@ -355,11 +385,18 @@ def web_page(
     # Here, not at the top: without the page, `gateway run` holds neither aiohttp nor the
     # calibrations and the scan in memory (tests/cli/test_imports.py checks it).
     from gateway.web import LineScans, WebServer  # noqa: PLC0415
+    from gateway.web.users import UserBook, users_path  # noqa: PLC0415
 
     scans = LineScans(list(workers.values()), {})
     retarget_scans(config, scans, workers)
     return WebServer(
-        config.web, state, writers, scans=scans, sessions=sessions, calibrations=calibrations
+        config.web,
+        state,
+        writers,
+        scans=scans,
+        sessions=sessions,
+        calibrations=calibrations,
+        users=UserBook(users_path(config.web, state_directory(config))),
     )
 
 

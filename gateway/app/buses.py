@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from gateway.line.worker import BusWorker
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.state import GatewayState
+    from gateway.records import FeedCounts, RecordStore
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -54,20 +55,39 @@ class Buses:
         state: GatewayState,
         ledger: FlashLedger,
         sinks: Callable[[], list[Sink]],
+        *,
+        records: RecordStore | None = None,
+        feeds: FeedCounts | None = None,
     ) -> None:
-        """Build a worker per bus and a write path per device; ``sinks``: asked per build."""
+        """Build a worker per bus and a write path per device; ``sinks``: asked per build.
+
+        ``records``: where every write path records its writes; ``feeds``: where
+        compensation feeds are counted.
+        """
         self.config = config
         self.state = state
         self.ledger = ledger
+        self.records = records
+        self.feed_counts = feeds
         self._sinks = sinks
         self.workers: dict[str, BusWorker] = {
             bus.name: build_worker(config, bus, sinks(), state) for bus in config.buses
         }
         self.writers: dict[str, SafeWriter] = {
-            device.name: build_writer(device, self.workers[device.bus], ledger, state.clock)
-            for device in config.devices
+            device.name: self._writer(device, self.workers[device.bus]) for device in config.devices
         }
         self._tasks: dict[str, asyncio.Task[None]] = {}
+
+    def _writer(self, device: DeviceConfig, worker: BusWorker) -> SafeWriter:
+        """A device's write path, recording into the run's records."""
+        return build_writer(
+            device,
+            worker,
+            self.ledger,
+            self.state.clock,
+            records=self.records,
+            feeds=self.feed_counts,
+        )
 
     # --- start and stop ----------------------------------------------------------------
 
@@ -148,7 +168,7 @@ class Buses:
             worker = self.workers[device.bus]
             register_device(self.state, device.bus, worker.devices[device.name].target)
             care_for(self.config, self.state, worker, devices={device.name})
-            self.writers[device.name] = build_writer(device, worker, self.ledger, self.state.clock)
+            self.writers[device.name] = self._writer(device, worker)
 
     def build(self, names: set[str]) -> None:
         """The workers and write paths of the buses ``names`` (new, or rebuilt), not started."""
@@ -160,9 +180,7 @@ class Buses:
                 self.workers[bus.name] = worker
         for device in new.devices:
             if device.bus in names:
-                self.writers[device.name] = build_writer(
-                    device, self.workers[device.bus], self.ledger, self.state.clock
-                )
+                self.writers[device.name] = self._writer(device, self.workers[device.bus])
 
     def _announce_changed(self, changes: ConfigChanges, old: GatewayConfig, mqtt: MqttSink) -> None:
         """MQTT: each changed device announced anew at its next cycle, as it is polled now.

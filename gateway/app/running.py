@@ -50,6 +50,11 @@ from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.errors import ConfigError, GatewayError
 from gateway.publish.host_clock import trust_from_environment
 from gateway.publish.state import GatewayState
+from gateway.records import FeedCounts, RecordStore, records_path
+from gateway.records.clock_watch import ClockWatch
+from gateway.records.history import HistoryKeeper, device_refs
+from gateway.records.messages import head_message, record_message
+from gateway.records.reloads import record_reload
 
 if TYPE_CHECKING:
     from collections.abc import Coroutine, Sequence
@@ -65,6 +70,7 @@ if TYPE_CHECKING:
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.prometheus import MetricsServer
     from gateway.publish.sparkplug import SparkplugSink
+    from gateway.records import Record
     from gateway.web import Sessions, WebServer
     from gateway.web.calibration import Calibrations
 
@@ -85,6 +91,18 @@ class RunningGateway:
         self.state_dir = state_directory(config)
         self.ledger = FlashLedger(self.state_dir / LEDGER_FILE)
         state.storage.track(self.ledger.health)
+        self.records = RecordStore(
+            records_path(self.state_dir),
+            clock_synchronised=lambda: state.clock.status().synchronised,
+        )
+        state.storage.track(self.records.health)
+        state.writes.records_head = lambda: self.records.head
+        self.feed_counts = FeedCounts(self.records, profiles=self._profile_of)
+        self.clock_watch = ClockWatch(self.records, state.clock)
+        # Each entry of a sensor's own history or logbook copied once, and the whole copy
+        # handed to sensor care for its trend (the sensors' rings keep 5 or 10).
+        self.history = HistoryKeeper(self.records)
+        state.care.keep_history(self.history.for_care(device_refs(state)))
         state.writes.flash_counts = lambda: self.ledger.counts(utc_today())
         state.writes.flash_budgets = flash_budgets(config)
         self.mqtt: MqttSink | None = None
@@ -97,7 +115,9 @@ class RunningGateway:
         self.sparkplug: SparkplugSink | None = (
             sparkplug_sink(config, state) if config.sparkplug.enabled else None
         )
-        self.buses = Buses(config, state, self.ledger, self._sinks)
+        self.buses = Buses(
+            config, state, self.ledger, self._sinks, records=self.records, feeds=self.feed_counts
+        )
         # The same dictionaries for the whole run: a reload changes them in place.
         self.workers: dict[str, BusWorker] = self.buses.workers
         self.writers: dict[str, SafeWriter] = self.buses.writers
@@ -106,7 +126,7 @@ class RunningGateway:
         )
         self.router: CommandRouter | None = wire_commands(config, state, self.writers, self.mqtt)
         self.shared: SharedBusServer | None = shared_bus_server(
-            config, list(self.workers.values()), self.ledger, state
+            config, list(self.workers.values()), self.ledger, state, self.records
         )
         wire_sparkplug_commands(config, self.writers, self.sparkplug)
         self.page: WebServer | None = web_page(config, state, self.workers, self.writers)
@@ -115,6 +135,23 @@ class RunningGateway:
         # A reload's, while the page is rebuilt.
         self._kept_sessions: Sessions | None = None
         self._kept_calibrations: Calibrations | None = None
+
+    def _profile_of(self, device: str) -> str:
+        for configured in self.config.devices:
+            if configured.name == device:
+                return configured.profile
+        return ""
+
+    def _publish_record(self, record: Record) -> None:
+        """A record to ``{base}/records``, and the chain's new head (retained)."""
+        if self.mqtt is not None:
+            base = self.config.mqtt.base_topic
+            self.mqtt.outbox.enqueue(
+                [
+                    record_message(base, record),
+                    head_message(base, self.records.head, time=record.time),
+                ]
+            )
 
     def _sinks(self) -> list[Sink]:
         """What every bus hands its samples to (the state's sink is each worker's own)."""
@@ -129,6 +166,12 @@ class RunningGateway:
     async def start(self, stack: contextlib.AsyncExitStack) -> None:
         """Claim the ports, then start every part; ``stack`` closes what stays open."""
         stack.callback(self.ledger.close)
+        stack.callback(self.records.close)
+        stack.callback(self._flush_feeds)
+        self.records.close_interrupted()  # a write the last run left without its answer
+        self.records.listen(self._publish_record)
+        if self.mqtt is not None:
+            self.mqtt.outbox.enqueue([head_message(self.config.mqtt.base_topic, self.records.head)])
         self._start_metrics()
         stack.callback(self._stop_metrics)
         stack.push_async_callback(self.buses.close_lines)
@@ -145,8 +188,16 @@ class RunningGateway:
         self._start_task("mqtt", self.mqtt)
         self._start_task("sparkplug", self.sparkplug)
         self._start_task("feeds", self.feeds)
+        self._start_task("clock", self.clock_watch)
         if self.page is not None:
             await self._run_page(self.page)
+
+    def _flush_feeds(self) -> None:
+        """The day's compensation feeds so far, recorded at the stop."""
+        try:
+            self.feed_counts.flush()
+        except GatewayError as exc:
+            _LOGGER.warning("the compensation feeds' counts were not recorded: %s", exc)
 
     def tasks(self) -> list[asyncio.Task[None]]:
         """The tasks that run now: a bus's or a sink's ending is the gateway's failure."""
@@ -213,21 +264,25 @@ class RunningGateway:
                 "\n  ".join(problems),
             )
             status.refused(problems)
+            record_reload(self.records, path, problems=problems)
         except (ConfigError, OSError, ValueError) as exc:
             _LOGGER.error("reload: cannot read %s (%s); the running config stays", path, exc)  # noqa: TRY400 - the reason is the message
             status.refused([f"{path}: {exc}"])
+            record_reload(self.records, path, problems=[f"{path}: {exc}"])
         else:
             try:
                 changes = await self.apply(new)
             except GatewayError as exc:  # a listener's port taken, a TLS file gone: said, not fatal
                 _LOGGER.error("reload: %s was applied in part: %s", path, exc)  # noqa: TRY400
                 status.refused([str(exc)])
+                record_reload(self.records, path, problems=[str(exc)], applied="in part")
             else:
                 summary = changes.summary()
                 _LOGGER.info(
                     "reload: %s applied in %.2f s: %s", path, time.monotonic() - started, summary
                 )
                 status.reloaded(summary)
+                record_reload(self.records, path, summary=summary)
         write_status(self.state_dir, status.reloads, status.last_reload_ok, status.problems)
 
     async def apply(self, new: GatewayConfig) -> ConfigChanges:
@@ -338,7 +393,9 @@ class RunningGateway:
         """The shared bus anew if its section changed, else its listeners on the new buses."""
         if self.shared is None:
             workers = list(self.workers.values())
-            self.shared = shared_bus_server(self.config, workers, self.ledger, self.state)
+            self.shared = shared_bus_server(
+                self.config, workers, self.ledger, self.state, self.records
+            )
             if self.shared is not None:
                 await self.shared.start()
         elif changes.buses_added or changes.buses_removed or changes.buses_changed:
@@ -400,6 +457,7 @@ _TASK_NAMES: Final = {
     "sparkplug": "sink[sparkplug]",
     "feeds": "feeds",
     "web": "web",
+    "clock": "records[clock]",
 }
 
 
@@ -411,7 +469,7 @@ def _trusted(config: GatewayConfig) -> bool:
 def _sign_in(config: GatewayConfig) -> tuple[object, ...]:
     """What a session was signed in with: the same after a reload keeps the sessions."""
     web = config.web
-    return (web.password, web.password_sha256, web.session_minutes)
+    return (web.password, web.password_sha256, web.session_minutes, web.users_file)
 
 
 async def run(

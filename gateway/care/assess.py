@@ -4,6 +4,11 @@ Pure: the records come in as values (:class:`~gateway.care.records.Records`), th
 an argument. Each rule adds a :class:`Finding` with the state it calls for, in words a
 plant operator uses; the most urgent finding is the device's state. A record that is
 missing, unreadable or inconsistent gives a named ``unknown``, never a made-up date.
+
+Grab-sample verifications (:class:`~gateway.care.verifications.Verification`) count with
+the sensor's own records: a passed one is the check the tecLine manual asks for weekly
+(annex 7.3.4), so the due date runs from it as from a calibration; a failed one, with no
+calibration since, calls for one.
 """
 
 from __future__ import annotations
@@ -14,15 +19,27 @@ from datetime import UTC, datetime, timedelta, tzinfo
 from itertools import pairwise
 from typing import TYPE_CHECKING, Any, Final
 
-from gateway.care.records import HISTORY, LOGBOOK, Records
+from gateway.care.records import (
+    HISTORY,
+    HISTORY_SIZE,
+    LOGBOOK,
+    LOGBOOK_SIZE,
+    Calibration,
+    LogbookEntry,
+    Records,
+    logbook_entries,
+)
 from gateway.care.report import CareReport, CareState, Finding
 from gateway.care.rules import PPM_PER_UNIT, CareKind, CareRules
 from gateway.care.trend import fit, project
+from gateway.care.verifications import later
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
+    from gateway.care.records import SensorEntry
     from gateway.care.report import Projection, Trend
+    from gateway.care.verifications import Verification
 
 # A stamp this far ahead of the gateway's clock is in the future (a stamp has minutes only).
 FUTURE_TOLERANCE: Final = timedelta(minutes=10)
@@ -32,9 +49,7 @@ FUTURE_TOLERANCE: Final = timedelta(minutes=10)
 SERVICE_RISE: Final = 0.10
 # Calibrations that agree to this relative difference are the same (float32 read back).
 _SAME: Final = 1e-4
-HISTORY_SIZE: Final = 5  # tecLine annex 7.2
 HISTORY_PARTS: Final = ("x_zero", "x_span", "stamp")
-LOGBOOK_SIZE: Final = 10  # H10/H20 manual 6.1.6
 ZERO_POINT_ENTRY: Final = "zero_point"  # 6.1.6 entry type 20
 
 
@@ -44,6 +59,7 @@ class _Draft:
 
     findings: list[Finding] = field(default_factory=list)
     last_calibration: datetime | None = None
+    passed: Verification | None = None  # the latest passed verification: a check too
     due: datetime | None = None
     slope_ratio: float | None = None
     slope_trend: Trend | None = None
@@ -66,21 +82,36 @@ def assess(
     profile: str,
     now: datetime,
     zone: tzinfo | None = None,
+    past: Sequence[SensorEntry] = (),
+    last_verification: Verification | None = None,
+    last_passed: Verification | None = None,
 ) -> CareReport:
     """The care report of one device at ``now`` (aware).
 
     ``zone``: the zone of the tecLine/Reiss stamps, which carry none (the gateway writes
     them in the host's local time); None: the host's local zone. Dates in the reasons are
-    shown in it too.
+    shown in it too. ``past``: the entries of the sensor's ring that the gateway copied
+    before the ring overwrote them (:class:`~gateway.care.records.PastEntries`), any
+    order; those older than the oldest the sensor still holds lengthen the trends.
+    ``last_verification``: the device's newest grab-sample verification, passed or not;
+    ``last_passed``: its newest passed one (None: none yet). Where the rules have a
+    calibration interval, the due date runs from the later of the last calibration and
+    the last passed verification; a failed verification with no calibration since makes
+    the device ``due``.
     """
-    draft = _Draft()
+    latest = later(last_passed, last_verification)
+    draft = _Draft(passed=last_passed)
     words = _Words(zone)
     if rules.kind is CareKind.AMPEROMETRIC:
-        _amperometric(records, rules, draft, now=now, words=words)
+        earlier = [e for e in past if isinstance(e, Calibration)]
+        _amperometric(records, rules, draft, now=now, words=words, past=earlier)
     elif rules.kind is CareKind.OPTICAL_HYGIENIC:
-        _optical_hygienic(records, rules, draft, now=now, words=words)
+        earlier_entries = [e for e in past if isinstance(e, LogbookEntry)]
+        _optical_hygienic(records, rules, draft, now=now, words=words, past=earlier_entries)
     else:
         _optical(records, draft)
+    if latest is not None and not latest.passed:
+        _failed(draft, rules, latest, words=words)
     state = max((f.state for f in draft.findings), key=lambda s: s.severity, default=CareState.OK)
     return CareReport(
         device=device,
@@ -102,6 +133,7 @@ def assess(
         cap_usage=draft.cap_usage,
         figures=draft.figures,
         records=draft.records,
+        last_verification=latest,
     )
 
 
@@ -146,14 +178,25 @@ def _due(
     words: _Words,
     what: str = "calibrate",
 ) -> None:
-    """Due, due soon or fine, from the last calibration and the interval in force."""
+    """Due, due soon or fine, from the last check and the interval in force.
+
+    The last check is the last calibration, or the last passed grab-sample verification
+    if that is later: tecLine annex 7.3.4's weekly check is a comparison with a reference
+    sample, which a passed verification is.
+    """
     interval = rules.calibration_interval_days
     if interval is None:
         return
-    due = last + timedelta(days=interval)
-    draft.due = due
     every = "weekly" if interval == 7 else f"every {interval:g} days"  # noqa: PLR2004
     context = f"last {words.day(last)}, {every}"
+    checked = draft.passed
+    if checked is not None and checked.at > last:
+        context = (
+            f"grab sample passed {words.day(checked.at)}, calibrated {words.day(last)}, {every}"
+        )
+        last = checked.at
+    due = last + timedelta(days=interval)
+    draft.due = due
     if now >= due:
         late = (now - due).days
         since = f"for {late} day{'s' if late != 1 else ''}" if late else "since today"
@@ -162,6 +205,58 @@ def _due(
         draft.add(CareState.DUE_SOON, f"{what} by {words.day(due)} ({context})")
     else:
         draft.add(CareState.OK, f"{what} by {words.day(due)} ({context})")
+
+
+# What a failed grab sample asks for, by family. The S10 keeps no calibration that Modbus
+# can read, so only another grab sample, passed, clears its failure.
+_AFTER_A_FAILED_SAMPLE: Final = {
+    CareKind.AMPEROMETRIC: "calibrate (tecLine annex 7.3.4)",
+    CareKind.OPTICAL_HYGIENIC: "calibrate",
+    CareKind.OPTICAL: (
+        "calibrate it as its operating manual says, then take another grab sample (the S10 "
+        "keeps no calibration record that Modbus can read)"
+    ),
+}
+
+
+def _failed(draft: _Draft, rules: CareRules, failed: Verification, *, words: _Words) -> None:
+    """A failed verification with no calibration since: ``due``, with how far off it was.
+
+    Calibration stamps carry minutes only, so a calibration stamped in the minute the
+    sample was taken counts as after it (a sample is taken, then the sensor calibrated).
+    """
+    sampled = failed.at.replace(second=0, microsecond=0)
+    if draft.last_calibration is not None and draft.last_calibration >= sampled:
+        return
+    local = words.local(failed.at)
+    decimals = _decimals(max(abs(failed.reference), abs(failed.sensor_value)))
+
+    def amount(value: float) -> str:
+        figure = f"{value:.{decimals}f}"
+        return figure if failed.unit is None else f"{figure} {failed.unit}"
+
+    direction = "high" if failed.deviation > 0 else "low"
+    record = "" if failed.record is None else f" (record {failed.record})"
+    draft.add(
+        CareState.DUE,
+        f"the grab sample of {local:%Y-%m-%d %H:%M %Z} read {amount(failed.reference)}, the "
+        f"sensor {amount(failed.sensor_value)}: {amount(abs(failed.deviation))} {direction}, "
+        f"more than the {amount(failed.limit)} {failed.rule} allows{record}: "
+        f"{_AFTER_A_FAILED_SAMPLE[rules.kind]}",
+    )
+
+
+def _decimals(size: float) -> int:
+    """The decimals a grab-sample kit reads to at this size: 0.50 mg/L, 95.0 %, 150 µg/L.
+
+    Every figure of one sample is shown with the same, so they line up as the operator
+    wrote them down.
+    """
+    if size < 10:  # noqa: PLR2004
+        return 2
+    if size < 100:  # noqa: PLR2004
+        return 1
+    return 0
 
 
 # --- tecLine and Reiss -------------------------------------------------------------------
@@ -188,7 +283,13 @@ def _history_name(index: int, name: str) -> str:
 
 
 def _amperometric(
-    records: Records, rules: CareRules, draft: _Draft, *, now: datetime, words: _Words
+    records: Records,
+    rules: CareRules,
+    draft: _Draft,
+    *,
+    now: datetime,
+    words: _Words,
+    past: Sequence[Calibration],
 ) -> None:
     current = ("x_zero", "x_span", "calibration_stamp")
     entries = [_history_name(i, f) for i in range(HISTORY_SIZE) for f in ("x_zero", "x_span")]
@@ -228,7 +329,8 @@ def _amperometric(
     if not _history_consistent(active, history, draft, now=now):
         return
     draft.last_calibration = active.stamp
-    ratios = _slope(records, rules, draft, history)
+    earlier = _older_than_the_ring(history, past, words)
+    ratios = _slope(records, rules, draft, [*history, *earlier])
     _due(draft, rules, active.stamp, now=now, words=words, what="check the calibration")
     if ratios:
         _slope_trend(rules, draft, ratios, now=now, words=words)
@@ -299,13 +401,38 @@ def _history_consistent(
     return True
 
 
+def _older_than_the_ring(
+    history: Sequence[_Calibration], past: Sequence[Calibration], words: _Words
+) -> list[_Calibration]:
+    """Of the copied calibrations, those older than any the sensor holds, newest first.
+
+    Within the span of its ring the sensor's own entries stand (an entry 0 overwritten by
+    a calibration stamped no later is gone from the sensor, and from the trend); the copy
+    only lengthens it back in time, beyond what the ring holds.
+    """
+    stamps = [entry.stamp for entry in history if entry.stamp is not None]
+    if not stamps:
+        return []
+    oldest = min(stamps)
+    earlier = {
+        stamp: _Calibration(index=None, x_zero=entry.x_zero, x_span=entry.x_span, stamp=stamp)
+        for entry in past
+        if (stamp := words.stamp(entry.stamp)) < oldest
+    }
+    return [earlier[stamp] for stamp in sorted(earlier, reverse=True)]
+
+
 def _slope(
     records: Records,
     rules: CareRules,
     draft: _Draft,
     history: Sequence[_Calibration],
 ) -> list[tuple[datetime, float]]:
-    """The active slope against the nominal one; the history's ratios, oldest first."""
+    """The active slope against the nominal one; the history's ratios, oldest first.
+
+    ``history`` newest first: the sensor's entries, then any copied before it overwrote
+    them (whose ratios the trend fits; the sensor's own are shown).
+    """
     if _missing(records, ("nominal_slope", "unit"), draft, "The nominal slope and unit"):
         return []
     nominal = records.number("nominal_slope")
@@ -398,55 +525,14 @@ def _about(days: int) -> str:
 # --- O-DO H10/H20 ------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
-class _Entry:
-    index: int
-    kind: str  # zero_point, end_value
-    manual: bool
-    rating: str
-    operating_s: float | None
-    date: datetime | None
-    cap_counter: float | None
-    phase: float | None
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "entry": self.index,
-            "type": self.kind,
-            "manual_change": self.manual,
-            "rating": self.rating,
-            "operating_seconds": self.operating_s,
-            "date": None if self.date is None else self.date.isoformat(timespec="seconds"),
-            "cap_changes": self.cap_counter,
-            "phase": self.phase,
-        }
-
-
-def _logbook(records: Records) -> list[_Entry]:
-    """The filled logbook entries, in the device's own order."""
-    entries = []
-    for index in range(1, LOGBOOK_SIZE + 1):
-        prefix = f"{LOGBOOK}_{index}_"
-        kind = records.label(f"{prefix}entry_type")
-        if kind is None or kind == "none" or kind.startswith("code_"):
-            continue  # 6.1.6 "kein Eintrag", or erased flash
-        entries.append(
-            _Entry(
-                index=index,
-                kind=kind,
-                manual=records.label(f"{prefix}manual_change") == "manual",
-                rating=records.label(f"{prefix}rating") or "none",
-                operating_s=records.number(f"{prefix}operating_seconds"),
-                date=records.date(f"{prefix}date"),
-                cap_counter=records.number(f"{prefix}sensor_replacement_counter"),
-                phase=records.number(f"{prefix}phase"),
-            )
-        )
-    return entries
-
-
 def _optical_hygienic(
-    records: Records, rules: CareRules, draft: _Draft, *, now: datetime, words: _Words
+    records: Records,
+    rules: CareRules,
+    draft: _Draft,
+    *,
+    now: datetime,
+    words: _Words,
+    past: Sequence[LogbookEntry],
 ) -> None:
     logbook = [
         f"{LOGBOOK}_{i}_{f}" for i in range(1, LOGBOOK_SIZE + 1) for f in ("entry_type", "date")
@@ -455,7 +541,7 @@ def _optical_hygienic(
     _since_calibration(records, rules, draft)
     if _missing(records, (*logbook, "operating_seconds"), draft, "The calibration logbook"):
         return
-    entries = _logbook(records)
+    entries = logbook_entries(records)
     draft.records["logbook"] = [entry.as_dict() for entry in entries]
     if not entries:
         draft.add(CareState.DUE, "never calibrated: the calibration logbook is empty")
@@ -473,10 +559,17 @@ def _optical_hygienic(
             f"the sensor rated its last calibration ({words.day(newest.date)}) 'warning': "
             "calibrate again; if the warning stays, check the sensor cap",
         )
-    _cap_history(records, draft, ordered)
+    # The copied entries older than any the logbook holds lengthen the cap's history.
+    oldest = ordered[0]
+    earlier = sorted(
+        (e for e in past if e.date is not None and e.operating_s is not None),
+        key=lambda e: (e.date, e.operating_s),
+    )
+    whole = [e for e in earlier if _before(e, oldest)] + ordered
+    _cap_history(records, draft, whole)
     zero_points = [
         (e.date, e.phase)
-        for e in ordered
+        for e in whole
         if e.kind == ZERO_POINT_ENTRY
         and e.phase is not None
         and e.date is not None
@@ -489,11 +582,18 @@ def _optical_hygienic(
         draft.figures["zero_point_phase_drift_points"] = drift.points
 
 
+def _before(entry: LogbookEntry, oldest: LogbookEntry) -> bool:
+    """Whether a copied entry is older than the oldest the logbook holds (dated ones only)."""
+    assert entry.date is not None  # noqa: S101 - dated entries only
+    assert oldest.date is not None  # noqa: S101 - ordered entries are dated
+    return (entry.date, entry.operating_s or 0.0) < (oldest.date, oldest.operating_s or 0.0)
+
+
 def _logbook_order(
-    records: Records, entries: Sequence[_Entry], draft: _Draft, *, now: datetime
-) -> list[_Entry] | None:
+    records: Records, entries: Sequence[LogbookEntry], draft: _Draft, *, now: datetime
+) -> list[LogbookEntry] | None:
     """The entries oldest first, if dates and the operating-hours counter agree."""
-    undated = [e.index for e in entries if e.date is None or e.operating_s is None]
+    undated = [e.number for e in entries if e.date is None or e.operating_s is None]
     if undated:
         draft.add(CareState.UNKNOWN, f"logbook entry {undated[0]} has no date or operating time")
         return None
@@ -502,7 +602,7 @@ def _logbook_order(
     if ahead:
         draft.add(
             CareState.UNKNOWN,
-            f"logbook entry {ahead[0].index} is dated {ahead[0].date:%Y-%m-%d %H:%M %z}, in the "
+            f"logbook entry {ahead[0].number} is dated {ahead[0].date:%Y-%m-%d %H:%M %z}, in the "
             "future: the calibration date (0x300A) was set from a wrong clock",
         )
         return None
@@ -512,8 +612,8 @@ def _logbook_order(
         if newer.operating_s < older.operating_s:
             draft.add(
                 CareState.UNKNOWN,
-                f"the logbook is out of order: entry {newer.index} is dated after entry "
-                f"{older.index} but has fewer operating hours; a calibration date was set "
+                f"the logbook is out of order: entry {newer.number} is dated after entry "
+                f"{older.number} but has fewer operating hours; a calibration date was set "
                 "from a wrong clock",
             )
             return None
@@ -525,7 +625,7 @@ def _logbook_order(
     ):
         draft.add(
             CareState.UNKNOWN,
-            f"logbook entry {ordered[-1].index} has more operating hours than the sensor has now",
+            f"logbook entry {ordered[-1].number} has more operating hours than the sensor has now",
         )
         return None
     return ordered
@@ -587,7 +687,7 @@ def _since_calibration(records: Records, rules: CareRules, draft: _Draft) -> Non
             )
 
 
-def _cap_history(records: Records, draft: _Draft, ordered: Sequence[_Entry]) -> None:
+def _cap_history(records: Records, draft: _Draft, ordered: Sequence[LogbookEntry]) -> None:
     """Cap changes, and the operating time of this cap as far as the logbook shows it."""
     changes = records.number("sensor_replacement_counter")
     operating = records.number("operating_seconds")

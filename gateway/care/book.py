@@ -7,6 +7,16 @@ again whenever they arrive, which is also when time alone may have made a calibr
 due. A write that can change the records makes the bus read them again at once
 (:mod:`gateway.profiles.effects`), so a calibration shows within one read, whoever made
 it. Publishers compare :meth:`CareBook.version` with the one they last sent.
+
+The sensors' rings overwrite (5 calibrations in a tecLine's history, 10 entries in an
+H10's logbook); the records keep every entry, a floor above. So the book hands each ring
+it assesses to the :class:`~gateway.care.records.PastEntries` the app gives it
+(:meth:`CareBook.keep_history`) and fits its trends over what comes back.
+
+Grab-sample verifications are not polled: the app hands each new one to
+:meth:`CareBook.verified` as it is recorded, and those in the records at start, so the
+book keeps each device's latest and latest passed one and assesses the device again at
+once (a passed one moves the due date, a failed one makes it due).
 """
 
 from __future__ import annotations
@@ -18,15 +28,19 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
 from gateway.care.assess import assess
-from gateway.care.records import Records, care_points, same_record
+from gateway.care.records import Records, care_points, ring_entries, same_record
+from gateway.care.rules import CareKind
+from gateway.care.verifications import later
 from gateway.line.samples import Quality
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Sequence
     from datetime import tzinfo
 
+    from gateway.care.records import PastEntries, SensorEntry
     from gateway.care.report import CareReport
     from gateway.care.rules import CareRules
+    from gateway.care.verifications import Verification
     from gateway.line.samples import Sample
     from gateway.profiles import Profile
     from gateway.wire import codec
@@ -51,6 +65,14 @@ class _Device:
     assessed: float = -math.inf  # monotonic time of the last assessment
 
 
+@dataclass(frozen=True, slots=True)
+class _Checks:
+    """A device's latest grab-sample verification, and its latest passed one."""
+
+    latest: Verification | None = None
+    passed: Verification | None = None
+
+
 class CareBook:
     """The care of every configured device; read from any thread, written by the bus tasks.
 
@@ -68,12 +90,29 @@ class CareBook:
         *,
         clock: Callable[[], datetime] = lambda: datetime.now(UTC),
         zone: tzinfo | None = None,
+        history: PastEntries | None = None,
     ) -> None:
-        """Assess at ``clock()``; zone-less stamps in ``zone`` (None: the host's)."""
+        """Assess at ``clock()``; zone-less stamps in ``zone`` (None: the host's).
+
+        ``history``: where the rings' entries are kept (:meth:`keep_history`).
+        """
         self._clock = clock
         self._zone = zone
+        self._history = history
         self._devices: dict[str, _Device] = {}
+        # By device name, apart from the tracked devices: a reload that adds a device
+        # afresh, or verifications read from the records before the devices are added,
+        # lose none of them.
+        self._checks: dict[str, _Checks] = {}
         self._lock = threading.Lock()
+
+    def keep_history(self, history: PastEntries | None) -> None:
+        """Hand every ring assessed from now on to ``history``, and fit over what it gives back.
+
+        Set once when the gateway starts, before the first poll: the state that owns the
+        book is built before the records are opened. None: the rings alone, as before.
+        """
+        self._history = history
 
     def add_device(
         self,
@@ -119,7 +158,7 @@ class CareBook:
                 changed = self._keep(tracked, sample) or changed
         if not changed and now - tracked.assessed < REASSESS_S:
             return  # status words come every poll: assessed on a change, or once a minute
-        if len(tracked.values) + len(tracked.unreadable) >= len(points):
+        if _all_read(tracked):
             tracked.assessed = now
             self._assess(tracked)
 
@@ -147,15 +186,45 @@ class CareBook:
         tracked.unreadable[name] = "no answer from the sensor"
         return True
 
+    def verified(self, device: str, verification: Verification) -> None:
+        """Take a grab-sample verification of ``device``: keep it if newest, assess again.
+
+        Called with each verification as it is recorded, and at start with each one in
+        the records (any order: the sample taken last is kept, not the last one handed
+        over, and the latest passed one apart). A device whose records were all read is
+        assessed at once, so its care document is published again; one not tracked (yet)
+        keeps it for when it is.
+        """
+        with self._lock:
+            kept = self._checks.get(device, _Checks())
+            checks = _Checks(
+                latest=later(kept.latest, verification),
+                passed=later(kept.passed, verification) if verification.passed else kept.passed,
+            )
+            if checks == kept:
+                return
+            self._checks[device] = checks
+        tracked = self._devices.get(device)
+        if tracked is not None and _all_read(tracked):
+            self._assess(tracked)
+
     def _assess(self, tracked: _Device) -> None:
+        records = Records(values=dict(tracked.values), unreadable=dict(tracked.unreadable))
+        checks = self._checks.get(tracked.name, _Checks())
+        past: Sequence[SensorEntry] = ()
+        if self._history is not None and tracked.rules.kind is not CareKind.OPTICAL:
+            past = self._history(tracked.name, ring_entries(records, tracked.rules.kind))
         report = assess(
-            Records(values=dict(tracked.values), unreadable=dict(tracked.unreadable)),
+            records,
             tracked.rules,
             device=tracked.name,
             bus=tracked.bus,
             profile=tracked.profile,
             now=self._clock(),
             zone=self._zone,
+            past=past,
+            last_verification=checks.latest,
+            last_passed=checks.passed,
         )
         with self._lock:
             if tracked.report is None or tracked.report.key != report.key:
@@ -180,3 +249,8 @@ class CareBook:
     def tracked(self, device: str) -> bool:
         """Whether care follows this device."""
         return device in self._devices
+
+
+def _all_read(tracked: _Device) -> bool:
+    """Whether every record of the device was read once (or is known unreadable)."""
+    return len(tracked.values) + len(tracked.unreadable) >= len(tracked.points)

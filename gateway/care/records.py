@@ -10,20 +10,22 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from datetime import datetime
-from typing import TYPE_CHECKING, Final
+from typing import TYPE_CHECKING, Final, Protocol, TypeAlias
 
 from gateway.care.rules import CareKind
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Mapping
+    from collections.abc import Iterable, Mapping, Sequence
 
     from gateway.profiles import Profile
     from gateway.wire import codec
 
 HISTORY: Final = "history"  # tecLine annex 7.2 / Reiss 5.1: entries 0 (newest) to 4
 LOGBOOK: Final = "logbook"  # H10/H20 6.1.6: entries 1 to 10
+HISTORY_SIZE: Final = 5  # tecLine annex 7.2
 HISTORY_FIELDS: Final = ("x_zero", "x_span", "stamp")
+LOGBOOK_SIZE: Final = 10  # H10/H20 manual 6.1.6
 LOGBOOK_FIELDS: Final = (
     "entry_type",
     "manual_change",
@@ -125,3 +127,126 @@ class Records:
             for name in names
             if name not in self.values or name in self.unreadable
         }
+
+
+# --- the entries of the sensors' own rings ---------------------------------------------------
+#
+# The history and the logbook are rings that overwrite: the gateway copies each entry into
+# its records as it appears (``gateway.records.history``, a floor above), and hands care the
+# whole copied history back through :data:`PastEntries`. These are the entries as care reads
+# them from the current ring, and as that copy gives them back.
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Calibration:
+    """One tecLine/Reiss history entry (annex 7.2 / Reiss 5.1): a calibration in force once.
+
+    ``stamp`` is zone-less, as the sensor keeps it (the wall-clock time of whoever
+    calibrated). ``number`` is where the sensor's history holds it now (0 newest), None for
+    an entry given back from the copy; it is not part of the entry's identity.
+    """
+
+    x_zero: float
+    x_span: float
+    stamp: datetime
+    number: int | None = field(default=None, compare=False)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LogbookEntry:
+    """One H10/H20 calibration logbook entry (6.1.6), the fields care judges.
+
+    ``number`` is where the sensor's logbook holds it now (1 newest), None for an entry
+    given back from the copy; it is not part of the entry's identity.
+    """
+
+    kind: str  # the entry type's label: zero_point, end_value
+    manual: bool
+    rating: str
+    operating_s: float | None
+    date: datetime | None
+    cap_counter: float | None
+    phase: float | None
+    number: int | None = field(default=None, compare=False)
+
+    def as_dict(self) -> dict[str, object]:
+        """As the care document shows it."""
+        return {
+            "entry": self.number,
+            "type": self.kind,
+            "manual_change": self.manual,
+            "rating": self.rating,
+            "operating_seconds": self.operating_s,
+            "date": None if self.date is None else self.date.isoformat(timespec="seconds"),
+            "cap_changes": self.cap_counter,
+            "phase": self.phase,
+        }
+
+
+SensorEntry: TypeAlias = Calibration | LogbookEntry
+
+
+class PastEntries(Protocol):
+    """The seam to the copy of the rings, which lives a floor above care (the records).
+
+    Given a device's name and the entries its ring holds now, it keeps those it had not
+    yet and gives back every entry it holds of that sensor, oldest first (the ring's own
+    among them; only the ring's while the copy cannot be made). The app wires it
+    (:meth:`gateway.care.book.CareBook.keep_history`).
+    """
+
+    def __call__(self, device: str, ring: Sequence[SensorEntry], /) -> Sequence[SensorEntry]:
+        """Keep what ``ring`` holds that was not kept yet; every entry kept, oldest first."""
+        ...
+
+
+def history_entries(records: Records) -> tuple[Calibration, ...]:
+    """The filled entries of the tecLine/Reiss history, newest first.
+
+    An entry is filled when its stamp is set (a sensor keeps 0 in the ones never used) and
+    both its values are numbers; one the bus could not read is left out, not guessed.
+    """
+    entries = []
+    for number in range(HISTORY_SIZE):
+        names = [f"{HISTORY}_{number}_{part}" for part in HISTORY_FIELDS]
+        zero, span, stamp = (
+            records.number(names[0]),
+            records.number(names[1]),
+            records.date(names[2]),
+        )
+        if zero is None or span is None or stamp is None:
+            continue
+        entries.append(Calibration(x_zero=zero, x_span=span, stamp=stamp, number=number))
+    return tuple(entries)
+
+
+def logbook_entries(records: Records) -> tuple[LogbookEntry, ...]:
+    """The filled H10/H20 logbook entries, in the device's own order (1 newest)."""
+    entries = []
+    for number in range(1, LOGBOOK_SIZE + 1):
+        prefix = f"{LOGBOOK}_{number}_"
+        kind = records.label(f"{prefix}entry_type")
+        if kind is None or kind == "none" or kind.startswith("code_"):
+            continue  # 6.1.6 "kein Eintrag", or erased flash
+        entries.append(
+            LogbookEntry(
+                kind=kind,
+                manual=records.label(f"{prefix}manual_change") == "manual",
+                rating=records.label(f"{prefix}rating") or "none",
+                operating_s=records.number(f"{prefix}operating_seconds"),
+                date=records.date(f"{prefix}date"),
+                cap_counter=records.number(f"{prefix}sensor_replacement_counter"),
+                phase=records.number(f"{prefix}phase"),
+                number=number,
+            )
+        )
+    return tuple(entries)
+
+
+def ring_entries(records: Records, kind: CareKind) -> tuple[SensorEntry, ...]:
+    """The entries of the ring a family keeps (none for the S10), as the sensor orders them."""
+    if kind is CareKind.AMPEROMETRIC:
+        return history_entries(records)
+    if kind is CareKind.OPTICAL_HYGIENIC:
+        return logbook_entries(records)
+    return ()

@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
+    from gateway.care.verifications import Verification
+
 
 class CareState(StrEnum):
     """The overall verdict of a device, least to most urgent (the order is the severity)."""
@@ -103,6 +105,8 @@ class CareReport:
     cap_usage: float | None = None  # measurement counter / maximum (H10/H20)
     figures: dict[str, Any] = field(default_factory=dict)  # the other numbers, JSON-ready
     records: dict[str, Any] = field(default_factory=dict)  # the records used, JSON-ready
+    # The newest grab sample compared with the sensor (passed or not), None: none yet.
+    last_verification: Verification | None = None
 
     @property
     def reasons(self) -> tuple[str, ...]:
@@ -125,6 +129,7 @@ class CareReport:
             None if self.cap_usage is None else round(self.cap_usage, 4),
             repr(sorted(self.figures.items())),
             repr(sorted(self.records.items())),
+            self.last_verification,
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -147,6 +152,9 @@ class CareReport:
             "cap_usage": None if self.cap_usage is None else round(self.cap_usage, 4),
             "figures": self.figures,
             "records": self.records,
+            "last_verification": (
+                self.last_verification.as_dict() if self.last_verification else None
+            ),
             "assessed_at": _iso(self.assessed_at),
         }
 

@@ -21,9 +21,16 @@ if TYPE_CHECKING:
 
 WEEK_S: Final = 7 * 86400.0
 MIN_POINTS: Final = 3  # a line through two points always fits: no trend from fewer than 3
-# Two-sided 90 % quantiles of Student's t by degrees of freedom (n - 2); a history holds at
-# most 5 calibrations (tecLine annex 7.2), a logbook 10 (H10/H20 manual 6.1.6).
-_T90: Final = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015, 6: 1.943, 7: 1.895, 8: 1.860}
+# Two-sided 90 % quantiles of Student's t by degrees of freedom (n - 2). A sensor holds at
+# most 5 calibrations (tecLine annex 7.2) or 10 logbook entries (H10/H20 manual 6.1.6), but
+# the records copy every one, so a membrane cap's trend may have dozens; past 30 degrees of
+# freedom the normal quantile, 1.645, which is within 3 % of t's and closer with more.
+_T90: Final = {
+    1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015, 6: 1.943, 7: 1.895, 8: 1.860,
+    9: 1.833, 10: 1.812, 11: 1.796, 12: 1.782, 13: 1.771, 14: 1.761, 15: 1.753, 16: 1.746,
+    17: 1.740, 18: 1.734, 19: 1.729, 20: 1.725, 21: 1.721, 22: 1.717, 23: 1.714, 24: 1.711,
+    25: 1.708, 26: 1.706, 27: 1.703, 28: 1.701, 29: 1.699, 30: 1.697,
+}  # fmt: skip
 HIGH_CONFIDENCE_R2: Final = 0.95  # our threshold for calling a projection's fit "high"
 HIGH_CONFIDENCE_POINTS: Final = 4
 LONGEST_PROJECTION: Final = timedelta(days=3650)  # further out than this is not a date

@@ -26,6 +26,7 @@ from gateway.control.calibration import Status, catalogue
 from gateway.control.writes import SafeWriter
 from gateway.errors import GatewayError
 from gateway.profiles import get_profile
+from gateway.records.actor import acting, command_line_actor
 
 # This module is loaded only when one of its commands is run or listed (``cli/root``'s
 # LAZY_COMMANDS), so it reads the catalogue, and with it the flows, at import.
@@ -168,12 +169,17 @@ async def _session(
     when: datetime,
 ) -> CalibrationOutcome:
     ledger = spec.ledger()
+    records = spec.records()
     try:
         async with device_link(spec) as link:
-            writer = SafeWriter(link, policy=spec.policy, ledger=ledger, clock=spec.clock())
-            return await procedure.run(writer, operator, inputs, when=when)
+            writer = SafeWriter(
+                link, policy=spec.policy, ledger=ledger, clock=spec.clock(), records=records
+            )
+            with acting(command_line_actor()):
+                return await procedure.run(writer, operator, inputs, when=when)
     finally:
         ledger.close()
+        records.close()
 
 
 def _run(

@@ -32,6 +32,7 @@ from gateway.line.devices import DeviceTarget
 from gateway.line.port_access import PortOptions
 from gateway.profiles import get_profile
 from gateway.publish.host_clock import HostClock
+from gateway.records import RecordStore, records_path
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat
 
@@ -105,6 +106,13 @@ class DeviceSpec:
     def ledger(self) -> FlashLedger:
         """The persistent flash-write ledger, shared with the running gateway."""
         return FlashLedger(self.state_dir / LEDGER_FILE)
+
+    def records(self) -> RecordStore:
+        """The record store, shared with the running gateway: every write goes in it."""
+        return RecordStore(records_path(self.state_dir), clock_synchronised=self._synchronised)
+
+    def _synchronised(self) -> bool:
+        return self.clock().status().synchronised
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

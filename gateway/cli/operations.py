@@ -23,6 +23,7 @@ from gateway.cli.device import device_link, err, fail, out, with_device_options
 from gateway.control import operations
 from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
+from gateway.records.actor import acting, command_line_actor
 from gateway.wire import codec
 
 if TYPE_CHECKING:
@@ -60,13 +61,17 @@ def _run(spec: DeviceSpec, operation: Callable[[SafeWriter], Awaitable[_T]]) -> 
 
 async def _with_device(spec: DeviceSpec, operation: Callable[[SafeWriter], Awaitable[_T]]) -> _T:
     ledger = spec.ledger()
+    records = spec.records()
     try:
         async with device_link(spec) as link:
-            return await operation(
-                SafeWriter(link, policy=spec.policy, ledger=ledger, clock=spec.clock())
+            writer = SafeWriter(
+                link, policy=spec.policy, ledger=ledger, clock=spec.clock(), records=records
             )
+            with acting(command_line_actor()):
+                return await operation(writer)
     finally:
         ledger.close()
+        records.close()
 
 
 def _print_json(data: dict[str, object]) -> None:

@@ -48,6 +48,8 @@ LAZY_COMMANDS: Final = {
     "calibration-log": "gateway.cli.operations",
     "care": "gateway.cli.care",
     "reload": "gateway.cli.reload",
+    "users": "gateway.cli.users",
+    "records": "gateway.cli.records",
 }
 
 

@@ -22,13 +22,16 @@ from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
 from gateway.line.samples import json_value
 from gateway.profiles.model import Storage
+from gateway.records.actor import acting, command_line_actor
 
 if TYPE_CHECKING:
     from gateway.cli.device import DeviceOptions, DeviceSpec
     from gateway.control.writes import WriteOutcome
 
 
-async def _write(spec: DeviceSpec, point: str, value: object, *, allow_flash: bool) -> WriteOutcome:
+async def _write(
+    spec: DeviceSpec, point: str, value: object, *, allow_flash: bool, reason: str
+) -> WriteOutcome:
     policy = spec.policy
     if allow_flash:
         policy = FlashPolicy(allowed=policy.allowed | {point}, daily_budget=policy.daily_budget)
@@ -36,13 +39,17 @@ async def _write(spec: DeviceSpec, point: str, value: object, *, allow_flash: bo
     flash = target.storage is Storage.FLASH
     # Only a flash write needs the shared ledger on disk; anything else leaves no file.
     ledger = spec.ledger() if flash else FlashLedger(None)
+    records = spec.records()  # every write is recorded, where the running gateway records
     try:
         async with device_link(spec) as link:
-            return await SafeWriter(link, policy=policy, ledger=ledger, clock=spec.clock()).set(
-                target, value
+            writer = SafeWriter(
+                link, policy=policy, ledger=ledger, clock=spec.clock(), records=records
             )
+            with acting(command_line_actor(reason)):
+                return await writer.set(target, value)
     finally:
         ledger.close()
+        records.close()
 
 
 @with_device_options
@@ -66,8 +73,11 @@ def write(
         ),
     ] = False,
     as_json: Annotated[bool, typer.Option("--json", help="Print the outcome as JSON.")] = False,
+    reason: Annotated[
+        str, typer.Option("--reason", help="Why: kept in the write's record (who, what, why).")
+    ] = "",
 ) -> None:
-    """Write one point of one device, checked, flash-guarded and read back."""
+    """Write one point of one device, checked, flash-guarded, read back and recorded."""
     parsed: object = value
     if value.lstrip().startswith("{"):
         try:
@@ -76,7 +86,7 @@ def write(
             raise fail(CommandRejectedError(f"malformed JSON: {exc}")) from exc
     try:
         spec = options.spec()
-        outcome = asyncio.run(_write(spec, point, parsed, allow_flash=allow_flash))
+        outcome = asyncio.run(_write(spec, point, parsed, allow_flash=allow_flash, reason=reason))
     except (CommandRejectedError, ConfigError, ProfileError) as exc:
         raise fail(exc) from exc  # refused: nothing was written (exit 2)
     except GatewayError as exc:
@@ -93,6 +103,8 @@ def write(
         }
         if outcome.note:
             data["note"] = outcome.note
+        if outcome.record is not None:
+            data["record"] = outcome.record
         sys.stdout.write(json.dumps(data, ensure_ascii=False) + "\n")
         return
     what = "written" if outcome.written else "not written"

@@ -50,6 +50,7 @@ from gateway.config.flash_policy import FlashPolicy
 from gateway.config.network import MBAP_URL_SCHEME, TcpSettings, tcp_for_network_port
 from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
 from gateway.config.shared_bus import SharedBusConfig
+from gateway.config.verification import VerificationConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
 from gateway.profiles.serial_number import EMPTY_SERIAL
@@ -620,19 +621,29 @@ class WebConfig(_Model):
     """The commissioning and calibration page in the browser (off unless enabled).
 
     Reading is open to this machine only (loopback); from elsewhere, and for any write or
-    calibration, the page asks for the password, meant to come from the environment
-    (``GATEWAY_WEB__PASSWORD``) or given as its SHA-256 (``password_sha256``). Without
-    either, the page is read-only. Example::
+    calibration, the page asks the user to sign in: by name, as one of the users of the
+    users file (``gateway users add NAME --role operator``; ``users_file``, by default
+    ``users.json`` in ``state_dir``), or with the one shared password of a plant without
+    accounts, meant to come from the environment (``GATEWAY_WEB__PASSWORD``). Without
+    users and a password, the page is read-only. Example::
 
         web: {enabled: true, port: 8080}  # http://127.0.0.1:8080/
         web: {enabled: true, host: 0.0.0.0, allowed_hosts: [gateway.plant.example]}
+        web: {enabled: true, users_file: /etc/rs485-gateway/users.json}
     """
 
     enabled: bool = False
     host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
     port: TcpPort = 8080
     password: SecretStr | None = None
+    # The shared password as its SHA-256, for configs written before the users file: a
+    # fast hash, kept only for compatibility (a stolen config gives a guesser billions of
+    # tries a second). The gateway keeps it as a scrypt hash in memory; named users in
+    # the users file (slow salted hashes, a name on every record) are the way to go.
     password_sha256: Annotated[str | None, AfterValidator(_sha256_hex)] = None
+    # The page's named users and their roles (``gateway users``); None: users.json in
+    # state_dir. A file that does not exist means no named users.
+    users_file: Path | None = None
     session_minutes: Annotated[float, Field(gt=0, le=24 * 60)] = 30.0
     # The names the page answers to in ``Host`` (besides the listen address, and localhost
     # from this machine): a name not listed is a DNS-rebinding attempt, refused with 421.
@@ -702,6 +713,7 @@ class GatewayConfig(BaseSettings):
     commands: CommandsConfig = CommandsConfig()
     feeds: list[FeedConfig] = []
     shared_bus: SharedBusConfig = SharedBusConfig()
+    verification: VerificationConfig = VerificationConfig()
     sparkplug: SparkplugConfig = SparkplugConfig()
     care: CareConfig = CareConfig()
     clock: ClockConfig = ClockConfig()

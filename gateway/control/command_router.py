@@ -26,7 +26,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
@@ -34,6 +34,7 @@ from gateway.control.commands import parse_json, parse_set_payload
 from gateway.errors import CommandRejectedError, GatewayError
 from gateway.line.samples import json_value
 from gateway.publish.message import Message
+from gateway.records.actor import Actor, Via, acting, current
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping
@@ -116,9 +117,15 @@ class CommandRouter:
         qos: int = 1,
         timeout_s: float = COMMAND_TIMEOUT_S,
         clock: Callable[[], datetime] = lambda: datetime.now(UTC),
+        actor: Actor | None = None,
     ) -> None:
-        """Route commands under ``base`` to the writers of the configured devices."""
+        """Route commands under ``base`` to the writers of the configured devices.
+
+        ``actor``: who the records name for a command (the broker connection's username
+        and client id: MQTT does not tell a subscriber who published).
+        """
         self.base = base
+        self.actor = actor or Actor(user="mqtt", via=Via.MQTT)
         self.writers = dict(writers)
         self.state = state
         self.qos = qos
@@ -138,8 +145,10 @@ class CommandRouter:
         started = self._clock()
         try:
             writer = self._writer_for(route, retained=retained)
+            actor = replace(self.actor, detail=_joined(self.actor.detail, f"topic {topic}"))
             async with self._locks[route.device], asyncio.timeout(self.timeout_s):
-                body, outcome = await self._run(route, payload, writer)
+                with acting(actor):
+                    body, outcome = await self._run(route, payload, writer)
         except CommandRejectedError as exc:
             body = {"status": "error", "id": _salvage_id(payload), "reason": str(exc)}
             outcome = "rejected"
@@ -187,7 +196,8 @@ class CommandRouter:
         if route.kind == SET:
             command = parse_set_payload(payload)
             try:
-                done = await writer.set(writer.point(route.name), command.value)
+                with acting(current().because(command.reason)):
+                    done = await writer.set(writer.point(route.name), command.value)
             except CommandRejectedError:
                 raise  # refused before anything was sent
             except GatewayError as exc:
@@ -210,20 +220,28 @@ class CommandRouter:
             )
             return body, "ok" if done.written else "unchanged"
         arguments, command_id = _parse_arguments(payload)
+        reason = arguments.pop("reason", "")
+        if not isinstance(reason, str):
+            raise CommandRejectedError(f"the reason must be a JSON string, got {reason!r}")
         # The operations (clock, measurement, calibration log and offers) are imported
         # with the first one asked: a plant that never asks keeps none of their code.
         from gateway.control import operations  # noqa: PLC0415
 
         try:
-            result = await operations.run_operation(
-                route.name, writer, arguments, now=self._clock()
-            )
+            with acting(current().because(reason.strip())):
+                result = await operations.run_operation(
+                    route.name, writer, arguments, now=self._clock()
+                )
         except CommandRejectedError:
             raise  # refused before anything was sent
         except GatewayError as exc:
             return {"status": "error", "id": command_id, "reason": str(exc)}, "failed"
         _LOGGER.info("command %s on %s done", route.name, route.device)
         return {"status": "ok", "id": command_id, "result": result}, "ok"
+
+
+def _joined(*parts: str) -> str:
+    return "; ".join(part for part in parts if part)
 
 
 def route_key(route: Route) -> str:

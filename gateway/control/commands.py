@@ -48,7 +48,7 @@ WRITE_MULTIPLE_REGISTERS = 0x10  # Modbus Application Protocol V1.1b3, 6.12
 
 _TRUE_WORDS = frozenset({"true", "1", "on"})
 _FALSE_WORDS = frozenset({"false", "0", "off"})
-_JSON_KEYS = frozenset({"value", "id"})
+_JSON_KEYS = frozenset({"value", "id", "reason"})
 # A value is a scalar or an object of bits, arguments an object of scalars: 8 levels is
 # plenty, and keeps the repr() in a rejection reason far from the recursion limit.
 MAX_JSON_DEPTH = 8
@@ -56,20 +56,21 @@ MAX_JSON_DEPTH = 8
 
 @dataclass(frozen=True, slots=True)
 class SetCommand:
-    """One parsed set request: the value as sent (text stays text) and the caller's id.
+    """One parsed set request: the value as sent (text stays text), the caller's id and reason.
 
-    Example::
+    The reason goes into the write's record (why it was changed). Example::
 
         SetCommand(value="20.5", id=None)
-        SetCommand(value={"temperature_from_ram": True}, id="42")
+        SetCommand(value={"temperature_from_ram": True}, id="42", reason="new probe")
     """
 
     value: object
     id: str | None = None
+    reason: str = ""
 
 
 def parse_set_payload(payload: bytes) -> SetCommand:
-    """Parse a set payload: plain text, or a JSON object ``{"value": ..., "id": ...}``.
+    """Parse a set payload: plain text, or a JSON object of ``value``, ``id`` and ``reason``.
 
     Surrounding whitespace of plain text is dropped (``echo`` adds a newline); a text whose
     spaces matter goes in JSON. A payload that starts with ``{`` is JSON and must be valid.
@@ -89,8 +90,13 @@ def parse_set_payload(payload: bytes) -> SetCommand:
         raise CommandRejectedError('the JSON object needs a "value"')
     unknown = sorted(set(data) - _JSON_KEYS)
     if unknown:
-        raise CommandRejectedError(f"unknown keys {unknown} in the JSON object; allowed: value, id")
-    return SetCommand(value=data["value"], id=_command_id(data.get("id")))
+        raise CommandRejectedError(
+            f"unknown keys {unknown} in the JSON object; allowed: value, id, reason"
+        )
+    reason = data.get("reason", "")
+    if not isinstance(reason, str):
+        raise CommandRejectedError(f"the reason must be a JSON string, got {reason!r}")
+    return SetCommand(value=data["value"], id=_command_id(data.get("id")), reason=reason.strip())
 
 
 def parse_json(text: str) -> object:

@@ -23,6 +23,7 @@ from gateway.errors import CommandRejectedError, GatewayError
 from gateway.line.samples import json_value
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.session import rejected
+from gateway.records.actor import Actor, Via, acting
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -46,9 +47,14 @@ class SparkplugCommands:
         writers: Mapping[str, SafeWriter],
         *,
         timeout_s: float = COMMAND_TIMEOUT_S,
+        actor: Actor | None = None,
     ) -> None:
-        """Write to the devices of ``writers``; report through ``sink``."""
+        """Write to the devices of ``writers``; report through ``sink``.
+
+        ``actor``: who the records name for a DCMD (the session's username and client id).
+        """
         self.sink = sink
+        self.actor = actor or Actor(user="sparkplug", via=Via.SPARKPLUG)
         self.writers = dict(writers)
         self.timeout_s = timeout_s
         self._locks = {name: asyncio.Lock() for name in self.writers}
@@ -63,8 +69,9 @@ class SparkplugCommands:
             return
         writer = self.writers[device]
         async with self._locks[device]:
-            for spec, point, value in writes:
-                await self._write(writer, spec, point, value)
+            with acting(self.actor):
+                for spec, point, value in writes:
+                    await self._write(writer, spec, point, value)
 
     def _accepted(self, device: str, payload: bytes) -> list[tuple[MetricSpec, Point, object]]:
         """Every metric of the DCMD resolved, typed and writable; else why not."""

@@ -15,10 +15,16 @@ and feeds change a device's registers:
    write is counted in the persistent ledger *before* it is sent, on the disk itself (a
    power cut after the write cannot leave it uncounted; a ledger that cannot be written
    refuses the write, tests/app/test_power_cut.py and tests/app/test_full_disk.py);
-3. the registers go out with function 06 or 16, and the post-write wait is kept;
-4. the point is read back, so the caller sees what the device now holds.
+3. the write is recorded (:mod:`gateway.records`) before it is sent: who asked
+   (:func:`gateway.records.actor.current`), the device with the serial number it reports,
+   the point's value as found; a record that cannot be written refuses the write;
+4. the registers go out with function 06 or 16, and the post-write wait is kept;
+5. the point is read back, so the caller sees what the device now holds, and the record's
+   outcome says what it was left at (or why the write failed).
 
-Anything refused in steps 1 and 2 raises :class:`CommandRejectedError` and nothing is sent.
+Anything refused in steps 1 to 3 raises :class:`CommandRejectedError` and nothing is sent.
+Compensation feeds to volatile registers, which write every few seconds, are counted per
+device and day (:class:`gateway.records.feeds.FeedCounts`) instead of recorded one by one.
 """
 
 from __future__ import annotations
@@ -31,9 +37,11 @@ from gateway.config import FlashPolicy
 from gateway.control.clock_trust import require_trusted_for
 from gateway.control.commands import writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today
-from gateway.errors import BusError, CommandRejectedError, EncodeError
+from gateway.control.recorded import WriteRecorder
+from gateway.errors import BusError, CommandRejectedError, EncodeError, GatewayError
 from gateway.profiles.model import Storage
 from gateway.publish.host_clock import HostClock
+from gateway.records.model import Result, json_decoded
 from gateway.wire import codec
 
 if TYPE_CHECKING:
@@ -43,6 +51,8 @@ if TYPE_CHECKING:
     from gateway.control.flash import FlashLedger
     from gateway.control.link import DeviceLink
     from gateway.profiles.model import Point
+    from gateway.records.feeds import FeedCounts
+    from gateway.records.store import RecordStore
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -61,6 +71,7 @@ class WriteOutcome:
     registers: tuple[int, ...]
     flash: bool
     note: str = ""
+    record: int | None = None  # the number of the write's record, if it was recorded
 
 
 class SafeWriter:
@@ -74,16 +85,24 @@ class SafeWriter:
         ledger: FlashLedger,
         today: Callable[[], date] = utc_today,
         clock: HostClock | None = None,
+        records: RecordStore | None = None,
+        feeds: FeedCounts | None = None,
     ) -> None:
         """Write to ``link``'s device under ``policy``, counting flash writes in ``ledger``.
 
         ``clock`` is the host clock that dates may be written by (the gateway's own, with
         the config's override; by default the kernel's word and the environment's).
+        ``records``: where every write is recorded (``None``: nowhere, for a write that
+        cannot touch a sensor's settings, such as a test's); ``feeds``: where compensation
+        feeds are counted.
         """
         self.link = link
         self.policy = policy
         self.ledger = ledger
         self.clock = clock if clock is not None else HostClock()
+        self.records = records
+        self.recorder = WriteRecorder(link, records) if records is not None else None
+        self.feeds = feeds
         self._today = today
 
     @property
@@ -100,7 +119,13 @@ class SafeWriter:
         return writable_point(self.link.profile, name)
 
     async def set(
-        self, point: Point, value: object, *, explicit: bool = False, read_back: bool = True
+        self,
+        point: Point,
+        value: object,
+        *,
+        explicit: bool = False,
+        read_back: bool = True,
+        feed: bool = False,
     ) -> WriteOutcome:
         """Write ``value`` to ``point`` if every rule allows it; see the module docstring.
 
@@ -109,7 +134,8 @@ class SafeWriter:
         setting the clock): a flash-backed point needs no place in the allow-list and is
         written even if unchanged (writing the tecLine date stamp again is what activates a
         calibration), but the daily budget still holds and the write is still counted.
-        ``read_back=False`` saves the read-back (feeds, which write often).
+        ``read_back=False`` saves the read-back (feeds, which write often). ``feed``: a
+        compensation feed, counted per day rather than recorded when the point is volatile.
         """
         link = self.link
         name = point.name
@@ -146,9 +172,51 @@ class SafeWriter:
                 flash=flash,
                 note=decision.reason,
             )
-        if decision.record:
-            self.ledger.record(link.device, name, self._today())
-        await link.write_registers(point, registers)
+        found = (current, "") if held is not None else None
+        return await self._send(
+            point,
+            value,
+            registers,
+            found=found,
+            count_flash=decision.record,
+            read_back=read_back,
+            feed=feed,
+        )
+
+    async def _send(
+        self,
+        point: Point,
+        value: object,
+        registers: tuple[int, ...],
+        *,
+        found: tuple[codec.Decoded, str] | None,
+        count_flash: bool,
+        read_back: bool,
+        feed: bool,
+    ) -> WriteOutcome:
+        """Steps 3 to 5: record (and count a flash write), send, read back, record the outcome.
+
+        ``found``: the value as found if it was read already (a flash point's check).
+        """
+        link = self.link
+        flash = point.storage is Storage.FLASH
+        counted = feed and not flash
+        recorder = None if counted else self.recorder
+        pending = None
+        if recorder is not None:
+            pending = await recorder.write(
+                point, value, registers, found or await recorder.as_found(point)
+            )
+        if count_flash:
+            self.ledger.record(link.device, point.name, self._today())
+        try:
+            await link.write_registers(point, registers)
+        except GatewayError as exc:
+            if recorder is not None and pending is not None:
+                recorder.outcome(pending, point, Result.FAILED, note=str(exc))
+            raise
+        if counted and self.feeds is not None:
+            self.feeds.count(link.device, point.name)
         note = ""
         after: codec.Decoded = None
         if read_back:
@@ -156,14 +224,19 @@ class SafeWriter:
                 after = await link.read_point(point)
             except BusError as exc:
                 note = f"written; the read-back failed: {exc}"
+        if recorder is not None and pending is not None:
+            left = json_decoded(after) if read_back and not note else None
+            said = note or ("" if read_back else "written; not read back (a step of a sequence)")
+            recorder.outcome(pending, point, Result.DONE, note=said, as_left=left)
         return WriteOutcome(
             device=link.device,
-            point=name,
+            point=point.name,
             written=True,
             value=after,
             registers=registers,
             flash=flash,
             note=note,
+            record=None if pending is None else pending.seq,
         )
 
     async def _merged_bits(self, point: Point, bits: Mapping[object, object]) -> int:

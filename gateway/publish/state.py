@@ -13,7 +13,7 @@ import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 from gateway.care import CareBook
 from gateway.line.samples import Quality
@@ -87,6 +87,18 @@ class FlashCounts:
     today: dict[tuple[str, str], int]
 
 
+class RecordsHead(Protocol):
+    """What the state shows of the records' head (:class:`gateway.records.Head`)."""
+
+    @property
+    def seq(self) -> int:
+        """The newest record's number."""
+
+    @property
+    def hash(self) -> str:
+        """The newest record's hash."""
+
+
 @dataclass(slots=True)
 class WriteStatus:
     """Commands and feeds: counts by outcome, flash writes, and each feed's state."""
@@ -95,6 +107,8 @@ class WriteStatus:
     outcomes: Counter[tuple[str, str, str]] = field(default_factory=Counter)
     flash_counts: Callable[[], FlashCounts] | None = None
     flash_budgets: dict[tuple[str, str], int] = field(default_factory=dict)
+    # The record store's head (its ``seq`` and ``hash``), for the metrics and /healthz.
+    records_head: Callable[[], RecordsHead] | None = None
     feeds: dict[str, FeedStatus] = field(default_factory=dict)
 
 
@@ -422,6 +436,7 @@ class GatewayState:
                 writes=WriteStatus(
                     outcomes=Counter(self.writes.outcomes),
                     flash_counts=self.writes.flash_counts,
+                    records_head=self.writes.records_head,
                     flash_budgets=dict(self.writes.flash_budgets),
                     feeds={k: replace(v) for k, v in self.writes.feeds.items()},
                 ),

@@ -1,11 +1,22 @@
-"""Who may do what on the page: the password, sessions that expire, CSRF tokens, the host.
+"""Who may do what on the page: users and roles, sessions that expire, CSRF tokens, the host.
 
 Reading is open from this machine (a loopback address) and needs a session from anywhere
-else; a write or a calibration needs a session and, on every request, the session's CSRF
-token in the ``X-CSRF-Token`` header. The password comes from the config's ``web``
-section (meant to be ``GATEWAY_WEB__PASSWORD`` in the environment) or as its SHA-256;
-the gateway keeps only the digest, and compares digests with :func:`hmac.compare_digest`,
-so neither the length nor the content of a guess shows in the time an answer takes.
+else; a write or a calibration needs a session whose role allows it (an operator's or an
+admin's, not a viewer's) and, on every request, the session's CSRF token in the
+``X-CSRF-Token`` header. A session is a named user of the users file
+(:mod:`gateway.web.users`) with their role, or, for a plant that wants no accounts, the
+one shared password of the config's ``web`` section (``GATEWAY_WEB__PASSWORD``, or its
+SHA-256 in old configs): such a session is the user :data:`SHARED_PASSWORD`, an operator,
+with the name typed at sign-in kept as its detail. The shared password is kept in memory
+only as a scrypt hash made at start with a random salt (of its SHA-256, so both ways of
+configuring it are one secret), and every password is compared as a scrypt hash with
+:func:`hmac.compare_digest`: neither the length nor the content of a guess shows in the
+time an answer takes. A scrypt check takes tens of milliseconds, so the page runs it in a
+thread (:meth:`Sessions.authenticate` is thread-safe) while the loop goes on polling.
+
+A session's :class:`~gateway.records.actor.Actor` (:meth:`Session.actor`) is what the
+records name: the user, the page, the client's address, the reason given and whether the
+password was given again for the act (Part 11 §11.200's signature).
 
 Guesses are throttled (:class:`SignInThrottle`): one at a time per client address and one
 at a time overall, each wrong one costing :data:`WRONG_DELAY_S`, and an address that
@@ -28,10 +39,14 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING, Final
 
+from gateway.records.actor import SHARED_PASSWORD, Actor, Via
+from gateway.web.users import PasswordHash, Role
+
 if TYPE_CHECKING:
-    from collections.abc import Callable, Collection
+    from collections.abc import Awaitable, Callable, Collection
 
     from gateway.config import WebConfig
+    from gateway.web.users import UserBook
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -49,7 +64,7 @@ LOCALHOST_NAMES: Final = frozenset({"localhost", "localhost.localdomain", "ip6-l
 
 
 def digest(password: str) -> bytes:
-    """The SHA-256 of a password, as the gateway keeps and compares it."""
+    """The SHA-256 of a password: what the shared password's scrypt hash is made of."""
     return hashlib.sha256(password.encode("utf-8")).digest()
 
 
@@ -63,60 +78,133 @@ def is_loopback(remote: str | None) -> bool:
         return False
 
 
+def _typed(name: str) -> str:
+    """A name typed at sign-in, as kept: spaces folded, at most :data:`MAX_NAME` long."""
+    return " ".join(name.split())[:MAX_NAME]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Identity:
+    """Who a right password showed someone to be."""
+
+    user: str  # the users file's name, or SHARED_PASSWORD
+    role: Role
+    who: str  # shown and logged: the user's name, or the name typed with the shared password
+
+
 @dataclass(slots=True, kw_only=True)
 class Session:
-    """One signed-in operator: who, from where, until when, and the CSRF token."""
+    """One signed-in user: who, their role, from where, until when, and the CSRF token."""
 
     token: str
     csrf: str
-    who: str
+    who: str  # the user's name, or the name typed with the shared password
     remote: str
     expires: float  # monotonic
+    user: str = SHARED_PASSWORD  # the name records carry
+    role: Role = Role.OPERATOR
     busy: int = 0  # calibrations of this session under way: it does not expire meanwhile
+
+    @property
+    def shared(self) -> bool:
+        """Whether it was opened with the shared password, not by a named user."""
+        return self.user == SHARED_PASSWORD
 
     def csrf_ok(self, given: str | None) -> bool:
         """Whether ``given`` is this session's CSRF token (compared in constant time)."""
         return given is not None and hmac.compare_digest(digest(given), digest(self.csrf))
 
+    def actor(self, remote: str, *, reason: str = "", signed: bool = False) -> Actor:
+        """Who acts in a request of this session, as the records name them.
+
+        The shared password's records say :data:`SHARED_PASSWORD`, with the name typed at
+        sign-in beside the address: a name nobody proved, kept as a hint, not as the user.
+        """
+        detail = f"{remote}, name given: {self.who}" if self.shared else remote
+        return Actor(user=self.user, via=Via.PAGE, detail=detail, reason=reason, signed=signed)
+
 
 class Sessions:
-    """The password's digest and the sessions it opened."""
+    """The users and the shared password, and the sessions they opened."""
 
     def __init__(
         self,
         *,
-        password_digest: bytes | None,
+        shared: PasswordHash | None,
+        users: UserBook | None = None,
         lifetime_s: float,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """Sessions that live ``lifetime_s`` from their last write; no password: none at all."""
-        self._digest = password_digest
+        """Sessions that live ``lifetime_s`` from their last write.
+
+        ``shared``: the scrypt hash of the shared password's SHA-256 (``None``: no shared
+        password); ``users``: the users file. Neither: nobody can sign in.
+        """
+        self._shared = shared
+        self.users = users
         self.lifetime_s = lifetime_s
         self._clock = clock
         self._sessions: dict[str, Session] = {}
 
     @classmethod
-    def from_config(cls, config: WebConfig) -> Sessions:
-        """From the ``web`` section: the password (or its SHA-256) and the session length."""
+    def from_config(
+        cls,
+        config: WebConfig,
+        *,
+        users: UserBook | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> Sessions:
+        """From the ``web`` section: the shared password (or its SHA-256), the session length."""
         if config.password is not None:
-            password_digest: bytes | None = digest(config.password.get_secret_value())
+            secret: bytes | None = digest(config.password.get_secret_value())
         elif config.password_sha256 is not None:
-            password_digest = bytes.fromhex(config.password_sha256)
+            secret = bytes.fromhex(config.password_sha256)
         else:
-            password_digest = None
-        return cls(password_digest=password_digest, lifetime_s=config.session_minutes * 60)
+            secret = None
+        # Hashed once, here, with a salt of this run: what stays in memory is scrypt's.
+        shared = PasswordHash.of(secret) if secret is not None else None
+        return cls(shared=shared, users=users, lifetime_s=config.session_minutes * 60, clock=clock)
+
+    @property
+    def shared_password(self) -> bool:
+        """Whether the shared password is configured."""
+        return self._shared is not None
+
+    @property
+    def named_users(self) -> bool:
+        """Whether the users file has users now."""
+        return self.users is not None and bool(self.users.snapshot())
 
     @property
     def enabled(self) -> bool:
-        """Whether anyone can sign in (a password is configured)."""
-        return self._digest is not None
+        """Whether anyone can sign in: a shared password, or users in the users file."""
+        return self._shared is not None or self.named_users
 
-    def sign_in(self, who: str, password: str, remote: str) -> Session | None:
-        """A new session for the right password, else ``None`` (and a warning in the log)."""
-        who = " ".join(who.split())[:MAX_NAME] or "operator"
-        if self._digest is None or not hmac.compare_digest(digest(password), self._digest):
-            _LOGGER.warning("web: sign-in refused for %r from %s", who, remote)
-            return None
+    def authenticate(self, name: str, password: str) -> Identity | None:
+        """Who ``name`` and ``password`` show someone to be, else ``None``.
+
+        Slow (scrypt) and safe to run in a thread: it reads the users file and the shared
+        password's hash, and opens no session. A named user's own password comes first;
+        else the shared password, with ``name`` kept as typed.
+        """
+        typed = _typed(name)
+        if self.users is not None:
+            user = self.users.authenticate(typed, password)
+            if user is not None:
+                return Identity(user=user.name, role=user.role, who=user.name)
+        if self._shared is not None and self._shared.matches(digest(password)):
+            return Identity(user=SHARED_PASSWORD, role=Role.OPERATOR, who=typed or "operator")
+        return None
+
+    def signature_ok(self, session: Session, password: str) -> bool:
+        """Whether ``password`` is the session's user's again (a signature); slow, thread-safe."""
+        if session.shared:
+            return self._shared is not None and self._shared.matches(digest(password))
+        user = self.users.snapshot().get(session.user) if self.users is not None else None
+        return user is not None and user.password.matches(password)
+
+    def open(self, identity: Identity, remote: str) -> Session:
+        """A new session for who :meth:`authenticate` found (in the loop: not thread-safe)."""
         self._expire()
         while len(self._sessions) >= MAX_SESSIONS:
             oldest = min(self._sessions.values(), key=lambda s: s.expires)
@@ -124,25 +212,52 @@ class Sessions:
         session = Session(
             token=secrets.token_urlsafe(32),
             csrf=secrets.token_urlsafe(32),
-            who=who,
+            who=identity.who,
             remote=remote,
             expires=self._clock() + self.lifetime_s,
+            user=identity.user,
+            role=identity.role,
         )
         self._sessions[session.token] = session
-        _LOGGER.info("web: %s signed in from %s", who, remote)
+        how = "with the shared password" if session.shared else f"as {session.role.value}"
+        _LOGGER.info("web: %s signed in %s from %s", session.who, how, remote)
         return session
+
+    def refused(self, name: str, remote: str) -> None:
+        """Log a refused sign-in."""
+        _LOGGER.warning("web: sign-in refused for %r from %s", _typed(name), remote)
+
+    def sign_in(self, who: str, password: str, remote: str) -> Session | None:
+        """A new session for a right name and password, else ``None`` (and a warning).
+
+        Checks in the caller's thread: the page calls :meth:`authenticate` in a thread
+        and :meth:`open` in the loop instead.
+        """
+        identity = self.authenticate(who, password)
+        if identity is None:
+            self.refused(who, remote)
+            return None
+        return self.open(identity, remote)
 
     def find(self, token: str | None, *, touch: bool = False) -> Session | None:
         """The live session of a cookie's token.
 
         ``touch`` (a write, a calibration step) pushes its expiry back: the session ends
         ``lifetime_s`` after its last write. Reading does not, so a page left open on a
-        phone does not keep its session alive.
+        phone does not keep its session alive. A named user removed from the users file
+        has no session any more; one whose role changed has the new role.
         """
         if not token:
             return None
         self._expire()
         session = self._sessions.get(token)
+        if session is not None and not session.shared and self.users is not None:
+            user = self.users.snapshot().get(session.user)
+            if user is None:
+                _LOGGER.warning("web: %s is no longer a user: their session ended", session.who)
+                del self._sessions[token]
+                return None
+            session.role = user.role
         if session is not None and touch:
             session.expires = self._clock() + self.lifetime_s
         return session
@@ -238,8 +353,11 @@ class SignInThrottle:
         entry = self._addresses.get(remote)
         return max(0.0, entry.locked_until - self._clock()) if entry else 0.0
 
-    async def attempt(self, remote: str, check: Callable[[], bool]) -> Verdict:
-        """Run ``check`` (the password compared) under the throttle; how it went."""
+    async def attempt(self, remote: str, check: Callable[[], Awaitable[bool]]) -> Verdict:
+        """Run ``check`` (the password compared) under the throttle; how it went.
+
+        ``check`` is awaited: a scrypt comparison runs in a thread, the loop polls meanwhile.
+        """
         entry = self._entry(remote)
         if entry.locked_until > self._clock():
             return self._count(Verdict.LOCKED_OUT)
@@ -253,7 +371,7 @@ class SignInThrottle:
                 now = self._clock()
                 if entry.locked_until > now:
                     return self._count(Verdict.LOCKED_OUT)
-                if check():
+                if await check():
                     entry.failures.clear()
                     return self._count(Verdict.OK)
                 self._fail(remote, entry, now)

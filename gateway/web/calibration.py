@@ -19,6 +19,11 @@ unanswered (phone locked, page reloaded) ends after ``confirm_timeout_s`` as aba
 nothing written, so the device is free again; until then any signed-in user can see the
 run on the device's page, take it over (it becomes theirs) or cancel it, and both are
 logged. While a run is under way its session does not expire (:meth:`Sessions.hold`).
+
+Its task is created under the starting user's :class:`~gateway.records.actor.Actor`
+(:func:`~gateway.records.actor.acting`): asyncio copies the context into a task at its
+creation, so every write of the flow, long after the request that started it has been
+answered, is recorded as that user's, signed as the start was.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.control.calibration import catalogue
 from gateway.errors import CalibrationInterruptedError, CommandRejectedError, GatewayError
+from gateway.records import actor as actors
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable, Mapping
@@ -41,6 +47,7 @@ if TYPE_CHECKING:
     from gateway.control.calibration.catalogue import Procedure
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
+    from gateway.records.actor import Actor
     from gateway.web.auth import Sessions
 
 _LOGGER = logging.getLogger(__name__)
@@ -127,6 +134,7 @@ class CalibrationRun:
     outcome: dict[str, object] | None = None
     error: str | None = None
     task: asyncio.Task[None] | None = None
+    actor: Actor = actors.UNATTRIBUTED  # who its writes are recorded as: its task's actor
 
     def as_dict(self) -> dict[str, object]:
         """What the page shows of it: the question in plain words, its detail apart."""
@@ -141,6 +149,7 @@ class CalibrationRun:
             "device": self.device,
             "procedure": self.procedure.as_dict(),
             "who": self.who,
+            "actor": self.actor.as_dict(),  # as its writes are recorded: user, signed, reason
             "phase": self.phase.value,
             "steps": list(self.steps),
             "question": self.question if waiting else None,
@@ -256,6 +265,7 @@ class CalibrationRun:
 
     async def execute(self, writer: SafeWriter) -> None:
         """Run the flow to its end and keep how it ended."""
+        self.actor = actors.current()  # the task's own, copied at its creation
         try:
             inputs = self.procedure.parse(self.inputs)  # refused here: the run says why
             outcome = await self.procedure.run(writer, WebOperator(self), inputs, when=_now())
@@ -341,9 +351,20 @@ class Calibrations:
             self.sessions.release(run.session)
 
     def start(
-        self, device: str, procedure_id: str, inputs: object, who: str, session: str = ""
+        self,
+        device: str,
+        procedure_id: str,
+        inputs: object,
+        who: str,
+        session: str = "",
+        *,
+        actor: Actor | None = None,
     ) -> CalibrationRun:
-        """Start a run in a task of its own; refused if the device is busy with one."""
+        """Start a run in a task of its own; refused if the device is busy with one.
+
+        The task acts for ``actor`` (``None``: the caller's actor): it is created inside
+        :func:`~gateway.records.actor.acting`, so it inherits the actor with its context.
+        """
         if not isinstance(inputs, dict):
             raise CommandRejectedError("inputs must be a JSON object")
         writer = self.writers.get(device)
@@ -373,7 +394,8 @@ class Calibrations:
         _LOGGER.info(
             "web: %s started the %s calibration of %s with %s", who, procedure.id, device, inputs
         )
-        run.task = asyncio.create_task(run.execute(writer), name=f"web.calibrate[{device}]")
+        with actors.acting(actor or actors.current()):
+            run.task = asyncio.create_task(run.execute(writer), name=f"web.calibrate[{device}]")
         self.runs[run.id] = run
         self._forget_old()
         return run

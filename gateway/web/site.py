@@ -4,7 +4,7 @@ Routes (JSON unless said; ``R`` read: loopback or a session; ``W`` write: a sess
 its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser sends one)::
 
     GET  /                                  the page (static: index.html, app.js, style.css)
-    GET  /api/session                       who is signed in, the CSRF token, what is allowed
+    GET  /api/session                       who is signed in, their role, the CSRF token
     POST /api/login  {name, password}       a session (cookie), or 403
     POST /api/logout
     GET  /api/state                      R  lines and devices with live values, bus health
@@ -12,9 +12,11 @@ its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser 
     GET  /api/care                       R  sensor care: every device's document, most urgent
                                             first, with the calibration it asks for
     GET  /api/devices/{device}           R  identity, register map, procedures
-    POST /api/devices/{device}/points/{point}  W  {value}: a write through SafeWriter
-    POST /api/devices/{device}/read      W  every point read now (queued ahead of polls)
-    POST /api/calibrations               W  {device, procedure, inputs}: a guided run
+    POST /api/devices/{device}/points/{point}  W  {value, reason?, password?}: a write
+                                            through SafeWriter (signed if password is given)
+    POST /api/devices/{device}/read      W* every point read now (queued ahead of polls)
+    POST /api/calibrations               W  {device, procedure, inputs, password, reason?}:
+                                            a guided run, signed with the password again
     GET  /api/calibrations?device=NAME   R  the runs under way (of a device)
     GET  /api/calibrations/{id}          R  its steps, question, outcome
     POST /api/calibrations/{id}/answer   W  {confirm: bool}: only from the run's session
@@ -23,10 +25,18 @@ its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser 
     POST /api/lines/{bus}/scan           W  a scan of the line, its polling paused
     GET  /api/lines/{bus}/scan           R  the scan's progress and report
 
-Every write and calibration is logged with who did it (the name given at sign-in) and from
-where. Every request first passes the ``Host`` check (:func:`host_allowed`): a name the
-page does not answer to gets 421, so a DNS-rebinding page cannot read it through a browser
-on this machine. Sign-ins pass the :class:`SignInThrottle`.
+``W`` needs an operator's or an admin's session: a viewer's is refused with 403 and a
+message naming the role needed (``W*``: a viewer's too, it only reads). Every write and
+calibration is logged with who did it (the signed-in user, or the name given with the
+shared password) and from where, and runs under that user's
+:class:`~gateway.records.actor.Actor` (:func:`~gateway.records.actor.acting`), which the
+records name. A calibration is signed (21 CFR Part 11 §11.200: both components, name and
+password, at the first signing of a session): its request carries the user's password
+again, refused with 403 without it or with a wrong one; a write is signed when its request
+carries the password. Every request first passes the ``Host`` check (:func:`host_allowed`):
+a name the page does not answer to gets 421, so a DNS-rebinding page cannot read it through
+a browser on this machine. Sign-ins and signatures pass the :class:`SignInThrottle`, their
+scrypt checks in a thread so the loop goes on polling.
 """
 
 from __future__ import annotations
@@ -44,6 +54,7 @@ from aiohttp import web
 
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
 from gateway.line.samples import json_value
+from gateway.records.actor import acting
 from gateway.web.auth import (
     CSRF_HEADER,
     SESSION_COOKIE,
@@ -57,6 +68,7 @@ from gateway.web.auth import (
 from gateway.web.calibration import CalibrationRun, Calibrations, procedures_for
 from gateway.web.care import care_documents
 from gateway.web.live import overview, register_map, sample_view
+from gateway.web.users import Role
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable, Mapping
@@ -65,12 +77,14 @@ if TYPE_CHECKING:
     from gateway.control.writes import SafeWriter
     from gateway.publish.state import GatewayState
     from gateway.web.scan import LineScans
+    from gateway.web.users import UserBook
 
     Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 _LOGGER = logging.getLogger(__name__)
 
 EVENT_INTERVAL_S: Final = 1.0
+MAX_REASON: Final = 500  # characters of a request's reason kept for the record
 MAX_REFUSED: Final = 256  # Host names remembered as refused, to warn once per name
 SHUTDOWN_S: Final = 3.0
 STATIC_FILES: Final = {
@@ -111,18 +125,20 @@ class WebServer:
         sessions: Sessions | None = None,
         calibrations: Calibrations | None = None,
         throttle: SignInThrottle | None = None,
+        users: UserBook | None = None,
         event_interval_s: float = EVENT_INTERVAL_S,
     ) -> None:
         """Serve ``state``; writes and calibrations through ``writers`` (by device name).
 
         ``sessions`` and ``calibrations``: a former page's, kept by a reload (a calibration
-        under way goes on, its operator still signed in).
+        under way goes on, its operator still signed in). ``users``: the users file
+        (without it, only the shared password signs in).
         """
         self.config = config
         self.state = state
         self.writers = writers
         self.scans = scans
-        self.sessions = sessions or Sessions.from_config(config)
+        self.sessions = sessions or Sessions.from_config(config, users=users)
         self.throttle = throttle or SignInThrottle()
         if calibrations is None:
             calibrations = Calibrations(writers, sessions=self.sessions)
@@ -155,7 +171,7 @@ class WebServer:
                 get("/api/care", self._reader(self._care)),
                 get("/api/devices/{device}", self._reader(self._device)),
                 post("/api/devices/{device}/points/{point}", self._writer(self._write)),
-                post("/api/devices/{device}/read", self._writer(self._read_all)),
+                post("/api/devices/{device}/read", self._writer(self._read_all, needs=Role.VIEWER)),
                 post("/api/calibrations", self._writer(self._start_calibration)),
                 get("/api/calibrations", self._reader(self._calibrations_under_way)),
                 get("/api/calibrations/{id}", self._reader(self._calibration)),
@@ -186,8 +202,8 @@ class WebServer:
         self.port = int(bound[0][1]) if bound else self.config.port
         if not self.sessions.enabled:
             _LOGGER.warning(
-                "web: no password (GATEWAY_WEB__PASSWORD): the page is read-only, from "
-                "this machine only"
+                "web: no users (gateway users add) and no password (GATEWAY_WEB__PASSWORD): "
+                "the page is read-only, from this machine only"
             )
         _LOGGER.info("web: the page is at %s", self.url)
 
@@ -280,8 +296,8 @@ class WebServer:
 
         return guarded
 
-    def _writer(self, handler: Handler) -> Handler:
-        """A session, its CSRF token, and a same-origin request."""
+    def _writer(self, handler: Handler, *, needs: Role = Role.OPERATOR) -> Handler:
+        """A session whose role allows it (``needs``), its CSRF token, a same-origin request."""
 
         async def guarded(request: web.Request) -> web.StreamResponse:
             session = self._session(request, touch=True)
@@ -304,6 +320,22 @@ class WebServer:
                     request.remote,
                 )
                 return _error(403, "bad or missing CSRF token")
+            if not session.role.allows(needs):
+                _LOGGER.warning(
+                    "web: %s %s by %s refused from %s: the %s role is needed, %s is a %s",
+                    request.method,
+                    request.path,
+                    session.who,
+                    request.remote,
+                    needs.value,
+                    session.who,
+                    session.role.value,
+                )
+                return _error(
+                    403,
+                    f"not allowed: this needs the {needs.value} role (writes, calibrations "
+                    f"and verifications do), and {session.who} is a {session.role.value}",
+                )
             request[_SESSION] = session
             return await handler(request)
 
@@ -320,6 +352,63 @@ class WebServer:
     def _who(request: web.Request) -> str:
         session = request[_SESSION]
         return f"{session.who}@{request.remote}"
+
+    async def _signature(
+        self, request: web.Request, body: Mapping[str, object], *, what: str, required: bool
+    ) -> bool | web.Response:
+        """Whether the request is signed: the user's password again in ``password``, right.
+
+        21 CFR Part 11 §11.200(a)(1)(i): the first signing of a session takes both
+        components, name and password; the name is the session's. A refusal (a missing
+        password where ``required``, a wrong one, a locked-out address) is the response
+        to send. The check passes the sign-in throttle, so a session left open on a phone
+        is no way to guess its user's password quickly.
+        """
+        session = request[_SESSION]
+        password = body.get("password")
+        if password is None or password == "":
+            if not required:
+                return False
+            _LOGGER.warning(
+                "web: %s by %s refused: not signed (no password given again)",
+                what,
+                self._who(request),
+            )
+            return _error(
+                403,
+                f"{what} is signed with your password: give it again (password) to go on",
+            )
+        if not isinstance(password, str):
+            return _error(400, "password must be text")
+        remote = str(request.remote)
+
+        async def check() -> bool:
+            return await asyncio.to_thread(self.sessions.signature_ok, session, password)
+
+        verdict = await self.throttle.attempt(remote, check)
+        if verdict is Verdict.OK:
+            return True
+        turned_away = self._turned_away(verdict, remote)
+        if turned_away is not None:
+            return turned_away
+        _LOGGER.warning("web: %s by %s refused: wrong password", what, self._who(request))
+        return _error(403, f"wrong password: {what} was not done")
+
+    def _turned_away(self, verdict: Verdict, remote: str) -> web.Response | None:
+        """The 429 of a password not even checked (locked out, too many waiting), if so."""
+        if verdict is Verdict.LOCKED_OUT:
+            wait = max(1, round(self.throttle.retry_after_s(remote)))
+            response = _error(429, f"too many wrong passwords from {remote}: try again in {wait} s")
+            response.headers["Retry-After"] = str(wait)
+            return response
+        if verdict is Verdict.BUSY:
+            return _error(429, "too many sign-ins at once: try again in a moment")
+        return None
+
+    @staticmethod
+    def _reason(body: Mapping[str, object]) -> str:
+        """The request's optional reason, as the record keeps it."""
+        return " ".join(str(body.get("reason") or "").split())[:MAX_REASON]
 
     @staticmethod
     async def _body(request: web.Request) -> dict[str, object]:
@@ -349,6 +438,10 @@ class WebServer:
             {
                 "signed_in": session is not None,
                 "who": session.who if session else None,
+                "user": session.user if session else None,
+                "role": session.role.value if session else None,
+                "shared": session.shared if session else None,
+                "can_write": session is not None and session.role.allows(Role.OPERATOR),
                 "csrf": session.csrf if session else None,
                 "can_sign_in": self.sessions.enabled,
                 "can_read": session is not None or is_loopback(request.remote),
@@ -368,25 +461,34 @@ class WebServer:
         name, password = str(body.get("name") or ""), str(body.get("password") or "")
         opened: list[Session] = []
 
-        def check() -> bool:
-            session = self.sessions.sign_in(name, password, remote)
-            if session is not None:
-                opened.append(session)
-            return session is not None
+        async def check() -> bool:
+            # scrypt in a thread; the session opened back in the loop, which owns them.
+            identity = await asyncio.to_thread(self.sessions.authenticate, name, password)
+            if identity is None:
+                self.sessions.refused(name, remote)
+                return False
+            opened.append(self.sessions.open(identity, remote))
+            return True
 
         verdict = await self.throttle.attempt(remote, check)
         self.state.count_sign_in(verdict.value, remote, self.throttle.locked_until(remote))
-        if verdict is Verdict.LOCKED_OUT:
-            wait = max(1, round(self.throttle.retry_after_s(remote)))
-            response = _error(429, f"too many wrong passwords from {remote}: try again in {wait} s")
-            response.headers["Retry-After"] = str(wait)
-            return response
-        if verdict is Verdict.BUSY:
-            return _error(429, "too many sign-ins at once: try again in a moment")
+        turned_away = self._turned_away(verdict, remote)
+        if turned_away is not None:
+            return turned_away
         if not opened:
-            return _error(403, "wrong password" if self.sessions.enabled else "no password set")
+            if not self.sessions.enabled:
+                return _error(403, "no users and no password set: the page is read-only")
+            wrong = "wrong name or password" if self.sessions.named_users else "wrong password"
+            return _error(403, wrong)
         session = opened[0]
-        response = web.json_response({"who": session.who, "csrf": session.csrf})
+        response = web.json_response(
+            {
+                "who": session.who,
+                "user": session.user,
+                "role": session.role.value,
+                "csrf": session.csrf,
+            }
+        )
         # No Max-Age: the browser keeps the cookie while it runs, and the gateway ends the
         # session after web.session_minutes without a write (sliding, not fixed at sign-in).
         response.set_cookie(
@@ -487,12 +589,19 @@ class WebServer:
         who = self._who(request)
         try:
             body = await self._body(request)
+            signed = await self._signature(request, body, what="the write", required=False)
+            if isinstance(signed, web.Response):
+                return signed
+            actor = request[_SESSION].actor(
+                str(request.remote), reason=self._reason(body), signed=signed
+            )
             value = body.get("value")
             if isinstance(value, str) and value.lstrip().startswith("{"):
                 value = json.loads(value)
             point = writer.point(request.match_info["point"])
             _LOGGER.info("web: %s writes %s/%s = %r", who, device, point.name, value)
-            outcome = await writer.set(point, value)
+            with acting(actor):  # the records of this write name the session's user
+                outcome = await writer.set(point, value)
         except (CommandRejectedError, ConfigError, ProfileError, ValueError) as exc:
             _LOGGER.warning("web: write by %s to %s refused: %s", who, device, exc)
             self.state.count_write(device, "web", "rejected")
@@ -525,6 +634,9 @@ class WebServer:
     async def _start_calibration(self, request: web.Request) -> web.StreamResponse:
         try:
             body = await self._body(request)
+            signed = await self._signature(request, body, what="the calibration", required=True)
+            if isinstance(signed, web.Response):
+                return signed
             inputs = body.get("inputs") or {}
             run = self.calibrations.start(
                 str(body.get("device")),
@@ -532,6 +644,9 @@ class WebServer:
                 inputs,
                 self._who(request),
                 request[_SESSION].token,
+                actor=request[_SESSION].actor(
+                    str(request.remote), reason=self._reason(body), signed=signed
+                ),
             )
         except CommandRejectedError as exc:
             return _error(400, str(exc))

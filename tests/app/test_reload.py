@@ -446,7 +446,12 @@ async def start_slope(http: aiohttp.ClientSession, url: str) -> tuple[dict[str, 
     async with http.post(f"{url}/api/login", json=login) as response:
         assert response.status == 200, await response.text()
         headers = {"X-CSRF-Token": (await response.json())["csrf"]}
-    start = {"device": "chlorine", "procedure": "slope", "inputs": {"reference": 0.5, "samples": 1}}
+    start = {
+        "device": "chlorine",
+        "procedure": "slope",
+        "inputs": {"reference": 0.5, "samples": 1},
+        "password": PASSWORD,  # the start is signed
+    }
     async with http.post(f"{url}/api/calibrations", json=start, headers=headers) as response:
         assert response.status == 201, await response.text()
         return headers, str((await response.json())["id"])

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import subprocess
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from tests.cli.test_cli import gateway, simulated_line
-from tests.rigs import stats_of
+from tests.cli.test_cli import simulated_line
+from tests.rigs import run_gateway, stats_of
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -16,6 +18,20 @@ if TYPE_CHECKING:
 pytestmark = [pytest.mark.line]
 
 __all__ = ["simulated_line"]  # the fixture, used by name
+
+
+Gateway = Callable[..., subprocess.CompletedProcess[str]]
+
+
+@pytest.fixture
+def gateway(tmp_path: Path) -> Gateway:
+    """``gateway ARGS`` in the test's folder: a write without --config keeps its records
+    in ``state/`` of the folder it runs in, as for a user."""
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return run_gateway(*args, cwd=tmp_path)
+
+    return run
 
 
 def written(stats: Path, address: int) -> list[dict[str, Any]]:
@@ -37,7 +53,9 @@ def line_options(port: Path, address: int, profile: str) -> list[str]:
     ]
 
 
-def test_write_a_ram_point_and_read_it_back(simulated_line: tuple[Path, Path]) -> None:
+def test_write_a_ram_point_and_read_it_back(
+    simulated_line: tuple[Path, Path], gateway: Gateway
+) -> None:
     port, stats = simulated_line
     result = gateway(
         "write",
@@ -55,13 +73,14 @@ def test_write_a_ram_point_and_read_it_back(simulated_line: tuple[Path, Path]) -
         "value": 21.5,
         "registers": [0x0000, 0x41AC],
         "flash": False,
+        "record": 1,  # the write's record in state/records.sqlite (its outcome is 2)
     }
     [record] = written(stats, 1)
     assert (record["function"], record["address"], record["values"]) == (16, 0x25B0, [0, 0x41AC])
 
 
 def test_a_flash_point_needs_permission_and_counts_in_the_ledger(
-    simulated_line: tuple[Path, Path], tmp_path: Path
+    simulated_line: tuple[Path, Path], tmp_path: Path, gateway: Gateway
 ) -> None:
     port, stats = simulated_line
     config = tmp_path / "gateway.yaml"
@@ -88,7 +107,7 @@ def test_a_flash_point_needs_permission_and_counts_in_the_ledger(
     assert (tmp_path / "state" / "flash-writes.sqlite").is_file()
 
 
-def test_bad_input_writes_nothing(simulated_line: tuple[Path, Path]) -> None:
+def test_bad_input_writes_nothing(simulated_line: tuple[Path, Path], gateway: Gateway) -> None:
     port, stats = simulated_line
     cases = {
         ("oxygen", "8"): "the point is read-only",

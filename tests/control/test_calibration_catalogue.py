@@ -341,7 +341,12 @@ async def test_the_page_applies_the_catalogues_defaults_to_a_run(
             assert r.status == 200
         async with http.get("/api/session") as r:
             csrf = (await r.json())["csrf"]
-        body = {"device": device, "procedure": "check", "inputs": {"reference": "0.5"}}
+        body = {
+            "device": device,
+            "procedure": "check",
+            "inputs": {"reference": "0.5"},
+            "password": PASSWORD,  # the start is signed
+        }
         async with http.post("/api/calibrations", json=body, headers={"X-CSRF-Token": csrf}) as r:
             assert r.status == 201, await r.text()
             run_id = (await r.json())["id"]

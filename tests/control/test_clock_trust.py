@@ -55,7 +55,7 @@ from tests.mqtt_broker import free_port, recording
 from tests.publish.test_mqtt import gateway, simulated
 from tests.rigs import link_rig, link_target, run_gateway, simulate_process, stats_of
 from tests.storage_rig import get
-from tests.web_rig import CHLORINE, NAMES, PHONE, browser, sign_in
+from tests.web_rig import CHLORINE, NAMES, PASSWORD, PHONE, browser, sign_in
 from tests.web_rig import plant as web_plant
 
 if TYPE_CHECKING:
@@ -566,6 +566,7 @@ async def test_the_page_says_the_clock_is_not_synchronised_and_offers_no_date_to
         assert "flash, not in flash_writes" in x_zero
         # A calibration started from the page is refused at once, with the reason.
         await page.goto(f"{running.url}#/calibrate/{NAMES[CHLORINE]}/nominal")
+        await page.fill("#sign-password", PASSWORD)  # the start is signed
         await page.click("#start")
         await page.locator("#phase[data-phase='refused']").wait_for(timeout=10_000)
         result = " ".join((await page.locator("#result").inner_text()).split())

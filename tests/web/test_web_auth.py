@@ -37,8 +37,7 @@ def sessions(clock: Clock, password: str | None = PASSWORD) -> Sessions:
     config = WebConfig.model_validate(
         {"enabled": True, "password": password, "session_minutes": 10}
     )
-    built = Sessions.from_config(config)
-    return Sessions(password_digest=built._digest, lifetime_s=built.lifetime_s, clock=clock)
+    return Sessions.from_config(config, clock=clock)
 
 
 def test_the_right_password_opens_a_session_that_expires_unless_it_writes() -> None:

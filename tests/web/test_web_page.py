@@ -13,6 +13,7 @@ from tests.web_rig import (
     DIGESTER,
     NAMES,
     OXYGEN,
+    PASSWORD,
     PHONE,
     browser,
     plant,
@@ -195,6 +196,7 @@ async def _start(
             await page.select_option(f"#f-{name}", value)
         else:
             await page.fill(f"#f-{name}", value)
+    await page.fill("#sign-password", PASSWORD)  # the start is signed
     await page.click("#start")
 
 
@@ -286,7 +288,12 @@ async def test_the_calibration_api_reports_the_steps_as_json(tmp_path: Path) -> 
         page = await chromium.new_page()
         await sign_in(page, gateway.url)
         csrf = await page.evaluate("fetch('/api/session').then(r => r.json()).then(s => s.csrf)")
-        body = {"device": NAMES[CHLORINE], "procedure": "slope", "inputs": {"reference": "x"}}
+        body = {
+            "device": NAMES[CHLORINE],
+            "procedure": "slope",
+            "inputs": {"reference": "x"},
+            "password": PASSWORD,
+        }
         started = await _post(page, "/api/calibrations", body, csrf)
         assert started["status"] == 201
         run_id = started["body"]["id"]

@@ -16,7 +16,17 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from tests.web_rig import CHLORINE, DIGESTER, NAMES, OXYGEN, PHONE, browser, plant, sign_in
+from tests.web_rig import (
+    CHLORINE,
+    DIGESTER,
+    NAMES,
+    OXYGEN,
+    PASSWORD,
+    PHONE,
+    browser,
+    plant,
+    sign_in,
+)
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -104,6 +114,7 @@ async def _question(page: Page, url: str) -> None:
     await page.locator("#settle [data-watch='cell_current'] .big").filter(has_text="nA").wait_for()
     await page.fill("#f-reference", "0.5")
     await page.fill("#f-samples", "1")
+    await page.fill("#sign-password", PASSWORD)  # the start is signed
     await page.click("#start")
     await page.locator("#question").wait_for(timeout=30_000)
 

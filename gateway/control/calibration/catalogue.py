@@ -27,6 +27,7 @@ second apart unless they say otherwise (the manuals give no interval; ours).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final, TypeAlias
 
@@ -52,8 +53,9 @@ from gateway.control.calibration.arithmetic import (
 from gateway.control.calibration.inputs import InputKind, Inputs, Parameter
 from gateway.control.calibration.oxygen import calibrate_oxygen_end_value, calibrate_oxygen_zero
 from gateway.control.clock_trust import require_trusted_clock, time_points
-from gateway.errors import CommandRejectedError
+from gateway.errors import CalibrationInterruptedError, CommandRejectedError, RecordError
 from gateway.profiles import builtin_profiles
+from gateway.records.model import Kind, Result
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable, Mapping
@@ -62,6 +64,8 @@ if TYPE_CHECKING:
     from gateway.control.calibration.steps import CalibrationOutcome, Operator
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
+
+_LOGGER = logging.getLogger(__name__)
 
 __all__ = [  # what the front ends use; the parameters' types come from ``inputs``
     "BY_ID",
@@ -157,7 +161,43 @@ class Procedure:
                 require_trusted_clock(
                     writer.clock, f"the {self.id} calibration of {writer.device}", dated[0]
                 )
-        return await self.runner(writer, operator, inputs, when)
+        recorder = writer.recorder
+        before = recorder.records.head.seq if recorder is not None else 0
+        try:
+            outcome = await self.runner(writer, operator, inputs, when)
+        except CalibrationInterruptedError as exc:
+            await self._record(writer, before, Result.FAILED, str(exc), {"written": exc.written})
+            raise
+        result = Result.DONE if outcome.ok else Result.FAILED
+        if not outcome.writes and not outcome.ok:
+            result = Result.NOTED  # declined, or stopped before writing: nothing changed
+        await self._record(writer, before, result, str(outcome.status), outcome.as_dict())
+        return outcome
+
+    async def _record(
+        self,
+        writer: SafeWriter,
+        before: int,
+        result: Result,
+        note: str,
+        data: Mapping[str, object],
+    ) -> None:
+        """The calibration as a whole, with the numbers of its write records."""
+        recorder = writer.recorder
+        if recorder is None:
+            return
+        try:
+            await recorder.act(
+                Kind.CALIBRATION,
+                action=f"calibration: {self.title}",
+                result=result,
+                note=note,
+                data={"procedure": self.id, **data, "write_records": recorder.writes_since(before)},
+            )
+        except RecordError as exc:
+            _LOGGER.error(  # noqa: TRY400 - the cause is the message
+                "%s: the calibration was not recorded: %s", writer.device, exc
+            )
 
     def as_dict(self) -> dict[str, object]:
         """JSON-ready: what the page, ``gateway calibrate procedures`` and MQTT show."""

@@ -38,9 +38,12 @@ from gateway.errors import (
     CommandRejectedError,
     DeviceExceptionError,
     FrameError,
+    RecordError,
 )
 from gateway.profiles.model import Storage
 from gateway.publish.host_clock import HostClock
+from gateway.records.actor import Actor, Via
+from gateway.records.model import DeviceRef, Entry, Kind, PointChange, Result
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -51,6 +54,8 @@ if TYPE_CHECKING:
     from gateway.line.fair_share import Origin
     from gateway.line.worker import BusWorker
     from gateway.publish.state import SharedBusClient
+    from gateway.records.model import Record
+    from gateway.records.store import RecordStore
     from gateway.wire import frames
 
 _LOGGER = logging.getLogger(__name__)
@@ -67,16 +72,20 @@ class Bridge:
         ledger: FlashLedger,
         flash_budgets: Mapping[str, int],
         clock: HostClock | None = None,
+        records: RecordStore | None = None,
     ) -> None:
         """Requests for ``units`` go to the ``workers`` of their buses.
 
         ``clock``: a write of a date-and-time register waits for it to be trusted.
+        ``records``: where each write is recorded (client, address, unit, registers) before
+        it is sent, and its outcome after.
         """
         self.units = units
         self.workers = workers
         self.ledger = ledger
         self.flash_budgets = flash_budgets
         self.clock = clock if clock is not None else HostClock()
+        self.records = records
 
     async def answer(
         self,
@@ -193,6 +202,39 @@ class Bridge:
         ``origin`` is the client's connection: the fair share is between clients.
         """
         line = line_request(request, target.address)
+        pending = (
+            self._record(client, target, request, worker, origin)
+            if request.is_write and self.records is not None
+            else None
+        )
+        try:
+            response = await self._sent(target, line, worker, stats, origin)
+        except RequestRefusedError as refused:
+            self._outcome(pending, Result.FAILED, refused.reason)
+            raise
+        if isinstance(response, bytes):  # the device's exception answer
+            self._outcome(pending, Result.FAILED, f"the device answered exception {response[-1]}")
+            return response
+        self._outcome(pending, Result.DONE, "")
+        if request.is_write:
+            _LOGGER.info(
+                "shared bus: client %s wrote %d registers at %#06x of %s",
+                client.name,
+                request.count,
+                request.address,
+                target.device,
+            )
+        return answer_pdu(request, response)
+
+    async def _sent(
+        self,
+        target: Unit,
+        line: frames.Request,
+        worker: BusWorker,
+        stats: SharedBusClient,
+        origin: Origin,
+    ) -> frames.Response | bytes:
+        """The device's response, or its exception as the answer PDU."""
         try:
             job = worker.foreign.submit(target.device, line, origin)
         except BusBusyError as exc:
@@ -213,12 +255,73 @@ class Bridge:
         finally:
             if job.sent_at is not None:
                 stats.observe_wait(job.sent_at - job.queued_at)
-        if request.is_write:
-            _LOGGER.info(
-                "shared bus: client %s wrote %d registers at %#06x of %s",
-                client.name,
-                request.count,
-                request.address,
-                target.device,
+        return response
+
+    def _record(
+        self,
+        client: ClientPolicy,
+        target: Unit,
+        request: ClientRequest,
+        worker: BusWorker,
+        origin: Origin,
+    ) -> Record:
+        """Another master's write, recorded before it is sent (else it is refused)."""
+        assert self.records is not None  # noqa: S101 - called only with a store
+        profile = worker.device_profile(target.device)
+        touched = [
+            point.name
+            for point in profile.points
+            if point.address <= request.last and point.last >= request.address
+        ]
+        entry = Entry(
+            kind=Kind.WRITE,
+            actor=Actor(
+                user=origin.address or client.name,
+                via=Via.SHARED_BUS,
+                detail=f"client {client.name}, connection {origin.connection}, unit {target.unit}",
+            ),
+            device=DeviceRef(
+                name=target.device,
+                profile=profile.id,
+                bus=target.bus,
+                address=target.address,
+            ),
+            action=f"another master's write of {request.count} register(s) at "
+            f"0x{request.address:04X} ({', '.join(touched) or 'no named point'})",
+            result=Result.PENDING,
+            points=tuple(
+                PointChange(point=name, unit=profile.point(name).unit) for name in touched
+            ),
+            data={
+                "function": request.function,
+                "address": f"0x{request.address:04X}",
+                "registers": [f"0x{word:04X}" for word in request.values],
+            },
+            note="passed through: the registers as sent; not read before or after",
+        )
+        try:
+            return self.records.append(entry)
+        except RecordError as exc:
+            raise RequestRefusedError(DEVICE_FAILURE, str(exc), label="records") from exc
+
+    def _outcome(self, pending: Record | None, result: Result, note: str) -> None:
+        """What became of a recorded write (the next start says so if this fails)."""
+        if pending is None or self.records is None:
+            return
+        device = pending.body.get("device")
+        try:
+            self.records.append(
+                Entry(
+                    kind=Kind.OUTCOME,
+                    actor=Actor(user="gateway", via=Via.SHARED_BUS),
+                    device=DeviceRef.from_dict(device) if isinstance(device, dict) else None,
+                    action=str(pending.body.get("action", "")),
+                    result=result,
+                    note=note,
+                    completes=pending.seq,
+                )
             )
-        return answer_pdu(request, response)
+        except RecordError as exc:
+            _LOGGER.error(  # noqa: TRY400 - the cause is the message
+                "shared bus: the outcome of record %d was not recorded: %s", pending.seq, exc
+            )

@@ -39,6 +39,7 @@ if TYPE_CHECKING:
     from gateway.line.worker import BusWorker
     from gateway.publish.host_clock import HostClock
     from gateway.publish.state import GatewayState, SharedBusClient
+    from gateway.records.store import RecordStore
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -68,10 +69,12 @@ class SharedBusServer:
         flash_budgets: Mapping[str, int],
         state: GatewayState,
         clock: HostClock | None = None,
+        records: RecordStore | None = None,
     ) -> None:
         """Bridge requests for ``units`` to the ``workers`` of their buses.
 
-        ``clock``: the host clock a write of a date register waits to be trusted by.
+        ``clock``: the host clock a write of a date register waits to be trusted by;
+        ``records``: where each write is recorded.
         """
         self.config = config
         self.bridge = Bridge(
@@ -80,6 +83,7 @@ class SharedBusServer:
             ledger=ledger,
             flash_budgets=flash_budgets,
             clock=clock,
+            records=records,
         )
         self.status = state.shared_bus
         self._clients = client_policies(config.clients)

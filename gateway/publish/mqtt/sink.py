@@ -69,6 +69,7 @@ class MqttSink:
         status.queue_max = settings.queue_max
         status.queue_depth = len(store)
         self.settings = settings
+        self.client_id = client_id
         self.topics = topics
         self.outbox = Outbox(store, status, write_ahead=settings.persist == "always")
         self.connection = Connection(

@@ -192,6 +192,7 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         **_shared_bus(snapshot),
         "storage": storage,
         "clock": clock_health(snapshot),  # said, not a reason: a restart cannot fix it
+        "records": _records_head(snapshot),
         "config": {
             # A refused reload leaves the gateway running its previous config: not
             # unhealthy, but said here with the file's problems (and in the metrics).
@@ -438,3 +439,12 @@ class MetricsServer:
     def __exit__(self, *exc_info: object) -> None:
         """Stop serving."""
         self.stop()
+
+
+def _records_head(snapshot: GatewayState) -> dict[str, object] | None:
+    """The record store's head, as ``{base}/records/head`` publishes it."""
+    head_of = snapshot.writes.records_head
+    if head_of is None:
+        return None
+    head = head_of()
+    return {"head": {"seq": head.seq, "hash": head.hash}}

@@ -113,6 +113,21 @@ def write_families(snapshot: GatewayState, now: float) -> Iterator[Metric]:
     for key, allowed in sorted(writes.flash_budgets.items()):
         budget.add_metric(list(key), allowed)
     yield budget
+    if writes.records_head is not None:
+        head = writes.records_head()
+        yield GaugeMetricFamily(
+            "gateway_records_head_sequence",
+            "Number of the newest record in the record store (numbered from 1, no gaps)",
+            value=head.seq,
+        )
+        info = GaugeMetricFamily(
+            "gateway_records_head",
+            "The newest record's SHA-256 chain hash as a label: a copy kept elsewhere "
+            "proves that nothing before it was rewritten",
+            labels=["seq", "hash"],
+        )
+        info.add_metric([str(head.seq), head.hash], 1.0)
+        yield info
     if not writes.feeds:
         return
     labels = ["feed", "source"]

@@ -5,7 +5,7 @@
 
 const view = document.getElementById("view");
 const connection = document.getElementById("connection");
-let session = { signed_in: false, csrf: null, who: null, can_sign_in: false, can_read: true };
+let session = { signed_in: false, csrf: null, who: null, role: null, can_write: false, can_sign_in: false, can_read: true };
 let latest = null; // the last overview from the event stream
 let onState = null; // the current page's listener of new overviews
 let timer = null; // the current page's polling timer
@@ -99,7 +99,9 @@ function remember(device, values) {
 
 async function loadSession() {
   session = await api("GET", "/api/session");
-  document.getElementById("who-name").textContent = session.signed_in ? `Signed in: ${session.who}` : "";
+  // Who and with what role: a named user, or the shared password with the name typed.
+  const as = session.shared ? "shared password" : session.role;
+  document.getElementById("who-name").textContent = session.signed_in ? `Signed in: ${session.who} (${as})` : "";
   document.getElementById("sign-out").hidden = !session.signed_in;
   document.getElementById("sign-in-link").hidden = session.signed_in || !session.can_sign_in;
 }
@@ -115,7 +117,7 @@ function loginPage() {
   const form = el(
     "form",
     { id: "login-form" },
-    el("label", {}, "Your name (kept with every write)", el("input", { name: "name", id: "login-name", autocomplete: "username", required: true })),
+    el("label", {}, "User name (with the shared password: your name, kept with every write)", el("input", { name: "name", id: "login-name", autocomplete: "username", autocapitalize: "none", required: true })),
     el("label", {}, "Password", el("input", { name: "password", id: "login-password", type: "password", autocomplete: "current-password", required: true })),
     el("div", { class: "actions" }, el("button", { class: "primary", type: "submit", id: "login-submit", text: "Sign in" })),
     status,
@@ -137,8 +139,8 @@ function loginPage() {
   let intro;
   if (!session.can_sign_in) {
     intro = session.local
-      ? "No password is configured (GATEWAY_WEB__PASSWORD): this page is read-only."
-      : "No password is configured (GATEWAY_WEB__PASSWORD): from another machine this page cannot be read at all.";
+      ? "No users (gateway users add) and no password (GATEWAY_WEB__PASSWORD) are configured: this page is read-only."
+      : "No users (gateway users add) and no password (GATEWAY_WEB__PASSWORD) are configured: from another machine this page cannot be read at all.";
   } else {
     intro = session.local
       ? "Writes and calibrations need you to sign in."
@@ -150,6 +152,7 @@ function loginPage() {
 }
 
 function needSession(what) {
+  if (session.signed_in && !session.can_write) return el("p", { class: "warning", text: `${what} needs the operator role; you sign in as a ${session.role}.` });
   if (session.signed_in) return null;
   sessionStorage.setItem("after-login", location.hash);
   return el("p", { class: "warning" }, `${what} needs you to `, el("a", { href: "#/login", text: "sign in" }), ".");
@@ -518,8 +521,8 @@ async function devicePage(name) {
     // The write form (or why there is none) on a row of its own, the width of the table:
     // beside the value it squeezed the value's column on a phone.
     let below = null;
-    if (p.writable && session.signed_in) below = writeForm(name, p);
-    else if (p.refused && p.access === "rw" && session.signed_in) below = el("span", { class: "meta refused", text: `Not writable: ${p.refused}` });
+    if (p.writable && session.can_write) below = writeForm(name, p);
+    else if (p.refused && p.access === "rw" && session.can_write) below = el("span", { class: "meta refused", text: `Not writable: ${p.refused}` });
     if (!below) return [row];
     row.classList.add("has-write");
     return [row, el("tr", { class: "write-row", "data-write-row": p.name }, el("td", { class: "wide-only" }), el("td", { colspan: 4 }, below))];
@@ -646,7 +649,7 @@ async function underWay(device, onMine) {
       : `is ${run.phase}`;
     const status = el("span", { role: "status" });
     const buttons = [];
-    if (session.signed_in && !run.mine && run.can_cancel) {
+    if (session.can_write && !run.mine && run.can_cancel) {
       const take = el("button", { type: "button", id: "take-over", text: "Take over" });
       take.addEventListener("click", async () => {
         try {
@@ -685,18 +688,24 @@ async function calibratePage(device, procedureId) {
   }
   const watch = watchPanel(device, procedure.watch);
   const status = el("div", { id: "run", "aria-live": "polite" });
+  // The start is signed (21 CFR Part 11 §11.200): the password again, and why, for the record.
+  const password = el("input", { id: "sign-password", type: "password", autocomplete: "current-password", required: true });
+  const reason = el("input", { id: "sign-reason", autocomplete: "off" });
   const form = el(
     "form",
     { id: "calibration-form" },
     procedure.fields.map(field),
+    el("label", {}, "Reason (optional, kept in the record)", reason),
+    el("label", {}, `Your password again, to sign as ${session.who || "you"}`, password),
     el("div", { class: "actions" }, el("button", { class: "primary", type: "submit", id: "start", text: "Start" })),
   );
   form.addEventListener("submit", async (event) => {
     event.preventDefault();
-    const inputs = {};
+    const inputs = {}; // the procedure's fields: the password and the reason have no name
     for (const [k, v] of new FormData(form).entries()) inputs[k] = v;
     try {
-      const run = await api("POST", "/api/calibrations", { device, procedure: procedureId, inputs });
+      const run = await api("POST", "/api/calibrations", { device, procedure: procedureId, inputs, password: password.value, reason: reason.value });
+      password.value = "";
       form.querySelector("button").disabled = true;
       follow(run.id, status, form);
     } catch (error) {
