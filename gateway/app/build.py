@@ -18,7 +18,9 @@ from gateway.care.rules import rules_for
 from gateway.config import Cadence, PublishSettings
 from gateway.control.link import DeviceLink
 from gateway.control.ports import port_options
+from gateway.control.verification import verifiable_point
 from gateway.control.writes import SafeWriter
+from gateway.errors import CommandRejectedError
 from gateway.line.devices import DeviceTarget
 from gateway.line.factory import build_line
 from gateway.line.foreign import SharePolicy
@@ -46,6 +48,7 @@ if TYPE_CHECKING:
     from gateway.control.feeds import FeedEngine
     from gateway.control.flash import FlashLedger
     from gateway.control.shared_bus import SharedBusServer
+    from gateway.control.verification import Verifier
     from gateway.line.boundary import Line
     from gateway.line.samples import Sink
     from gateway.profiles import Profile
@@ -242,11 +245,23 @@ def wire_feeds(
     return feeds
 
 
+def verifiable_points(config: GatewayConfig) -> dict[str, str]:
+    """Each device's point a grab-sample verification compares (its process value)."""
+    points = {}
+    for device in config.devices:
+        try:
+            points[device.name] = verifiable_point(device.get_profile()).name
+        except CommandRejectedError:
+            continue  # a profile without a measured process value: nothing to verify
+    return points
+
+
 def wire_commands(
     config: GatewayConfig,
     state: GatewayState,
     writers: Mapping[str, SafeWriter],
     mqtt: MqttSink | None,
+    verifier: Verifier | None = None,
 ) -> CommandRouter | None:
     """MQTT's ``…/set`` and ``…/command/…`` through the devices' write paths, if commands are on."""
     if mqtt is None or not config.commands.enabled:
@@ -260,7 +275,12 @@ def wire_commands(
         detail=f"client id {mqtt.client_id}",
     )
     router = CommandRouter(
-        config.mqtt.base_topic, writers, state=state, qos=config.mqtt.qos, actor=actor
+        config.mqtt.base_topic,
+        writers,
+        state=state,
+        qos=config.mqtt.qos,
+        actor=actor,
+        verifier=verifier,
     )
     mqtt.listeners.append(router)
     return router

@@ -19,6 +19,7 @@ import signal
 import time
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
+from gateway.app.audit import AuditTrail
 from gateway.app.build import (
     care_for,
     flash_budgets,
@@ -29,6 +30,7 @@ from gateway.app.build import (
     sparkplug_devices,
     sparkplug_sink,
     state_directory,
+    verifiable_points,
     web_page,
     wire_commands,
     wire_feeds,
@@ -50,10 +52,6 @@ from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.errors import ConfigError, GatewayError
 from gateway.publish.host_clock import trust_from_environment
 from gateway.publish.state import GatewayState
-from gateway.records import FeedCounts, RecordStore, records_path
-from gateway.records.clock_watch import ClockWatch
-from gateway.records.history import HistoryKeeper, device_refs
-from gateway.records.messages import head_message, record_message
 from gateway.records.reloads import record_reload
 
 if TYPE_CHECKING:
@@ -70,7 +68,6 @@ if TYPE_CHECKING:
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.prometheus import MetricsServer
     from gateway.publish.sparkplug import SparkplugSink
-    from gateway.records import Record
     from gateway.web import Sessions, WebServer
     from gateway.web.calibration import Calibrations
 
@@ -91,21 +88,17 @@ class RunningGateway:
         self.state_dir = state_directory(config)
         self.ledger = FlashLedger(self.state_dir / LEDGER_FILE)
         state.storage.track(self.ledger.health)
-        self.records = RecordStore(
-            records_path(self.state_dir),
-            clock_synchronised=lambda: state.clock.status().synchronised,
+        self.mqtt: MqttSink | None = None
+        self.audit = AuditTrail(
+            self.state_dir,
+            state,
+            config=lambda: self.config,
+            mqtt=lambda: self.mqtt,
+            points=verifiable_points(config),
         )
-        state.storage.track(self.records.health)
-        state.writes.records_head = lambda: self.records.head
-        self.feed_counts = FeedCounts(self.records, profiles=self._profile_of)
-        self.clock_watch = ClockWatch(self.records, state.clock)
-        # Each entry of a sensor's own history or logbook copied once, and the whole copy
-        # handed to sensor care for its trend (the sensors' rings keep 5 or 10).
-        self.history = HistoryKeeper(self.records)
-        state.care.keep_history(self.history.for_care(device_refs(state)))
+        self.records = self.audit.store
         state.writes.flash_counts = lambda: self.ledger.counts(utc_today())
         state.writes.flash_budgets = flash_budgets(config)
-        self.mqtt: MqttSink | None = None
         if config.mqtt.enabled:
             from gateway.publish.mqtt import MqttSink  # noqa: PLC0415 - aiomqtt and paho with it
 
@@ -116,15 +109,18 @@ class RunningGateway:
             sparkplug_sink(config, state) if config.sparkplug.enabled else None
         )
         self.buses = Buses(
-            config, state, self.ledger, self._sinks, records=self.records, feeds=self.feed_counts
+            config, state, self.ledger, self._sinks, records=self.records, feeds=self.audit.feeds
         )
         # The same dictionaries for the whole run: a reload changes them in place.
         self.workers: dict[str, BusWorker] = self.buses.workers
         self.writers: dict[str, SafeWriter] = self.buses.writers
+        self.verifier = self.audit.verify_with(self.writers)
         self.feeds: FeedEngine | None = wire_feeds(
             config, state, list(self.workers.values()), self.writers, self.mqtt
         )
-        self.router: CommandRouter | None = wire_commands(config, state, self.writers, self.mqtt)
+        self.router: CommandRouter | None = wire_commands(
+            config, state, self.writers, self.mqtt, self.verifier
+        )
         self.shared: SharedBusServer | None = shared_bus_server(
             config, list(self.workers.values()), self.ledger, state, self.records
         )
@@ -136,27 +132,11 @@ class RunningGateway:
         self._kept_sessions: Sessions | None = None
         self._kept_calibrations: Calibrations | None = None
 
-    def _profile_of(self, device: str) -> str:
-        for configured in self.config.devices:
-            if configured.name == device:
-                return configured.profile
-        return ""
-
-    def _publish_record(self, record: Record) -> None:
-        """A record to ``{base}/records``, and the chain's new head (retained)."""
-        if self.mqtt is not None:
-            base = self.config.mqtt.base_topic
-            self.mqtt.outbox.enqueue(
-                [
-                    record_message(base, record),
-                    head_message(base, self.records.head, time=record.time),
-                ]
-            )
-
     def _sinks(self) -> list[Sink]:
         """What every bus hands its samples to (the state's sink is each worker's own)."""
         return [
             *self.extra_sinks,
+            self.audit.recent,
             *([self.mqtt] if self.mqtt is not None else []),
             *([self.sparkplug] if self.sparkplug is not None else []),
         ]
@@ -166,12 +146,8 @@ class RunningGateway:
     async def start(self, stack: contextlib.AsyncExitStack) -> None:
         """Claim the ports, then start every part; ``stack`` closes what stays open."""
         stack.callback(self.ledger.close)
-        stack.callback(self.records.close)
-        stack.callback(self._flush_feeds)
-        self.records.close_interrupted()  # a write the last run left without its answer
-        self.records.listen(self._publish_record)
-        if self.mqtt is not None:
-            self.mqtt.outbox.enqueue([head_message(self.config.mqtt.base_topic, self.records.head)])
+        stack.callback(self.audit.close)
+        self.audit.start()
         self._start_metrics()
         stack.callback(self._stop_metrics)
         stack.push_async_callback(self.buses.close_lines)
@@ -188,16 +164,9 @@ class RunningGateway:
         self._start_task("mqtt", self.mqtt)
         self._start_task("sparkplug", self.sparkplug)
         self._start_task("feeds", self.feeds)
-        self._start_task("clock", self.clock_watch)
+        self._start_task("clock", self.audit.clock_watch)
         if self.page is not None:
             await self._run_page(self.page)
-
-    def _flush_feeds(self) -> None:
-        """The day's compensation feeds so far, recorded at the stop."""
-        try:
-            self.feed_counts.flush()
-        except GatewayError as exc:
-            _LOGGER.warning("the compensation feeds' counts were not recorded: %s", exc)
 
     def tasks(self) -> list[asyncio.Task[None]]:
         """The tasks that run now: a bus's or a sink's ending is the gateway's failure."""
@@ -310,6 +279,7 @@ class RunningGateway:
         self.config = new
         self.state.clock.trust_unsynchronised = _trusted(new)
         self.state.writes.flash_budgets = flash_budgets(new)
+        self.audit.watch(verifiable_points(new))
         self.buses.config = new
         rebuilt = await self.buses.change(changes, old, self.mqtt)
         await self._stop_sections(changes, old)
@@ -376,7 +346,7 @@ class RunningGateway:
         if {"commands", "mqtt"} & sections:
             if self.mqtt is not None and self.router in self.mqtt.listeners:
                 self.mqtt.listeners.remove(self.router)
-            self.router = wire_commands(new, self.state, self.writers, self.mqtt)
+            self.router = wire_commands(new, self.state, self.writers, self.mqtt, self.verifier)
         if {"feeds", "mqtt"} & sections or (buses_differ and (self.feeds or new.feeds)):
             self._rewire_feeds(list(self.workers.values()))
         await self._start_shared(changes)

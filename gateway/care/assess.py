@@ -111,7 +111,7 @@ def assess(
     else:
         _optical(records, draft)
     if latest is not None and not latest.passed:
-        _failed(draft, rules, latest, words=words)
+        _failed_sample(draft, rules, latest, words=words)
     state = max((f.state for f in draft.findings), key=lambda s: s.severity, default=CareState.OK)
     return CareReport(
         device=device,
@@ -219,7 +219,7 @@ _AFTER_A_FAILED_SAMPLE: Final = {
 }
 
 
-def _failed(draft: _Draft, rules: CareRules, failed: Verification, *, words: _Words) -> None:
+def _failed_sample(draft: _Draft, rules: CareRules, failed: Verification, *, words: _Words) -> None:
     """A failed verification with no calibration since: ``due``, with how far off it was.
 
     Calibration stamps carry minutes only, so a calibration stamped in the minute the

@@ -193,7 +193,8 @@ class CareBook:
         the records (any order: the sample taken last is kept, not the last one handed
         over, and the latest passed one apart). A device whose records were all read is
         assessed at once, so its care document is published again; one not tracked (yet)
-        keeps it for when it is.
+        keeps it for when it is. Call it from the event loop the bus tasks run in, as
+        they write the records it assesses.
         """
         with self._lock:
             kept = self._checks.get(device, _Checks())

@@ -50,6 +50,7 @@ LAZY_COMMANDS: Final = {
     "reload": "gateway.cli.reload",
     "users": "gateway.cli.users",
     "records": "gateway.cli.records",
+    "verify": "gateway.cli.verify",
 }
 
 

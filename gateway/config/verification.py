@@ -42,7 +42,8 @@ class VerificationConfig(_Model):
     """How grab-sample verifications are judged, and how late one may be entered."""
 
     # The sensor's value is the one it read when the sample was taken: the gateway keeps
-    # this long of each sensor's process value (one value per resolution_s).
+    # this long of each sensor's process value (one value per resolution_s). Both take
+    # effect at a restart; the rules at the next verification.
     window_minutes: Annotated[float, Field(gt=0, le=24 * 60)] = 60.0
     resolution_s: Annotated[float, Field(gt=0, le=600)] = 10.0
     rules: dict[str, AcceptanceRuleConfig] = {}  # by device name, profile id or family

@@ -31,6 +31,7 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.control.commands import parse_json, parse_set_payload
+from gateway.control.verification import VerificationRequest
 from gateway.errors import CommandRejectedError, GatewayError
 from gateway.line.samples import json_value
 from gateway.publish.message import Message
@@ -39,6 +40,7 @@ from gateway.records.actor import Actor, Via, acting, current
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping
 
+    from gateway.control.verification import Verifier
     from gateway.control.writes import SafeWriter
     from gateway.publish.state import GatewayState
 
@@ -57,6 +59,9 @@ class Route:
     kind: str  # SET or COMMAND
     device: str
     name: str  # the point, or the operation
+
+
+VERIFY: Final = "verify"  # a grab-sample verification: recorded, nothing written
 
 
 def parse_topic(base: str, topic: str) -> Route | None:
@@ -118,12 +123,15 @@ class CommandRouter:
         timeout_s: float = COMMAND_TIMEOUT_S,
         clock: Callable[[], datetime] = lambda: datetime.now(UTC),
         actor: Actor | None = None,
+        verifier: Verifier | None = None,
     ) -> None:
         """Route commands under ``base`` to the writers of the configured devices.
 
         ``actor``: who the records name for a command (the broker connection's username
-        and client id: MQTT does not tell a subscriber who published).
+        and client id: MQTT does not tell a subscriber who published). ``verifier``: where
+        ``…/command/verify`` (a grab-sample verification) goes.
         """
+        self.verifier = verifier
         self.base = base
         self.actor = actor or Actor(user="mqtt", via=Via.MQTT)
         self.writers = dict(writers)
@@ -220,6 +228,17 @@ class CommandRouter:
             )
             return body, "ok" if done.written else "unchanged"
         arguments, command_id = _parse_arguments(payload)
+        if route.name == VERIFY and self.verifier is not None:
+            request = VerificationRequest.from_arguments(arguments)
+            with acting(current().because(request.reason)):
+                verified = await self.verifier.verify(route.device, request)
+            _LOGGER.info(
+                "verification of %s: %s (record %d)",
+                route.device,
+                "passed" if verified.judgement.passed else "failed",
+                verified.record.seq,
+            )
+            return {"status": "ok", "id": command_id, "result": verified.as_dict()}, "ok"
         reason = arguments.pop("reason", "")
         if not isinstance(reason, str):
             raise CommandRejectedError(f"the reason must be a JSON string, got {reason!r}")

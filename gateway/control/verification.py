@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
     from gateway.records.model import Record
-    from gateway.records.recent import ValueAt
+    from gateway.records.recent import RecentValues, ValueAt
     from gateway.records.verification import AcceptanceRule, Judgement
 
 MAX_TEXT: Final = 200  # a method's or an instrument's name
@@ -210,3 +210,45 @@ async def verify(
         },
     )
     return Verified(record=record, judgement=judgement, rule=rule, value=value)
+
+
+class Verifier:
+    """The running gateway's verifications: its recent values, its rules, its writers.
+
+    One per running gateway; MQTT's ``…/command/verify``, the page and ``gateway verify``
+    (through the metrics port, from this machine) all come here.
+    """
+
+    def __init__(
+        self,
+        writers: Mapping[str, SafeWriter],
+        recent: RecentValues,
+        rules: Callable[[str, Profile], AcceptanceRule | None],
+        *,
+        clock: Callable[[], datetime] = lambda: datetime.now(UTC),
+    ) -> None:
+        """Verify the devices of ``writers`` against ``recent`` values by ``rules``."""
+        self.writers = writers
+        self.recent = recent
+        self.rules = rules
+        self._clock = clock
+
+    async def verify(self, device: str, request: VerificationRequest) -> Verified:
+        """Verify ``device`` for the current actor; refused (nothing recorded) if it cannot be."""
+        writer = self.writers.get(device)
+        if writer is None:
+            known = ", ".join(sorted(self.writers)) or "none"
+            raise CommandRejectedError(f"no device {device!r} (devices: {known})")
+        now = self._clock()
+        recent = self.recent
+
+        async def value_at(name: str, point: Point, at: datetime) -> ValueAt:
+            return recent.value_at(name, point.name, at, now=now)
+
+        return await verify(
+            writer,
+            request,
+            rule=self.rules(device, writer.link.profile),
+            value_at=value_at,
+            now=now,
+        )

@@ -109,6 +109,9 @@ class WriteStatus:
     flash_budgets: dict[tuple[str, str], int] = field(default_factory=dict)
     # The record store's head (its ``seq`` and ``hash``), for the metrics and /healthz.
     records_head: Callable[[], RecordsHead] | None = None
+    # A grab-sample verification asked through the metrics port (``gateway verify``, from
+    # this machine): the JSON request in, the HTTP status and the JSON answer out.
+    verify: Callable[[Mapping[str, object]], tuple[int, dict[str, object]]] | None = None
     feeds: dict[str, FeedStatus] = field(default_factory=dict)
 
 

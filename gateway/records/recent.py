@@ -74,6 +74,11 @@ class RecentValues:
         self._points = dict(points)
         self._rings: dict[tuple[str, str], _Ring] = {}
 
+    @property
+    def capacity(self) -> int:
+        """The values kept per device: the window in resolution steps, and one more."""
+        return self._slots
+
     def watch(self, device: str, point: str) -> None:
         """Keep ``device``'s ``point`` (a device added at a reload)."""
         self._points[device] = point

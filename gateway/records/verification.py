@@ -11,18 +11,22 @@ Decimal arithmetic on the values as entered (the reference) and as the sensor's 
 can hold them (seven significant digits): a deviation exactly on the limit passes, as the
 rule says ("within"), and no binary rounding turns 2.00 - 1.70 into 0.30000000000000004.
 
-Pure: no I/O.
+Pure: no I/O. :func:`care_verification` hands a verification's record to sensor care.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from decimal import Decimal
 from typing import TYPE_CHECKING, Final
+
+from gateway.care.verifications import Verification
 
 if TYPE_CHECKING:
     from gateway.config.verification import VerificationConfig
     from gateway.profiles import Profile
+    from gateway.records.model import Record
 
 FLOAT32_DIGITS: Final = 7  # significant decimal digits a float32 holds
 
@@ -144,3 +148,27 @@ def judge(rule: AcceptanceRule, *, reference: float, sensor: float) -> Judgement
         limit=limit,
         passed=abs(deviation) <= limit,
     )
+
+
+def care_verification(record: Record) -> Verification | None:
+    """A verification record as sensor care weighs it (``None`` for another kind)."""
+    body = record.body
+    if body.get("kind") != "verification":
+        return None
+    data = body.get("data") or {}
+    try:
+        at = datetime.fromisoformat(str(data["sampled_at"]))
+        rule = data.get("rule") or {}
+        return Verification(
+            at=at if at.tzinfo is not None else at.replace(tzinfo=UTC),
+            passed=bool(data["passed"]),
+            reference=float(data["reference"]),
+            sensor_value=float(data["sensor_value"]),
+            deviation=float(data["deviation"]),
+            limit=float(data["limit"]),
+            unit=data.get("unit"),
+            rule=str(rule.get("name", "")),
+            record=record.seq,
+        )
+    except (KeyError, TypeError, ValueError):
+        return None  # a record of an older layout: care does without it

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import ctypes
+import ipaddress
 import itertools
 import json
 import logging
@@ -43,6 +44,7 @@ _LOGGER = logging.getLogger(__name__)
 
 DEFAULT_HOST: Final = "0.0.0.0"  # noqa: S104 - prometheus.host's documented default
 DEFAULT_PORT: Final = 9108  # prometheus.port's default, as in the product contract
+MAX_POST_BYTES: Final = 16_384  # a verification's request is a few hundred bytes
 STOP_TIMEOUT_S: Final = 2.0  # wait for the server thread to end after shutdown
 REQUEST_TIMEOUT_S: Final = 10.0  # socket timeout of one HTTP connection
 _INTERNAL_ERROR: Final = (HTTPStatus.INTERNAL_SERVER_ERROR, "text/plain", [b"internal error\n"])
@@ -272,7 +274,7 @@ class _Server6(_Server):
 
 
 class _Handler(BaseHTTPRequestHandler):
-    """``GET /metrics``, ``GET /healthz``, ``GET /care``; anything else is 404."""
+    """``GET /metrics``, ``/healthz``, ``/care``; ``POST /verify`` from this machine; else 404."""
 
     server: _Server
     server_version = "rs485-gateway"
@@ -296,6 +298,49 @@ class _Handler(BaseHTTPRequestHandler):
         if path == "/metrics":
             del body
             release_free_memory()
+
+    def do_POST(self) -> None:  # the name http.server dispatches to
+        """``POST /verify`` from this machine: ``gateway verify`` asking the running gateway.
+
+        Only from a loopback address: the metrics port is often open to the plant network
+        for Prometheus, and a verification is a record. The body is one JSON object.
+        """
+        path = urlsplit(self.path).path
+        status, answer = self._verification(path)
+        body = json.dumps(answer).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _verification(self, path: str) -> tuple[int, dict[str, object]]:
+        verify = self.server.state.writes.verify
+        if path != "/verify" or verify is None:
+            return HTTPStatus.NOT_FOUND, {"status": "error", "reason": f"{path} not found"}
+        if not ipaddress.ip_address(self.client_address[0].split("%")[0]).is_loopback:
+            _LOGGER.warning(
+                "POST /verify refused from %s: not this machine", self.client_address[0]
+            )
+            return HTTPStatus.FORBIDDEN, {
+                "status": "refused",
+                "reason": "verifications come from this machine only (gateway verify)",
+            }
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+            if not 0 < length <= MAX_POST_BYTES:
+                raise ValueError(f"a body of 1 to {MAX_POST_BYTES} bytes, not {length}")  # noqa: TRY301
+            body = json.loads(self.rfile.read(length))
+            if not isinstance(body, dict):
+                raise ValueError("the body must be a JSON object")  # noqa: TRY004, TRY301
+        except (ValueError, UnicodeDecodeError) as exc:
+            return HTTPStatus.BAD_REQUEST, {"status": "refused", "reason": str(exc)}
+        try:
+            return verify(body)
+        except Exception:  # the request's thread must answer: log, answer 500
+            _LOGGER.exception("POST /verify failed")
+            return HTTPStatus.INTERNAL_SERVER_ERROR, {"status": "error", "reason": "see the log"}
 
     def _answer(self, path: str) -> tuple[HTTPStatus, str, Sequence[bytes]]:
         """The status, content type and body (in pieces) of one request."""
