@@ -2,7 +2,8 @@
 
 Bus and device names unique, buses and profiles known, one address per device on a bus,
 per-point settings, flash writes and feeds that name points of the device's profile,
-Sparkplug's and Prometheus' per-device groups that name configured devices, a pinned
+Sparkplug's and Prometheus' per-device groups that name configured devices, verification
+rules that name a device, profile or family, a pinned
 serial number the profile can read, and response timeouts that fit in the device's poll
 interval.
 
@@ -120,6 +121,7 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
     yield from _check_sparkplug_deadbands(data.get("sparkplug"), devices)
     yield from _check_prometheus_device_groups(data.get("prometheus"), devices)
     yield from _check_care_profiles(data.get("care"))
+    yield from _check_verification_rules(data.get("verification"), devices)
 
 
 def _check_prometheus_device_groups(
@@ -150,6 +152,28 @@ def _check_care_profiles(care: object) -> Iterator[tuple[KeyPath, str]]:
                     f"unknown profile or family {name!r}; profiles: "
                     f"{', '.join(sorted(known))}; families: {', '.join(sorted(families))}"
                 ),
+            )
+
+
+def _check_verification_rules(
+    verification: object, devices: Sequence[_Entry[DeviceConfig]]
+) -> Iterator[tuple[KeyPath, str]]:
+    """``verification.rules`` names configured devices, profiles or families."""
+    if not isinstance(verification, dict) or not isinstance(
+        rules := verification.get("rules"), dict
+    ):
+        return
+    known = builtin_profiles()
+    families = {profile.family for profile in known.values()}
+    names = {n for d in devices if (n := d.text("name")) is not None}
+    for name in rules:
+        if name not in names and name not in known and name not in families:
+            guesses = close_matches(str(name), [*names, *known, *families], 3)
+            hint = f"; did you mean {', '.join(guesses)}?" if guesses else ""
+            devices_said = ", ".join(sorted(names)) or "none"
+            yield (
+                ("verification", "rules", name),
+                f"no device, profile or family {name!r}{hint} (devices: {devices_said})",
             )
 
 

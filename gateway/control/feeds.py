@@ -191,7 +191,9 @@ class FeedEngine:
     async def _write(self, feed: _Feed, value: float) -> None:
         config = feed.config
         try:
-            await feed.writer.set(feed.writer.point(config.point), value, read_back=False)
+            await feed.writer.set(
+                feed.writer.point(config.point), value, read_back=False, feed=True
+            )
             bit = ram_select_bit(feed.writer, config.point)
             if bit is not None and not feed.selected:
                 await self._select(feed, bit, use_ram=True)
@@ -220,7 +222,7 @@ class FeedEngine:
         # Bits the profile does not name (4-7, for JUMO masters) are kept as read; the
         # raw word, not the bit's name, so the write path does not read the byte again.
         raw = codec.with_bits(target.format, control.raw, {bit: use_ram})
-        await writer.set(target, raw, read_back=False)
+        await writer.set(target, raw, read_back=False, feed=True)
 
     # --- refresh and staleness ------------------------------------------------------------
 
@@ -264,10 +266,12 @@ class FeedEngine:
             if bit is not None:
                 await self._select(feed, bit, use_ram=False)
             elif point == "compensation_temperature" and profile.has_point(AUTO_TEMPERATURE_POINT):
-                await writer.set(writer.point(AUTO_TEMPERATURE_POINT), 1, read_back=False)
+                await writer.set(
+                    writer.point(AUTO_TEMPERATURE_POINT), 1, read_back=False, feed=True
+                )
             elif point == "compensation_pressure" and profile.has_point(DEFAULT_PRESSURE_POINT):
                 default = await writer.link.read_value(DEFAULT_PRESSURE_POINT)
-                await writer.set(writer.point(point), default, read_back=False)
+                await writer.set(writer.point(point), default, read_back=False, feed=True)
             feed.selected = False
             feed.written = None
             feed.status.fallback = True

@@ -152,6 +152,7 @@ th, td { border: 1px solid #999; padding: 2px 4px; text-align: left; vertical-al
 th { background: #eee; } .hash { font-family: monospace; font-size: 7pt; word-break: break-all; }
 .broken { color: #a00; font-weight: bold; } .intact { color: #060; font-weight: bold; }
 section.device { page-break-before: always; }
+svg.plot { font: 9pt sans-serif; border: 1px solid #ccc; }
 @media print { body { margin: 0; } }
 """
 _TABLE_COLUMNS: Final = (
@@ -186,11 +187,63 @@ def _table(records: Sequence[Record]) -> str:
     return "\n".join(lines)
 
 
+PLOT_W: Final = 640
+PLOT_H: Final = 200
+_MARGIN: Final = 48
+
+
+def _slope_points(records: Sequence[Record]) -> list[tuple[str, float]]:
+    """The (stamp, X_Span) of a device's copied history, oldest first."""
+    points = []
+    for record in records:
+        entry = (record.body.get("data") or {}).get("entry")
+        if record.kind == "history" and isinstance(entry, dict):
+            span, stamp = entry.get("x_span"), entry.get("stamp")
+            if isinstance(span, int | float) and isinstance(stamp, str):
+                points.append((stamp, float(span)))
+    return sorted(points)
+
+
+def slope_plot(records: Sequence[Record]) -> str:
+    """The slope (X_Span) over the copied calibration history as an inline SVG, or "".
+
+    Evenly spaced by calibration, labelled with the first and last stamps and the range:
+    a printed report needs no script and no library.
+    """
+    points = _slope_points(records)
+    if len(points) < 2:  # noqa: PLR2004 - a line needs two
+        return ""
+    spans = [span for _, span in points]
+    low, high = min(spans), max(spans)
+    room = (high - low) or 1.0
+    width, height = PLOT_W - 2 * _MARGIN, PLOT_H - 2 * _MARGIN
+    step = width / (len(points) - 1)
+    xy = [
+        (_MARGIN + i * step, _MARGIN + height - (span - low) / room * height)
+        for i, (_, span) in enumerate(points)
+    ]
+    line = " ".join(f"{x:.1f},{y:.1f}" for x, y in xy)
+    dots = "".join(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="3"/>' for x, y in xy)
+    first, last = html.escape(points[0][0][:10]), html.escape(points[-1][0][:10])
+    return (
+        f'<svg class="plot" width="{PLOT_W}" height="{PLOT_H}" viewBox="0 0 {PLOT_W} {PLOT_H}" '
+        'role="img" aria-label="slope (X_Span) by calibration">'
+        f'<polyline fill="none" stroke="#036" stroke-width="2" points="{line}"/>'
+        f'<g fill="#036">{dots}</g>'
+        f'<text x="{_MARGIN}" y="{PLOT_H - 12}">{first}</text>'
+        f'<text x="{PLOT_W - _MARGIN}" y="{PLOT_H - 12}" text-anchor="end">{last}</text>'
+        f'<text x="4" y="{_MARGIN}">{high:g}</text>'
+        f'<text x="4" y="{_MARGIN + height}">{low:g}</text>'
+        f'<text x="{PLOT_W / 2}" y="20" text-anchor="middle">slope (X_Span) by calibration, '
+        f"{len(points)} calibrations</text></svg>"
+    )
+
+
 def to_html(records: Iterable[Record], verdict: Verdict, *, title: str = "Records") -> str:
     """A printable report: the verdict, then one page per device, then the gateway's own.
 
-    Each device's page lists its calibrations, verifications and copied history first,
-    then every record of it.
+    Each device's page plots the slope over its copied calibration history, lists its
+    calibrations, verifications and copied history, then every record of it.
     """
     by_device: dict[str, list[Record]] = defaultdict(list)
     for record in records:
@@ -206,6 +259,9 @@ def to_html(records: Iterable[Record], verdict: Verdict, *, title: str = "Record
         chosen = by_device[device]
         checks = [r for r in chosen if r.kind in {"calibration", "verification", "history"}]
         parts.append(f'<section class="device"><h2>{html.escape(device)}</h2>')
+        plot = slope_plot(chosen)
+        if plot:
+            parts.append(f"<h3>The slope's history</h3>{plot}")
         if checks:
             parts.append("<h3>Calibrations and verifications</h3>")
             parts.append(_table(checks))

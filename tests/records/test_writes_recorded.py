@@ -16,7 +16,7 @@ from gateway.config import FlashPolicy
 from gateway.control.flash import FlashLedger
 from gateway.control.writes import SafeWriter
 from gateway.errors import BusTimeoutError, CommandRejectedError
-from gateway.records import Actor, Kind, RecordStore, Via, acting, records_path
+from gateway.records import Actor, FeedCounts, Kind, RecordStore, Via, acting, records_path
 from tests.rigs import PLANT, link_rig, link_target
 
 if TYPE_CHECKING:
@@ -162,3 +162,22 @@ async def test_a_write_under_no_actor_is_recorded_as_unattributed(tmp_path: Path
         await s10.set(s10.point("compensation_temperature"), 20.0)
     write, _outcome = records_of(tmp_path)
     assert write.body["actor"]["user"] == "unattributed"
+
+
+async def test_a_compensation_feed_is_counted_not_recorded_and_reads_nothing_first(
+    tmp_path: Path,
+) -> None:
+    async with link_rig(tmp_path, PLANT, targets()) as rig:
+        s10 = writer(rig, "s10", tmp_path)
+        assert s10.records is not None
+        s10.feeds = FeedCounts(s10.records, today=lambda: DAY)
+        point = s10.point("compensation_temperature")
+        frames = len(rig.rig.frames())
+        for value in (20.0, 20.5, 21.0):
+            await s10.set(point, value, read_back=False, feed=True)
+        # The writes, and once the sensor's response time and word order: no read of the
+        # point before each write (as found), none of its serial number.
+        sent = [(f.function, f.address) for f in rig.rig.frames()[frames:]]
+        assert sent == [(3, 0x0305), (3, 0x0307), (16, 0x25B0), (16, 0x25B0), (16, 0x25B0)]
+        assert s10.feeds.pending() == {"s10": {"compensation_temperature": 3}}
+    assert records_of(tmp_path) == []

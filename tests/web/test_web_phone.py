@@ -136,13 +136,17 @@ async def _api(page: Page, method: str, path: str) -> dict[str, Any]:
     return result
 
 
-async def _past_question(page: Page, run_id: str, timeout_s: float = 15) -> dict[str, Any]:
-    """The run once it has left its question (as the page reads it)."""
+async def _ended(page: Page, run_id: str, timeout_s: float = 15) -> dict[str, Any]:
+    """The run once it has ended (as the page reads it).
+
+    A question left unanswered sends the run back to ``running`` while the flow unwinds
+    (and its record is written): the end is the phase after that.
+    """
     async with asyncio.timeout(timeout_s):
         while True:
             run = (await _api(page, "GET", f"/api/calibrations/{run_id}"))["body"]
             assert isinstance(run, dict)
-            if run["phase"] != "confirm":
+            if run["phase"] not in {"confirm", "running", "writing"}:
                 return run
             await asyncio.sleep(0.2)
 
@@ -178,7 +182,7 @@ async def test_a_calibration_left_at_its_question_ends_and_frees_the_device(
         assert [r["phase"] for r in runs["runs"]] == ["confirm"]
         run_id = runs["runs"][0]["id"]
         # The question ends by itself, nothing written; then the session goes too.
-        run = await _past_question(same, run_id)
+        run = await _ended(same, run_id)
         assert run["phase"] == "abandoned"
         assert run["verdict"] == "Ended: no answer in time. Nothing was written."
         await asyncio.sleep(3.5)
@@ -286,7 +290,7 @@ async def test_signing_out_at_the_question_ends_the_calibration_unwritten(tmp_pa
         ][0]["id"]
         await page.click("#sign-out")
         await page.locator("#sign-in-link").wait_for()
-        run = await _past_question(page, run_id)
+        run = await _ended(page, run_id)
         assert run["phase"] == "abandoned"
         assert run["verdict"] == "Ended: ana signed out. Nothing was written."
     assert sensor.write_log == []
