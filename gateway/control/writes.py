@@ -29,16 +29,23 @@ device and day (:class:`gateway.records.feeds.FeedCounts`) instead of recorded o
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Final
 
 from gateway.config import FlashPolicy
 from gateway.control.clock_trust import require_trusted_for
 from gateway.control.commands import writable_point
 from gateway.control.flash import Action, check_flash_write, utc_today
 from gateway.control.recorded import WriteRecorder
-from gateway.errors import BusError, CommandRejectedError, EncodeError, GatewayError
+from gateway.errors import (
+    BusError,
+    CommandRejectedError,
+    DeviceExceptionError,
+    EncodeError,
+    GatewayError,
+)
 from gateway.profiles.model import Storage
 from gateway.publish.host_clock import HostClock
 from gateway.records.model import Result, json_decoded
@@ -52,6 +59,7 @@ if TYPE_CHECKING:
     from gateway.control.link import DeviceLink
     from gateway.profiles.model import Point
     from gateway.records.feeds import FeedCounts
+    from gateway.records.model import Record
     from gateway.records.store import RecordStore
 
 
@@ -72,6 +80,12 @@ class WriteOutcome:
     flash: bool
     note: str = ""
     record: int | None = None  # the number of the write's record, if it was recorded
+
+
+UNANSWERED: Final = (
+    "whether the sensor took the value is not known (the request may have reached it): "
+    "read the point to see"
+)
 
 
 class SafeWriter:
@@ -201,20 +215,15 @@ class SafeWriter:
         link = self.link
         flash = point.storage is Storage.FLASH
         counted = feed and not flash
+        if count_flash:  # counted first: a write that is then not recorded counts once more
+            self.ledger.record(link.device, point.name, self._today())
         recorder = None if counted else self.recorder
         pending = None
         if recorder is not None:
             pending = await recorder.write(
                 point, value, registers, found or await recorder.as_found(point)
             )
-        if count_flash:
-            self.ledger.record(link.device, point.name, self._today())
-        try:
-            await link.write_registers(point, registers)
-        except GatewayError as exc:
-            if recorder is not None and pending is not None:
-                recorder.outcome(pending, point, Result.FAILED, note=str(exc))
-            raise
+        await self._write(point, registers, recorder, pending)
         if counted and self.feeds is not None:
             self.feeds.count(link.device, point.name)
         note = ""
@@ -238,6 +247,31 @@ class SafeWriter:
             note=note,
             record=None if pending is None else pending.seq,
         )
+
+    async def _write(
+        self,
+        point: Point,
+        registers: tuple[int, ...],
+        recorder: WriteRecorder | None,
+        pending: Record | None,
+    ) -> None:
+        """Send the registers; a failure's outcome recorded before it is raised.
+
+        Refused by the sensor (an exception answer): failed, nothing changed. No answer, or
+        the caller gave up waiting (a command's timeout): unknown, since the request may
+        have reached the sensor.
+        """
+        try:
+            await self.link.write_registers(point, registers)
+        except DeviceExceptionError as exc:
+            if recorder is not None and pending is not None:
+                recorder.outcome(pending, point, Result.FAILED, note=str(exc))
+            raise
+        except (GatewayError, asyncio.CancelledError) as exc:
+            if recorder is not None and pending is not None:
+                said = str(exc) or "the request was cancelled while it waited for the answer"
+                recorder.outcome(pending, point, Result.UNKNOWN, note=f"{said}; {UNANSWERED}")
+            raise
 
     async def _merged_bits(self, point: Point, bits: Mapping[object, object]) -> int:
         """The word the device holds with the named ``bits`` set or cleared.

@@ -25,13 +25,14 @@ import json
 import logging
 import sqlite3
 import threading
+import time
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import RecordError
-from gateway.publish.storage import StoreHealth, failure_cause, open_database
+from gateway.publish.storage import RETRY_S, StoreHealth, failure_cause, open_database
 from gateway.records.actor import GATEWAY
 from gateway.records.chain import EMPTY, Head, Row, Verdict, canonical, link, verify
 from gateway.records.model import DeviceRef, Entry, Kind, Record, Result
@@ -102,6 +103,8 @@ class RecordStore:
         self.path = path
         self.read_only = read_only
         self.health = StoreHealth(path, meanwhile="writes to sensors are refused")
+        self.health.probe = self.probe  # the metrics' thread tries it again (see probe)
+        self._probe_at = 0.0
         self._clock_synchronised = clock_synchronised
         self._now = now
         self._lock = threading.Lock()
@@ -147,6 +150,41 @@ class RecordStore:
             msg = f"the record store {path} cannot be opened: {cause}"
             raise RecordError(msg) from exc
 
+    def probe(self) -> None:
+        """Try a store that failed again, at most every :data:`RETRY_S`.
+
+        ``/healthz`` and the metrics call it (through :attr:`health`), so that the health
+        recovers without waiting for the next write to a sensor. On a connection of its
+        own (any thread), a record added and rolled back: the rollback journal is written
+        first, which a full disk or a read-only file system refuses; nothing is recorded.
+        """
+        if self.health.writable or self.read_only:
+            return
+        now = time.monotonic()
+        with self._lock:
+            if now < self._probe_at:
+                return
+            self._probe_at = now + RETRY_S
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            db = sqlite3.connect(self.path, isolation_level=None, timeout=0.5)
+            try:
+                db.executescript(_SCHEMA)  # a file that could not be made at the start
+                db.execute("BEGIN IMMEDIATE")
+                db.execute(
+                    "INSERT INTO records (seq, time, kind, body, previous, hash) "
+                    "VALUES (-1, '', '', '', '', '')"
+                )
+            finally:
+                with contextlib.suppress(sqlite3.Error):
+                    db.execute("ROLLBACK")
+                db.close()
+        except (OSError, sqlite3.Error):
+            return
+        # The append that failed closed its connection: the next opens the file afresh.
+        if self.health.recovered():
+            _LOGGER.info("the record store %s can be written again", self.path)
+
     def close(self) -> None:
         """Close the file (the records stay, of course)."""
         if self._db_open is not None:
@@ -182,7 +220,7 @@ class RecordStore:
         if self.read_only:
             msg = f"the record store {self.path} was opened to read only"
             raise RecordError(msg)
-        time = self._now().astimezone(UTC)
+        moment = self._now().astimezone(UTC)
         try:
             synchronised = self._clock_synchronised()
         except OSError:
@@ -196,7 +234,7 @@ class RecordStore:
                 ).fetchone()
                 previous = EMPTY if newest is None else Head(seq=int(newest[0]), hash=newest[1])
                 seq = previous.seq + 1
-                body = entry.body(seq=seq, time=time, clock_synchronised=synchronised)
+                body = entry.body(seq=seq, time=moment, clock_synchronised=synchronised)
                 text = canonical(body)
                 digest = link(previous.hash, text)
                 db.execute(
@@ -229,7 +267,10 @@ class RecordStore:
                     self.path,
                     cause,
                 )
-            msg = f"the record store {self.path} cannot be written ({cause}), so nothing was done"
+            msg = (
+                f"the record store {self.path} cannot be written ({cause}): writes to sensors "
+                "are refused until it can, so nothing was written"
+            )
             raise RecordError(msg) from exc
         if self.health.recovered():
             _LOGGER.info("the record store %s can be written again", self.path)

@@ -55,6 +55,7 @@ pytestmark = [pytest.mark.line, pytest.mark.broker, pytest.mark.root, pytest.mar
 
 BASE = "fd"
 QUEUE = "mqtt-queue.sqlite"
+RECORDS = "records.sqlite"
 LEDGER = "flash-writes.sqlite"
 SIMULATED = (
     "line: {baudrate: 38400, parity: E, stopbits: 1}\n"
@@ -216,6 +217,7 @@ def assert_recovered(plant: Plant, value: float) -> None:
     assert ledger_counts(plant.state_dir, plant.scratch)[("cl2", "x_zero")] == counted + 1
     assert plant.health()[0] == 200  # the ledger's file too
     assert plant.writable(LEDGER) == 1.0
+    assert plant.writable(RECORDS) == 1.0
 
 
 def test_a_full_disk_keeps_the_gateway_polling_and_it_recovers_when_space_returns(
