@@ -15,7 +15,7 @@ import logging
 from typing import TYPE_CHECKING, Final
 
 from gateway.control.verification import VerificationRequest, Verifier
-from gateway.errors import CommandRejectedError, GatewayError
+from gateway.errors import CommandRejectedError, GatewayError, RecordError
 from gateway.records import Actor, FeedCounts, Kind, Query, RecordStore, Via, acting, records_path
 from gateway.records.clock_watch import ClockWatch
 from gateway.records.history import HistoryKeeper, device_refs
@@ -89,10 +89,15 @@ class AuditTrail:
     def start(self) -> None:
         """In the event loop, before any write: close what the last run left, then listen."""
         self._loop = asyncio.get_running_loop()
-        self.store.close_interrupted()  # a write the last run left without its answer
+        try:
+            self.store.close_interrupted()  # a write the last run left without its answer
+            for record in self.store.records(Query(kinds=(Kind.VERIFICATION,))):
+                self._to_care(record)
+        except RecordError as exc:  # polling goes on; writes are refused until it can
+            _LOGGER.warning(
+                "%s; a write the last run left unanswered is closed at the next start", exc
+            )
         self.store.listen(self._publish)
-        for record in self.store.records(Query(kinds=(Kind.VERIFICATION,))):
-            self._to_care(record)
         self.store.listen(self._to_care)
         mqtt = self._mqtt()
         if mqtt is not None:

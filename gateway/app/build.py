@@ -395,10 +395,14 @@ def web_page(
     *,
     sessions: Sessions | None = None,
     calibrations: Calibrations | None = None,
+    records: RecordStore | None = None,
+    verifier: Verifier | None = None,
 ) -> WebServer | None:
     """The commissioning and calibration page, if ``web.enabled``.
 
-    ``sessions`` and ``calibrations``: a former page's, kept by a reload.
+    ``sessions`` and ``calibrations``: a former page's, kept by a reload. ``records`` and
+    ``verifier``: the run's record store (the page's records view) and its grab-sample
+    verifications (the page's form).
     """
     if not config.web.enabled:
         return None
@@ -417,6 +421,8 @@ def web_page(
         sessions=sessions,
         calibrations=calibrations,
         users=UserBook(users_path(config.web, state_directory(config))),
+        records=records,
+        verifier=verifier,
     )
 
 

@@ -125,7 +125,14 @@ class RunningGateway:
             config, list(self.workers.values()), self.ledger, state, self.records
         )
         wire_sparkplug_commands(config, self.writers, self.sparkplug)
-        self.page: WebServer | None = web_page(config, state, self.workers, self.writers)
+        self.page: WebServer | None = web_page(
+            config,
+            state,
+            self.workers,
+            self.writers,
+            records=self.records,
+            verifier=self.verifier,
+        )
         self.metrics: MetricsServer | None = None
         self._tasks: dict[str, asyncio.Task[None]] = {}  # the sinks', the feeds', the page's
         # A reload's, while the page is rebuilt.
@@ -381,6 +388,8 @@ class RunningGateway:
                 self.writers,
                 sessions=self._kept_sessions,
                 calibrations=self._kept_calibrations,
+                records=self.records,
+                verifier=self.verifier,
             )
             if self.page is not None:
                 await self._run_page(self.page)

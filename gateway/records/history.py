@@ -20,6 +20,7 @@ No I/O of its own: the store's appends and its one read at start.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from datetime import datetime
@@ -162,8 +163,17 @@ class HistoryKeeper:
         self.store = store
         self._copied: set[str] = set()
         self._kept: dict[str, list[SensorEntry]] = {}  # by sensor_key, in order of copying
-        for record in store.records(Query(kinds=(Kind.HISTORY,))):
+        self._learned = False
+        with contextlib.suppress(RecordError):  # unreadable now: learnt at the first copy
+            self._learn_all()
+
+    def _learn_all(self) -> None:
+        """What was copied already, read once (a :class:`RecordError` if it cannot be)."""
+        if self._learned:
+            return
+        for record in self.store.records(Query(kinds=(Kind.HISTORY,))):
             self._learn(record)
+        self._learned = True
 
     def _learn(self, record: Record) -> None:
         data = record.body.get("data")
@@ -196,6 +206,7 @@ class HistoryKeeper:
         records appended are returned; a :class:`~gateway.errors.RecordError` from the
         store stops the copy, and what was not copied is copied at the next call.
         """
+        self._learn_all()  # a store unreadable at the start: before anything is copied
         made = []
         for entry in sorted(ring, key=_oldest_first):
             key = entry_key(device, entry)

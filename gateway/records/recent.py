@@ -95,11 +95,12 @@ class RecentValues:
             ring = self._rings.get(key)
             if ring is None:
                 ring = self._rings[key] = _Ring(self._slots)
+            if sample.unit is not None:  # known once the sensor's unit register was read
+                ring.unit = sample.unit
             at = sample.time.timestamp()
             newest = ring.newest_time()
             if not math.isnan(newest) and at - newest < self.resolution_s:
                 continue
-            ring.unit = sample.unit
             ring.add(at, float(value))
 
     async def device_event(self, event: DeviceEvent) -> None:

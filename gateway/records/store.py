@@ -226,35 +226,13 @@ class RecordStore:
         except OSError:
             synchronised = False
         try:
-            db = self._db
-            db.execute("BEGIN IMMEDIATE")
             try:
-                newest = db.execute(
-                    "SELECT seq, hash FROM records ORDER BY seq DESC LIMIT 1"
-                ).fetchone()
-                previous = EMPTY if newest is None else Head(seq=int(newest[0]), hash=newest[1])
-                seq = previous.seq + 1
-                body = entry.body(seq=seq, time=moment, clock_synchronised=synchronised)
-                text = canonical(body)
-                digest = link(previous.hash, text)
-                db.execute(
-                    "INSERT INTO records (seq, time, kind, device, body, previous, hash) "
-                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (
-                        seq,
-                        body["time"],
-                        str(entry.kind),
-                        None if entry.device is None else entry.device.name,
-                        text,
-                        previous.hash,
-                        digest,
-                    ),
-                )
-                db.execute("COMMIT")
-            except BaseException:
-                with contextlib.suppress(sqlite3.Error):
-                    db.execute("ROLLBACK")
-                raise
+                seq, body, digest = self._insert(entry, moment, synchronised=synchronised)
+            except sqlite3.Error:
+                # A connection opened before the file system was mounted again (after an
+                # I/O error, or a repair) fails at once: one more try on a fresh one.
+                self.close()
+                seq, body, digest = self._insert(entry, moment, synchronised=synchronised)
         except RecordError:
             raise
         except (OSError, sqlite3.Error) as exc:
@@ -283,6 +261,41 @@ class RecordStore:
             except Exception:  # a listener's bug must not undo a record on disk
                 _LOGGER.exception("a listener of the records failed on record %d", seq)
         return record
+
+    def _insert(
+        self, entry: Entry, moment: datetime, *, synchronised: bool
+    ) -> tuple[int, dict[str, object], str]:
+        """One transaction: read the newest record, add the next; its number, body, hash."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            newest = db.execute(
+                "SELECT seq, hash FROM records ORDER BY seq DESC LIMIT 1"
+            ).fetchone()
+            previous = EMPTY if newest is None else Head(seq=int(newest[0]), hash=newest[1])
+            seq = previous.seq + 1
+            body = entry.body(seq=seq, time=moment, clock_synchronised=synchronised)
+            text = canonical(body)
+            digest = link(previous.hash, text)
+            db.execute(
+                "INSERT INTO records (seq, time, kind, device, body, previous, hash) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (
+                    seq,
+                    body["time"],
+                    str(entry.kind),
+                    None if entry.device is None else entry.device.name,
+                    text,
+                    previous.hash,
+                    digest,
+                ),
+            )
+            db.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
+                db.execute("ROLLBACK")
+            raise
+        return seq, body, digest
 
     def rows(self) -> Iterator[Row]:
         """Every stored row in order of number, as the chain checks them."""

@@ -24,6 +24,13 @@ its CSRF token in ``X-CSRF-Token``, and a same-origin ``Origin`` if the browser 
     POST /api/calibrations/{id}/cancel   W
     POST /api/lines/{bus}/scan           W  a scan of the line, its polling paused
     GET  /api/lines/{bus}/scan           R  the scan's progress and report
+    GET  /api/records?device=&kind=&since=&until=&limit=
+                                         R  the records chosen, newest first (500 unless
+                                            limit says), the chain's head and verdict
+    GET  /api/devices/{device}/verification  R  what the verification form starts from
+    POST /api/devices/{device}/verify    W  {reference, unit?, method, instrument?,
+                                            sampled_at?, reason?, password}: a grab-sample
+                                            verification, signed; its outcome, or why not
 
 ``W`` needs an operator's or an admin's session: a viewer's is refused with 403 and a
 message naming the role needed (``W*``: a viewer's too, it only reads). Every write and
@@ -32,11 +39,13 @@ shared password) and from where, and runs under that user's
 :class:`~gateway.records.actor.Actor` (:func:`~gateway.records.actor.acting`), which the
 records name. A calibration is signed (21 CFR Part 11 §11.200: both components, name and
 password, at the first signing of a session): its request carries the user's password
-again, refused with 403 without it or with a wrong one; a write is signed when its request
-carries the password. Every request first passes the ``Host`` check (:func:`host_allowed`):
-a name the page does not answer to gets 421, so a DNS-rebinding page cannot read it through
-a browser on this machine. Sign-ins and signatures pass the :class:`SignInThrottle`, their
-scrypt checks in a thread so the loop goes on polling.
+again, refused with 403 without it or with a wrong one; a verification likewise; a write is
+signed when its request carries the password. Without a record store (``records``) the
+records answer 404; without a verifier, verifications answer 503. Every request first
+passes the ``Host`` check (:func:`host_allowed`): a name the page does not answer to gets
+421, so a DNS-rebinding page cannot read it through a browser on this machine. Sign-ins
+and signatures pass the :class:`SignInThrottle`, their scrypt checks in a thread so the
+loop goes on polling.
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import web
 
+from gateway.control.verification import VerificationRequest, verifiable_point
 from gateway.errors import CommandRejectedError, ConfigError, GatewayError, ProfileError
 from gateway.line.samples import json_value
 from gateway.records.actor import acting
@@ -66,16 +76,19 @@ from gateway.web.auth import (
     is_loopback,
 )
 from gateway.web.calibration import CalibrationRun, Calibrations, procedures_for
-from gateway.web.care import care_documents
+from gateway.web.care import calibration_offer, care_documents
 from gateway.web.live import overview, register_map, sample_view
+from gateway.web.records import RecordsRequest, head_view, read_records, verification_form
 from gateway.web.users import Role
 
 if TYPE_CHECKING:
     from collections.abc import Awaitable, Callable, Mapping
 
     from gateway.config import WebConfig
+    from gateway.control.verification import Verifier
     from gateway.control.writes import SafeWriter
     from gateway.publish.state import GatewayState
+    from gateway.records import RecordStore
     from gateway.web.scan import LineScans
     from gateway.web.users import UserBook
 
@@ -126,18 +139,24 @@ class WebServer:
         calibrations: Calibrations | None = None,
         throttle: SignInThrottle | None = None,
         users: UserBook | None = None,
+        records: RecordStore | None = None,
+        verifier: Verifier | None = None,
         event_interval_s: float = EVENT_INTERVAL_S,
     ) -> None:
         """Serve ``state``; writes and calibrations through ``writers`` (by device name).
 
         ``sessions`` and ``calibrations``: a former page's, kept by a reload (a calibration
         under way goes on, its operator still signed in). ``users``: the users file
-        (without it, only the shared password signs in).
+        (without it, only the shared password signs in). ``records``: the record store the
+        records view reads (its head on every page); ``verifier``: the gateway's
+        grab-sample verifications.
         """
         self.config = config
         self.state = state
         self.writers = writers
         self.scans = scans
+        self.records = records
+        self.verifier = verifier
         self.sessions = sessions or Sessions.from_config(config, users=users)
         self.throttle = throttle or SignInThrottle()
         if calibrations is None:
@@ -180,6 +199,9 @@ class WebServer:
                 post("/api/calibrations/{id}/cancel", self._writer(self._cancel)),
                 post("/api/lines/{bus}/scan", self._writer(self._start_scan)),
                 get("/api/lines/{bus}/scan", self._reader(self._scan)),
+                get("/api/records", self._reader(self._records)),
+                get("/api/devices/{device}/verification", self._reader(self._verification)),
+                post("/api/devices/{device}/verify", self._writer(self._verify)),
             ]
         )
         return app
@@ -512,7 +534,11 @@ class WebServer:
         made, text = self._latest
         if now - made >= self.event_interval_s / 2 or not text:
             paused = self.scans.paused() if self.scans is not None else {}
-            text = json.dumps(overview(self.state, paused), separators=(",", ":"))
+            data = overview(self.state, paused)
+            if self.records is not None:  # the chain's head, on every page
+                head = self.records.head
+                data["records"] = head_view(head.seq, head.hash)
+            text = json.dumps(data, separators=(",", ":"))
             self._latest = (now, text)
         return text
 
@@ -731,3 +757,83 @@ class WebServer:
         if job is None:
             return _error(404, "no scan of this line yet")
         return web.json_response(job.as_dict())
+
+    # --- records and verifications ----------------------------------------------------
+
+    async def _records(self, request: web.Request) -> web.StreamResponse:
+        """The records chosen, newest first, with the whole chain's verdict (in a thread)."""
+        if self.records is None:
+            return _error(404, "the records are not available: this page has no record store")
+        query = request.query
+        try:
+            chosen = RecordsRequest.parse(
+                device=query.get("device"),
+                kinds=query.getall("kind", []),
+                since=query.get("since"),
+                until=query.get("until"),
+                limit=query.get("limit"),
+            )
+            answer = await asyncio.to_thread(read_records, self.records.path, chosen)
+        except CommandRejectedError as exc:
+            return _error(400, str(exc))
+        except GatewayError as exc:
+            return _error(503, str(exc))
+        return web.json_response(answer)
+
+    async def _verification(self, request: web.Request) -> web.StreamResponse:
+        """What the verification form of a device starts from: point, unit, rule, offer."""
+        if self.verifier is None:
+            return _error(503, "verifications are not available: this page has no verifier")
+        device = request.match_info["device"]
+        writer = self.writers.get(device)
+        if writer is None:
+            return _error(404, f"no device {device!r}")
+        profile = writer.link.profile
+        try:
+            point = verifiable_point(profile)
+        except CommandRejectedError as exc:
+            return _error(404, str(exc))
+        info = next((i for i in self.state.devices.values() if i.name == device), None)
+        latest = None if info is None else self.state.last_good.get((info.bus, device, point.name))
+        return web.json_response(
+            verification_form(
+                device,
+                profile.id,
+                point,
+                unit=latest.unit if latest is not None else None,
+                rule=self.verifier.rules(device, profile),
+            )
+        )
+
+    async def _verify(self, request: web.Request) -> web.StreamResponse:
+        """A grab-sample verification, signed with the password again; nothing is written."""
+        if self.verifier is None:
+            return _error(503, "verifications are not available: this page has no verifier")
+        device = request.match_info["device"]
+        if device not in self.writers:
+            return _error(404, f"no device {device!r}")
+        who = self._who(request)
+        try:
+            body = await self._body(request)
+            signed = await self._signature(request, body, what="the verification", required=True)
+            if isinstance(signed, web.Response):
+                return signed
+            asked = VerificationRequest.from_arguments(
+                {key: value for key, value in body.items() if key != "password"}
+            )
+            actor = request[_SESSION].actor(
+                str(request.remote), reason=asked.reason[:MAX_REASON], signed=signed
+            )
+            _LOGGER.info("web: %s verifies %s against %s", who, device, asked.reference)
+            with acting(actor):  # the verification's record names the session's user, signed
+                verified = await self.verifier.verify(device, asked)
+        except CommandRejectedError as exc:
+            _LOGGER.warning("web: verification of %s by %s refused: %s", device, who, exc)
+            return _error(400, str(exc))
+        except GatewayError as exc:
+            _LOGGER.warning("web: verification of %s by %s failed: %s", device, who, exc)
+            return _error(502, str(exc))
+        answer = {"device": device, **verified.as_dict()}
+        if not verified.judgement.passed:  # the page offers the calibration care asks for
+            answer["calibration"] = calibration_offer(self.writers[device].link.profile.id)
+        return web.json_response(answer)

@@ -1,5 +1,6 @@
 // The gateway's page: live values, sensor care, a device's register map, bus health, guided
-// calibration and a scan of an idle line. Hand-written, no build step; data is always put in the page
+// calibration, a scan of an idle line, the records and a grab-sample verification at the basin.
+// Hand-written, no build step; data is always put in the page
 // as text (textContent), never as HTML.
 "use strict";
 
@@ -168,6 +169,7 @@ function connect() {
     latest = JSON.parse(event.data);
     connection.textContent = `Live · ${new Date(latest.time).toLocaleTimeString()}`;
     for (const device of latest.devices) remember(device.name, device.values);
+    updateChain(latest.records);
     if (onState) onState(latest);
   });
   events.addEventListener("error", () => {
@@ -537,6 +539,7 @@ async function devicePage(name) {
     needSession("Calibrating"),
     await underWay(name, null),
     procedures,
+    el("p", {}, el("a", { href: `#/verify/${encodeURIComponent(name)}`, id: "verify-link", text: "Verify against a grab sample" }), " · ", el("a", { href: `#/records?device=${encodeURIComponent(name)}`, id: "records-link", text: "Its records" })),
     el("h2", { text: "Register map" }),
     session.signed_in ? readAllButton(name) : null,
     el(
@@ -874,13 +877,283 @@ function scanPage() {
   };
 }
 
+// --- the records: every change to a sensor, with the chain's verdict -------------------------
+
+const KINDS = ["write", "outcome", "calibration", "verification", "history", "reload", "clock", "feeds", "correction"];
+let chain = { seq: null, checking: false, verdict: null };
+
+// The footer: the chain's head from the live stream, its verdict from /api/records (the whole
+// chain checked in the gateway) whenever the head moves; a copy kept elsewhere compares both.
+async function updateChain(head) {
+  const footer = document.getElementById("chain");
+  if (!head) { footer.hidden = true; return; }
+  footer.hidden = false;
+  const text = document.getElementById("chain-head");
+  text.textContent = `Records: head ${head.seq} · ${head.short}`;
+  text.title = head.hash;
+  if (chain.seq === head.seq || chain.checking) return;
+  chain.checking = true;
+  try {
+    const data = await api("GET", "/api/records?limit=0");
+    chain.seq = data.head.seq;
+    chain.verdict = data.verdict;
+    showVerdict(document.getElementById("chain-verdict"), data.verdict);
+  } catch { /* the next head */ } finally {
+    chain.checking = false;
+  }
+}
+
+function showVerdict(node, verdict) {
+  node.className = verdict.intact ? "ok" : "error";
+  node.textContent = verdict.intact
+    ? `chain intact (${verdict.checked} records checked)`
+    : `chain BROKEN at record ${verdict.broken_at}: ${verdict.problem}`;
+}
+
+function utc(iso) {
+  // "2025-06-01T08:03:04.123+00:00" → "2025-06-01 08:03:04" (the records' own time, UTC).
+  const match = /^(\d{4}-\d\d-\d\d)T(\d\d:\d\d:\d\d)/.exec(iso || "");
+  return match ? `${match[1]} ${match[2]}` : iso || "";
+}
+
+function change(p) {
+  const found = p.as_found_text || (p.sent_text ? "" : "–");
+  const left = p.as_left_text || (p.sent_text ? `(sent ${p.sent_text})` : "");
+  const unit = p.unit ? ` ${p.unit}` : "";
+  if (!left) return `${found}${unit}`;
+  return `${found || "–"} → ${left}${unit}`;
+}
+
+// A verification's point: the sensor's value against the grab sample's.
+function cellOf(record, p) {
+  if (!p) return "";
+  if (record.kind === "verification" && record.data.reference !== undefined) {
+    const unit = p.unit ? ` ${p.unit}` : "";
+    return `${p.as_found_text}${unit} (reference ${record.data.reference})`;
+  }
+  return change(p);
+}
+
+// A write's result is pending until its outcome record: both are shown, the outcome named.
+function resultOf(record) {
+  if (!record.outcome) return record.result;
+  return `${record.result} → ${record.outcome.result} (#${record.outcome.seq})`;
+}
+
+function recordRows(record) {
+  const points = record.points.length ? record.points : [null];
+  return points.map((p, i) => el(
+    "tr",
+    { "data-seq": record.seq, "data-kind": record.kind, class: `r-${record.result}` },
+    el("td", { class: "num", text: i ? "" : record.seq }),
+    el("td", { class: "nowrap", text: i ? "" : utc(record.time) }),
+    el("td", { title: record.detail }, i ? "" : record.user, !i && record.signed ? el("span", { class: "meta", text: " (signed)" }) : null),
+    el("td", { text: i ? "" : record.via }),
+    el("td", {}, i ? "" : breakable(record.device || "")),
+    el("td", { text: i ? "" : record.action }),
+    el("td", {}, p ? breakable(p.point) : ""),
+    el("td", { class: "change", text: cellOf(record, p) }),
+    el("td", { class: `result res-${record.outcome ? record.outcome.result : record.result}`, text: i ? "" : resultOf(record) }),
+    el("td", { text: i ? "" : record.reason }),
+    el("td", { class: "note", text: i ? "" : record.note }),
+  ));
+}
+
+function recordsPage() {
+  const params = new URLSearchParams(location.hash.split("?")[1] || "");
+  const devices = latest ? latest.devices.map((d) => d.name) : [];
+  const device = el("select", { name: "device", id: "records-device" }, el("option", { value: "", text: "every device" }), devices.map((n) => el("option", { value: n, text: n, selected: n === params.get("device") })));
+  const kind = el("select", { name: "kind", id: "records-kind" }, el("option", { value: "", text: "every kind" }), KINDS.map((k) => el("option", { value: k, text: k, selected: k === params.get("kind") })));
+  const verdict = el("p", { id: "records-verdict", role: "status" });
+  const status = el("p", { id: "records-status", class: "meta", "aria-live": "polite" });
+  const body = el("tbody", { id: "records-rows" });
+  const filters = el(
+    "form",
+    { id: "records-filters", class: "filters no-print" },
+    el("label", {}, "Device", device),
+    el("label", {}, "Kind", kind),
+    el("div", { class: "actions" }, el("button", { type: "button", id: "records-print", text: "Print", onclick: () => window.print() })),
+  );
+  const load = async () => {
+    const query = new URLSearchParams();
+    if (device.value) query.set("device", device.value);
+    if (kind.value) query.set("kind", kind.value);
+    status.textContent = "reading…";
+    try {
+      const data = await api("GET", `/api/records?${query}`);
+      body.replaceChildren(...data.records.flatMap(recordRows));
+      showVerdict(verdict, data.verdict);
+      verdict.textContent = `Head ${data.head.seq} · ${data.head.short} · ${verdict.textContent}`;
+      verdict.title = data.head.hash;
+      const chosen = [device.value || "every device", kind.value || "every kind"].join(", ");
+      status.textContent = data.records.length
+        ? `${data.count} records (${chosen}), newest first${data.more ? `; older ones too: the newest ${data.limit} are shown (gateway records export has them all)` : ""}.`
+        : `No records (${chosen}).`;
+    } catch (error) {
+      status.className = "error";
+      status.textContent = error.message;
+    }
+  };
+  const refilter = () => {
+    const query = new URLSearchParams();
+    if (device.value) query.set("device", device.value);
+    if (kind.value) query.set("kind", kind.value);
+    window.history.replaceState(null, "", `#/records${query.toString() ? `?${query}` : ""}`);
+    load();
+  };
+  device.addEventListener("change", refilter);
+  kind.addEventListener("change", refilter);
+  filters.addEventListener("submit", (event) => { event.preventDefault(); refilter(); });
+  show(
+    el("h1", { text: "Records" }),
+    el("p", { class: "meta", text: "Every change to a sensor, every calibration and verification, in the gateway's append-only, hash-chained record store. Times are UTC." }),
+    filters,
+    verdict,
+    status,
+    el(
+      "div",
+      { class: "scroll" },
+      el(
+        "table",
+        { id: "records-table" },
+        el("thead", {}, el("tr", {}, ["#", "Time (UTC)", "Who", "Via", "Device", "Action", "Point", "As found → as left", "Result", "Reason", "Note"].map((t) => el("th", { scope: "col", text: t })))),
+        body,
+      ),
+    ),
+  );
+  load();
+}
+
+// --- grab-sample verification: a phone at the basin ----------------------------------------
+
+function pad(n) { return String(n).padStart(2, "0"); }
+
+// Now, as a datetime-local input shows it: this browser's local time, to the minute.
+function localNow() {
+  const d = new Date();
+  return `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())}T${pad(d.getHours())}:${pad(d.getMinutes())}`;
+}
+
+// A datetime-local value (this browser's local time) as ISO 8601 with its offset.
+function withOffset(value) {
+  const d = new Date(value);
+  const offset = -d.getTimezoneOffset();
+  const sign = offset < 0 ? "-" : "+";
+  const hours = pad(Math.floor(Math.abs(offset) / 60));
+  const minutes = pad(Math.abs(offset) % 60);
+  return `${value.length === 16 ? `${value}:00` : value}${sign}${hours}:${minutes}`;
+}
+
+function verificationOutcome(device, result) {
+  const unit = result.unit ? ` ${result.unit}` : "";
+  const deviation = `${result.deviation > 0 ? "+" : ""}${result.deviation}`;
+  const offer = !result.passed && result.calibration
+    ? el("p", { class: "actions" }, el("a", { class: "button primary", id: "verify-calibrate", href: `#/calibrate/${encodeURIComponent(device)}/${result.calibration.procedure}`, text: `Calibrate now: ${result.calibration.title}` }))
+    : null;
+  return el(
+    "section",
+    { id: "verify-outcome", class: result.passed ? "card" : "card warning", role: "alert", "data-passed": String(result.passed) },
+    el("h2", { class: result.passed ? "ok" : "error", text: result.passed ? "Passed" : "Failed: outside the acceptance limit" }),
+    el(
+      "table",
+      {},
+      el("tbody", {}, [
+        ["Sensor", `${result.sensor_value}${unit} (read ${utc(result.sensor_time)} UTC)`],
+        ["Reference", `${result.reference}${unit}`],
+        ["Deviation", `${deviation}${unit}`],
+        ["Limit", `±${result.limit}${unit}`],
+        ["Rule", result.rule.name],
+        ["Record", `#${result.record}`],
+      ].map(([k, v]) => el("tr", {}, el("th", { scope: "row", text: k }), el("td", { "data-field": k.toLowerCase(), text: v })))),
+    ),
+    offer,
+  );
+}
+
+async function verifyPage(device) {
+  const names = latest ? latest.devices.map((d) => d.name) : [];
+  if (!device) {
+    if (!names.length) {
+      show(el("h1", { text: "Verify against a grab sample" }), el("p", { class: "meta", text: "Waiting for the gateway's devices…" }));
+      onState = (state) => { if (state.devices.length) verifyPage(state.devices[0].name); };
+      return;
+    }
+    device = names[0];
+  }
+  let form;
+  try {
+    form = await api("GET", `/api/devices/${encodeURIComponent(device)}/verification`);
+  } catch (error) {
+    show(el("h1", { text: "Verify against a grab sample" }), el("p", { class: "error", text: error.message }));
+    return;
+  }
+  const pick = el("select", { id: "verify-device", "aria-label": "Device" }, (names.length ? names : [device]).map((n) => el("option", { value: n, text: n, selected: n === device })));
+  pick.addEventListener("change", () => { location.hash = `#/verify/${encodeURIComponent(pick.value)}`; });
+  const sampled = el("input", { name: "sampled_at", id: "verify-sampled", type: "datetime-local", value: localNow() });
+  let sampledEdited = false; // untouched: the sample is "now", the time the gateway gets it
+  sampled.addEventListener("input", () => { sampledEdited = true; });
+  const password = el("input", { name: "password", id: "verify-password", type: "password", autocomplete: "current-password", required: true });
+  const status = el("div", { id: "verify-status", "aria-live": "polite" });
+  const rule = form.rule
+    ? `Accepted within ±${form.rule.absolute} ${form.rule.unit || ""} or ±${Math.round(100 * form.rule.relative)} % of the reference, whichever is larger (${form.rule.name}).`
+    : "This device has no acceptance rule: the gateway refuses its verification until verification.rules names one.";
+  const entry = el(
+    "form",
+    { id: "verify-form" },
+    el("label", {}, `Reference value (${form.point})`, el("input", { name: "reference", id: "verify-reference", type: "number", step: "any", min: "0", inputmode: "decimal", required: true })),
+    el("label", {}, "Unit", el("input", { name: "unit", id: "verify-unit", value: form.unit || "", autocapitalize: "none" })),
+    el("label", {}, "Method", el("input", { name: "method", id: "verify-method", value: form.method, required: true })),
+    el("label", {}, "Instrument (optional)", el("input", { name: "instrument", id: "verify-instrument", autocomplete: "off" })),
+    el("label", {}, "Sampled at (this phone's local time)", sampled),
+    el("label", {}, "Reason (optional, kept in the record)", el("input", { name: "reason", id: "verify-reason", autocomplete: "off" })),
+    el("label", {}, `Your password again, to sign as ${session.who || "you"}`, password),
+    el("div", { class: "actions" }, el("button", { class: "primary", type: "submit", id: "verify-submit", text: "Record the verification" })),
+  );
+  entry.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const data = new FormData(entry);
+    const body = {
+      reference: Number(data.get("reference")),
+      unit: data.get("unit") || null,
+      method: data.get("method"),
+      instrument: data.get("instrument") || null,
+      reason: data.get("reason") || null,
+      password: password.value,
+    };
+    if (sampledEdited && sampled.value) body.sampled_at = withOffset(sampled.value);
+    const button = entry.querySelector("button");
+    button.disabled = true;
+    status.replaceChildren(el("p", { class: "meta", text: "judging…" }));
+    try {
+      const result = await api("POST", `/api/devices/${encodeURIComponent(device)}/verify`, body);
+      password.value = "";
+      status.replaceChildren(verificationOutcome(device, result));
+    } catch (error) {
+      status.replaceChildren(el("p", { class: "error", role: "alert", id: "verify-error", text: error.message }));
+    } finally {
+      button.disabled = false;
+    }
+  });
+  show(
+    el("h1", { text: "Verify against a grab sample" }),
+    el("label", {}, "Device", pick),
+    el("p", { class: "meta" }, `${form.profile}: compares ${form.point}. ${rule} Nothing is written to the sensor.`),
+    needSession("Verifying"),
+    entry,
+    status,
+    form.calibration
+      ? el("p", { class: "meta" }, "If it fails: ", el("a", { href: `#/calibrate/${encodeURIComponent(device)}/${form.calibration.procedure}`, text: form.calibration.title }), ".")
+      : null,
+  );
+}
+
 // --- routing ---------------------------------------------------------------------------------
 
 function route() {
   clearInterval(timer);
   timer = null;
   onState = null;
-  const parts = location.hash.replace(/^#\/?/, "").split("/").map(decodeURIComponent);
+  const parts = location.hash.replace(/^#\/?/, "").split("?")[0].split("/").map(decodeURIComponent);
   for (const link of document.querySelectorAll("nav a")) {
     link.toggleAttribute("aria-current", link.getAttribute("href") === `#/${parts[0] || ""}`);
     if (link.hasAttribute("aria-current")) link.setAttribute("aria-current", "page");
@@ -897,6 +1170,8 @@ function route() {
     case "device": devicePage(parts[1]); break;
     case "calibrate": calibratePage(parts[1], parts[2]); break;
     case "scan": scanPage(); break;
+    case "records": recordsPage(); break;
+    case "verify": verifyPage(parts[1]); break;
     default: livePage();
   }
   view.focus({ preventScroll: true });
