@@ -19,6 +19,7 @@ from gateway.errors import CommandRejectedError, GatewayError, RecordError
 from gateway.records import Actor, FeedCounts, Kind, Query, RecordStore, Via, acting, records_path
 from gateway.records.clock_watch import ClockWatch
 from gateway.records.history import HistoryKeeper, device_refs
+from gateway.records.interrupted import close_interrupted
 from gateway.records.messages import head_message, record_message
 from gateway.records.recent import RecentValues
 from gateway.records.verification import care_verification, rule_for
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 VERIFY_TIMEOUT_S: Final = 30.0  # gateway verify's wait for the running gateway
+LOOK_EVERY_S: Final = 5.0  # the clock and the records other processes appended
 
 
 class AuditTrail:
@@ -90,7 +92,7 @@ class AuditTrail:
         """In the event loop, before any write: close what the last run left, then listen."""
         self._loop = asyncio.get_running_loop()
         try:
-            self.store.close_interrupted()  # a write the last run left without its answer
+            close_interrupted(self.store)  # a write the last run left without its answer
             for record in self.store.records(Query(kinds=(Kind.VERIFICATION,))):
                 self._to_care(record)
         except RecordError as exc:  # polling goes on; writes are refused until it can
@@ -103,6 +105,13 @@ class AuditTrail:
         if mqtt is not None:
             base = self._config().mqtt.base_topic
             mqtt.outbox.enqueue([head_message(base, self.store.head)])
+
+    async def run(self) -> None:
+        """Every few seconds: the host clock watched, other processes' records caught up."""
+        while True:
+            self.clock_watch.look()
+            self.store.catch_up()
+            await asyncio.sleep(LOOK_EVERY_S)
 
     def close(self) -> None:
         """The day's compensation feeds so far recorded; the store closed."""

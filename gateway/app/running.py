@@ -171,7 +171,7 @@ class RunningGateway:
         self._start_task("mqtt", self.mqtt)
         self._start_task("sparkplug", self.sparkplug)
         self._start_task("feeds", self.feeds)
-        self._start_task("clock", self.audit.clock_watch)
+        self._start_task("records", self.audit)
         if self.page is not None:
             await self._run_page(self.page)
 
@@ -436,7 +436,7 @@ _TASK_NAMES: Final = {
     "sparkplug": "sink[sparkplug]",
     "feeds": "feeds",
     "web": "web",
-    "clock": "records[clock]",
+    "records": "records",
 }
 
 

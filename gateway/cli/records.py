@@ -1,9 +1,11 @@
-"""``gateway records verify|export``: the record store checked, and readable copies of it.
+"""``gateway records verify|export|correct``: the store checked, copied, and corrected.
 
 Both read the store in the config's state directory (``--config``, or ``--state-dir``),
 opened to read only, so they run beside a running gateway. ``verify`` exits 0 when the
 chain is intact and 1 naming the first record changed, removed or inserted; ``--head
 SEQ:HASH`` also checks a head kept elsewhere (the retained ``{base}/records/head``).
+``correct`` adds a record that points to the one it corrects (nothing is ever edited or
+deleted); beside a running gateway, which publishes it at its next look.
 """
 
 from __future__ import annotations
@@ -20,10 +22,11 @@ from gateway.app import state_directory
 from gateway.cli.device import err, fail, out
 from gateway.config import load_config
 from gateway.errors import ConfigError, GatewayError, RecordError
-from gateway.records import Head, Query, RecordStore, records_path
+from gateway.records import DeviceRef, Entry, Head, Kind, Query, RecordStore, Result, records_path
+from gateway.records.actor import command_line_actor
 from gateway.records.export import FORMATS, export
 
-records_app = typer.Typer(help="The records of every change to a sensor: verify, export.")
+records_app = typer.Typer(help="The records of every change to a sensor: verify, export, correct.")
 
 DEFAULT_CONFIG: Final = Path("/etc/rs485-gateway/gateway.yaml")  # deploy/systemd's
 
@@ -142,6 +145,45 @@ def export_records(
     if not verdict.intact:
         err.print(f"the chain is BROKEN at record {verdict.broken_at}: {verdict.problem}")
         raise typer.Exit(code=1)
+
+
+@records_app.command("correct")
+def correct(
+    seq: Annotated[int, typer.Argument(help="The number of the record to correct.")],
+    reason: Annotated[str, typer.Option(help="What was wrong, and what is right (required).")],
+    config: ConfigOption = None,
+    state_dir: StateDirOption = None,
+) -> None:
+    """Add a correction of a record: a new record that points to it; the old one stays."""
+    if not reason.strip():
+        raise fail(ConfigError("say what is corrected", key="--reason"))
+    try:
+        if state_dir is None:
+            state_dir = state_directory(
+                load_config(config if config is not None else DEFAULT_CONFIG)
+            )
+        store = RecordStore(records_path(state_dir))
+        try:
+            corrected = store.get(seq)
+            if corrected is None:
+                raise RecordError(f"there is no record {seq} (the newest is {store.head.seq})")
+            device = corrected.body.get("device")
+            record = store.append(
+                Entry(
+                    kind=Kind.CORRECTION,
+                    actor=command_line_actor(reason),
+                    device=DeviceRef.from_dict(device) if isinstance(device, dict) else None,
+                    action=f"correction of record {seq} ({corrected.kind})",
+                    result=Result.NOTED,
+                    note=reason.strip(),
+                    corrects=seq,
+                )
+            )
+        finally:
+            store.close()
+    except GatewayError as exc:
+        raise fail(exc) from exc
+    out.print(f"record {record.seq} corrects record {seq}; head {store.head}", markup=False)
 
 
 def register(app: typer.Typer) -> None:

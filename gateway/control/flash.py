@@ -39,7 +39,13 @@ from gateway.control.commands import require_writable
 from gateway.errors import CommandRejectedError, ConfigError
 from gateway.profiles.model import Storage
 from gateway.publish.state import FlashCounts
-from gateway.publish.storage import RETRY_S, StoreHealth, failure_cause, open_database
+from gateway.publish.storage import (
+    RETRY_S,
+    StoreHealth,
+    failure_cause,
+    open_database,
+    takes_a_change,
+)
 
 if TYPE_CHECKING:
     from gateway.config import FlashPolicy
@@ -94,6 +100,7 @@ CREATE TABLE IF NOT EXISTS flash_writes (
 # not the write-ahead log, also lets the counts be read from a read-only file system.
 _PRAGMAS = ("PRAGMA journal_mode=DELETE", "PRAGMA synchronous=EXTRA")
 _DAY_S = 86_400.0
+_PROBE = "INSERT INTO flash_writes VALUES ('', '', '', 0)"  # a change to roll back
 _BUSY_TIMEOUT_S = 2.0  # a `gateway write` beside the running gateway holds it for milliseconds
 
 
@@ -178,17 +185,7 @@ class FlashLedger:
             if now < self._probe_at:
                 return
             self._probe_at = now + RETRY_S
-        try:
-            db = sqlite3.connect(self.path, isolation_level=None, timeout=0.5)
-            try:
-                db.executescript(_SCHEMA)  # a file that could not be made at the start
-                db.execute("BEGIN IMMEDIATE")
-                db.execute("INSERT INTO flash_writes VALUES ('', '', '', 0)")
-            finally:
-                with contextlib.suppress(sqlite3.Error):
-                    db.execute("ROLLBACK")
-                db.close()
-        except (OSError, sqlite3.Error):
+        if not takes_a_change(self.path, _SCHEMA, _PROBE):
             return
         if self.health.recovered():
             _LOGGER.info("the flash-write ledger %s can be written again", self.path)

@@ -124,6 +124,31 @@ def open_database(
     return db
 
 
+def takes_a_change(path: Path, schema: str, change: str) -> bool:
+    """Whether the SQLite file at ``path`` takes ``change`` now (rolled back, nothing kept).
+
+    On a connection of its own (any thread): the rollback journal is written first, which
+    a full disk or a read-only file system refuses. A store that failed asks this again
+    from the metrics' thread (its :attr:`StoreHealth.probe`), so that its health recovers
+    without waiting for its next write. ``schema`` makes a file that could not be made at
+    the start.
+    """
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        db = sqlite3.connect(path, isolation_level=None, timeout=0.5)
+        try:
+            db.executescript(schema)
+            db.execute("BEGIN IMMEDIATE")
+            db.execute(change)
+        finally:
+            with contextlib.suppress(sqlite3.Error):
+                db.execute("ROLLBACK")
+            db.close()
+    except (OSError, sqlite3.Error):
+        return False
+    return True
+
+
 def can_write(directory: Path, min_free_bytes: int) -> bool:
     """Whether ``directory`` has room and takes a new file (one is made and deleted)."""
     room = directory_condition(directory)

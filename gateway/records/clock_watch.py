@@ -5,12 +5,12 @@ able to see that the clock was unsynchronised then, and when it was stepped (an 
 service setting a Raspberry Pi's clock hours after boot). Each record carries the
 synchronisation status of its moment; this watch adds a record of kind ``clock`` when the
 status changes (synchronised or not, trusted by the override or not) and when the wall
-clock jumps against the monotonic clock by more than :data:`STEP_S`.
+clock jumps against the monotonic clock by more than :data:`STEP_S`. The running gateway
+looks every few seconds (:class:`gateway.app.audit.AuditTrail`).
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import time
 from datetime import UTC, datetime
@@ -28,7 +28,6 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-INTERVAL_S: Final = 10.0  # how often the kernel is asked
 STEP_S: Final = 2.0  # a wall clock that moved this much more or less than the monotonic one
 
 
@@ -104,9 +103,3 @@ class ClockWatch:
             )
         except RecordError as exc:
             _LOGGER.warning("the clock's change was not recorded: %s", exc)
-
-    async def run(self) -> None:
-        """Look every :data:`INTERVAL_S` until cancelled."""
-        while True:
-            self.look()
-            await asyncio.sleep(INTERVAL_S)

@@ -32,10 +32,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import RecordError
-from gateway.publish.storage import RETRY_S, StoreHealth, failure_cause, open_database
-from gateway.records.actor import GATEWAY
+from gateway.publish.storage import (
+    RETRY_S,
+    StoreHealth,
+    failure_cause,
+    open_database,
+    takes_a_change,
+)
 from gateway.records.chain import EMPTY, Head, Row, Verdict, canonical, link, verify
-from gateway.records.model import DeviceRef, Entry, Kind, Record, Result
+from gateway.records.model import Entry, Record
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Iterator
@@ -61,9 +66,9 @@ BEGIN SELECT RAISE(ABORT, 'records are append-only: a correction is a new record
 CREATE TRIGGER IF NOT EXISTS records_never_deleted BEFORE DELETE ON records
 BEGIN SELECT RAISE(ABORT, 'records are append-only: nothing is deleted'); END;
 """
-INTERRUPTED: Final = (
-    "the gateway stopped (a power cut or a kill) after this write was recorded and before "
-    "the sensor's answer: whether the sensor took the value is not known; read it to see"
+# A change the probe rolls back (a record number no record has).
+_PROBE: Final = (
+    "INSERT INTO records (seq, time, kind, body, previous, hash) VALUES (-1, '', '', '', '', '')"
 )
 
 
@@ -165,21 +170,7 @@ class RecordStore:
             if now < self._probe_at:
                 return
             self._probe_at = now + RETRY_S
-        try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            db = sqlite3.connect(self.path, isolation_level=None, timeout=0.5)
-            try:
-                db.executescript(_SCHEMA)  # a file that could not be made at the start
-                db.execute("BEGIN IMMEDIATE")
-                db.execute(
-                    "INSERT INTO records (seq, time, kind, body, previous, hash) "
-                    "VALUES (-1, '', '', '', '', '')"
-                )
-            finally:
-                with contextlib.suppress(sqlite3.Error):
-                    db.execute("ROLLBACK")
-                db.close()
-        except (OSError, sqlite3.Error):
+        if not takes_a_change(self.path, _SCHEMA, _PROBE):
             return
         # The append that failed closed its connection: the next opens the file afresh.
         if self.health.recovered():
@@ -220,6 +211,7 @@ class RecordStore:
         if self.read_only:
             msg = f"the record store {self.path} was opened to read only"
             raise RecordError(msg)
+        self.catch_up()  # another process's records first, so that listeners see all, in order
         moment = self._now().astimezone(UTC)
         try:
             synchronised = self._clock_synchronised()
@@ -255,11 +247,7 @@ class RecordStore:
         record = Record(seq=seq, hash=digest, body=body)
         with self._lock:
             self._head = Head(seq=seq, hash=digest)
-        for listener in self._listeners:
-            try:
-                listener(record)
-            except Exception:  # a listener's bug must not undo a record on disk
-                _LOGGER.exception("a listener of the records failed on record %d", seq)
+        self._tell(record)
         return record
 
     def _insert(
@@ -296,6 +284,38 @@ class RecordStore:
                 db.execute("ROLLBACK")
             raise
         return seq, body, digest
+
+    def catch_up(self) -> list[Record]:
+        """The records another process appended since this one's head, told to the listeners.
+
+        The command line appends beside the running gateway (``gateway records correct``,
+        a verification without one): the gateway's head, its MQTT messages and the page
+        follow at its next look (a few seconds).
+        """
+        try:
+            cursor = self._db.execute(
+                "SELECT seq, hash, body FROM records WHERE seq > ? ORDER BY seq",
+                (self.head.seq,),
+            )
+            found = [
+                Record(seq=int(seq), hash=str(digest), body=json.loads(body))
+                for seq, digest, body in cursor
+            ]
+        except sqlite3.Error as exc:
+            _LOGGER.debug("the record store %s was not read: %s", self.path, exc)
+            return []
+        for record in found:
+            with self._lock:
+                self._head = Head(seq=record.seq, hash=record.hash)
+            self._tell(record)
+        return found
+
+    def _tell(self, record: Record) -> None:
+        for listener in self._listeners:
+            try:
+                listener(record)
+            except Exception:  # a listener's bug must not undo a record on disk
+                _LOGGER.exception("a listener of the records failed on record %d", record.seq)
 
     def rows(self) -> Iterator[Row]:
         """Every stored row in order of number, as the chain checks them."""
@@ -344,47 +364,6 @@ class RecordStore:
         """The record of that number, if there is one."""
         row = self._db.execute("SELECT hash, body FROM records WHERE seq = ?", (seq,)).fetchone()
         return None if row is None else Record(seq=seq, hash=str(row[0]), body=json.loads(row[1]))
-
-    def unanswered(self) -> list[Record]:
-        """Writes recorded as pending that no outcome record completes."""
-        completed = {
-            record.body.get("completes") for record in self.records(Query(kinds=(Kind.OUTCOME,)))
-        }
-        return [
-            record
-            for record in self.records(Query(kinds=(Kind.WRITE,)))
-            if record.body.get("result") == Result.PENDING and record.seq not in completed
-        ]
-
-    def close_interrupted(self) -> list[Record]:
-        """At start: an outcome ``unknown`` for every write the last run left unanswered.
-
-        A power cut or a kill between a write's record and the sensor's answer leaves a
-        record whose outcome says so, never a lost one (tests/records/test_power_cut.py).
-        """
-        closed = []
-        for pending in self.unanswered():
-            device = pending.body.get("device")
-            _LOGGER.warning(
-                "record %d: a write to %s was recorded but its answer never was (the "
-                "gateway stopped in between); recorded its outcome as unknown",
-                pending.seq,
-                device.get("name") if isinstance(device, dict) else "?",
-            )
-            closed.append(
-                self.append(
-                    Entry(
-                        kind=Kind.OUTCOME,
-                        actor=GATEWAY,
-                        device=DeviceRef.from_dict(device) if isinstance(device, dict) else None,
-                        action=str(pending.body.get("action", "")),
-                        result=Result.UNKNOWN,
-                        completes=pending.seq,
-                        note=INTERRUPTED,
-                    )
-                )
-            )
-        return closed
 
 
 def records_path(state_dir: Path) -> Path:

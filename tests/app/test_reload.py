@@ -11,6 +11,7 @@ messages.
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import re
 import signal
@@ -19,12 +20,13 @@ import sys
 import time
 import urllib.error
 import urllib.request
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import aiohttp
 import pytest
 
 from gateway.app.reload import ReloadRequests
+from gateway.records import RecordStore, records_path
 from tests import sparkplug_decoder
 from tests.mqtt_broker import free_port, recording, subscribed
 from tests.rigs import simulate_process
@@ -225,6 +227,16 @@ def test_a_file_with_a_problem_is_refused_and_the_running_config_stays(gateway: 
     assert sample(later, "gateway_config_last_reload_success_timestamp_seconds") == sample(
         before, "gateway_config_last_reload_success_timestamp_seconds"
     )
+    # Recorded, with the file's hash and its problem (README: Records).
+    [reload] = reloads_recorded(gateway)
+    assert reload["result"] == "failed"
+    assert reload["data"]["sha256"] == hashlib.sha256(gateway.config.read_bytes()).hexdigest()
+    assert any("address 1 is already used" in p for p in reload["data"]["problems"])
+
+
+def reloads_recorded(gateway: Running) -> list[dict[str, Any]]:
+    store = RecordStore(records_path(gateway.state), read_only=True)
+    return [dict(r.body) for r in store.records() if r.kind == "reload"]
 
 
 @pytest.mark.line
@@ -320,6 +332,9 @@ def test_an_added_bus_is_started_and_a_removed_one_stopped(gateway: Running) -> 
     assert requests_of(metrics, "line3") > 0
     assert requests_of(metrics, "line2") == 0  # its line's counters went with it
     assert sample(metrics, "gateway_device_online", device="chlorine", bus="line3") == 1.0
+    [reload] = reloads_recorded(gateway)
+    assert reload["result"] == "done"
+    assert "buses added: line3" in reload["note"]
 
 
 async def test_a_reload_asked_during_a_reload_is_applied_after_it() -> None:

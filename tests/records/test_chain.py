@@ -232,3 +232,44 @@ def test_no_store_is_a_clear_error(tmp_path: Path) -> None:
     code, said = verify_cli(tmp_path / "nowhere")
     assert code == 2
     assert "there are no records" in said
+
+
+def test_a_correction_is_a_new_record_pointing_to_the_old_which_stays(tmp_path: Path) -> None:
+    store = filled(tmp_path, 3)
+    before = store.get(2)
+    result = CliRunner().invoke(
+        app,
+        ["records", "correct", "2", "--state-dir", str(tmp_path), "--reason", "wrong basin"],
+    )
+    assert result.exit_code == 0, result.output
+    assert "record 4 corrects record 2" in result.output
+    again = RecordStore(records_path(tmp_path))
+    correction = again.get(4)
+    assert correction is not None
+    assert correction.body["kind"] == "correction"
+    assert correction.body["corrects"] == 2
+    assert correction.body["note"] == "wrong basin"
+    assert correction.body["actor"]["via"] == "cli"
+    assert again.get(2) == before  # untouched
+    assert again.verify().intact
+    missing = CliRunner().invoke(
+        app, ["records", "correct", "9", "--state-dir", str(tmp_path), "--reason", "x"]
+    )
+    assert missing.exit_code == 2
+    assert "there is no record 9 (the newest is 4)" in missing.output
+
+
+def test_records_another_process_appended_reach_the_listeners_in_order(tmp_path: Path) -> None:
+    gateway_store = filled(tmp_path, 2)
+    told: list[int] = []
+    gateway_store.listen(lambda record: told.append(record.seq))
+    command_line = RecordStore(records_path(tmp_path))
+    entry = Entry(kind=Kind.CORRECTION, actor=OPERATOR, action="fix", result=Result.NOTED)
+    command_line.append(entry)
+    command_line.append(entry)
+    assert [r.seq for r in gateway_store.catch_up()] == [3, 4]
+    assert gateway_store.head == command_line.head
+    command_line.append(entry)
+    gateway_store.append(entry)  # its own append tells record 5 first, then 6
+    assert told == [3, 4, 5, 6]
+    assert gateway_store.catch_up() == []

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from gateway.records import Kind, RecordStore, Result, records_path
-from gateway.records.store import INTERRUPTED
+from gateway.records.interrupted import INTERRUPTED, close_interrupted, unanswered
 from tests.rigs import simulate_process
 from tests.waiting import wait_until
 
@@ -36,7 +36,7 @@ def pending_writes(state_dir: Path) -> list[int]:
         return []
     store = RecordStore(path, read_only=True)
     try:
-        return [record.seq for record in store.unanswered()]
+        return [record.seq for record in unanswered(store)]
     finally:
         store.close()
 
@@ -72,7 +72,7 @@ def test_a_kill_after_the_record_leaves_it_and_the_next_start_says_so(tmp_path: 
     state_dir = tmp_path / "state"
     store = RecordStore(records_path(state_dir))
     assert store.verify().intact
-    [pending] = store.unanswered()
+    [pending] = unanswered(store)
     assert pending.body["kind"] == Kind.WRITE
     assert pending.body["actor"]["via"] == "cli"
     assert pending.body["actor"]["detail"] in {"sudo by alice", ""}  # "" if run as alice
@@ -80,10 +80,10 @@ def test_a_kill_after_the_record_leaves_it_and_the_next_start_says_so(tmp_path: 
     assert pending.body["points"][0]["sent"] == "2"
     assert pending.body["points"][0]["registers"] == ["0x0002"]
     # What the gateway does first at its start (RunningGateway.start):
-    [closed] = store.close_interrupted()
+    [closed] = close_interrupted(store)
     assert closed.body["completes"] == pending.seq
     assert closed.body["result"] == Result.UNKNOWN
     assert closed.body["note"] == INTERRUPTED
-    assert store.unanswered() == []
-    assert store.close_interrupted() == []  # once only
+    assert unanswered(store) == []
+    assert close_interrupted(store) == []  # once only
     assert store.verify().intact

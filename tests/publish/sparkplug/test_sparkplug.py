@@ -21,6 +21,7 @@ import pytest
 
 from gateway.profiles import get_profile
 from gateway.publish.prometheus import GatewayCollector, health_report
+from gateway.records import RecordStore, records_path
 from tests.mqtt_broker import Broker, subscribed
 from tests.publish.test_mqtt import gateway, simulated
 from tests.sparkplug_decoder import DecodedPayload, command, decode
@@ -394,6 +395,19 @@ async def test_dcmd_writes_through_the_safe_path_and_bad_input_writes_nothing(
     assert state.writes.outcomes["aeration", "sparkplug", "ok"] == 2
     assert state.writes.outcomes["aeration", "sparkplug", "rejected"] == len(bad) + 1
     assert_seq_never_skips(seen)
+    assert_recorded_as_sparkplugs(tmp_path)
+
+
+def assert_recorded_as_sparkplugs(tmp_path: Path) -> None:
+    """The two writes recorded as the Sparkplug session's (its client id); none refused."""
+    store = RecordStore(records_path(tmp_path / "state"), read_only=True)
+    recorded = [r.body for r in store.records() if r.kind == "write"]
+    assert [b["points"][0]["point"] for b in recorded] == [
+        "compensation_temperature",
+        "compensation_control",
+    ]
+    assert {b["actor"]["via"] for b in recorded} == {"sparkplug"}
+    assert all(b["actor"]["detail"].startswith("client id spb-") for b in recorded)
 
 
 def results_of(seen: SpRecorder, alias: int | None) -> list[dict[str, Any]]:
