@@ -109,8 +109,11 @@ class AuditTrail:
     async def run(self) -> None:
         """Every few seconds: the host clock watched, other processes' records caught up."""
         while True:
-            self.clock_watch.look()
-            self.store.catch_up()
+            try:
+                self.clock_watch.look()
+                self.store.catch_up()
+            except GatewayError as exc:  # the records' trouble never stops the polling
+                _LOGGER.warning("the records' look failed: %s", exc)
             await asyncio.sleep(LOOK_EVERY_S)
 
     def close(self) -> None:

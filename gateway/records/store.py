@@ -301,7 +301,7 @@ class RecordStore:
                 Record(seq=int(seq), hash=str(digest), body=json.loads(body))
                 for seq, digest, body in cursor
             ]
-        except sqlite3.Error as exc:
+        except (sqlite3.Error, RecordError) as exc:  # a store that cannot be read now
             _LOGGER.debug("the record store %s was not read: %s", self.path, exc)
             return []
         for record in found:

@@ -141,6 +141,7 @@ async def test_a_store_that_cannot_be_written_refuses_the_write(tmp_path: Path) 
             await s10.set(s10.point("compensation_temperature"), 21.0)
         assert rig.writes(1) == []  # not recorded, so not sent
         assert not store.health.writable
+        assert store.catch_up() == []  # the running gateway's look goes on meanwhile
         # The state directory mended: the health recovers by itself (the metrics' probe),
         # and the next write is recorded and sent.
         (tmp_path / "state").unlink()
