@@ -77,6 +77,7 @@ class Phase(StrEnum):
     CANCELLED = "cancelled"  # stopped by the operator before writing
     ABANDONED = "abandoned"  # the question went unanswered too long: nothing written
     FAILED = "failed"  # stopped part-way through the writes
+    ERROR = "error"  # an unexpected error stopped it (a defect): said, the device freed
 
 
 class WebOperator:
@@ -171,6 +172,8 @@ class CalibrationRun:
             Phase.CANCELLED: "Cancelled. Nothing was written.",
             Phase.REFUSED: f"Not calibrated: {self.error}",
             Phase.FAILED: f"Stopped part-way through the writes: {self.error}",
+            Phase.ERROR: f"Stopped by an unexpected error: {self.error}. What was written, if "
+            "anything, is in the records: check the sensor before calibrating again.",
         }
         if self.phase in ended:
             return ended[self.phase]
@@ -276,6 +279,16 @@ class CalibrationRun:
             self.phase = Phase.CANCELLED if self.cancel_requested else Phase.REFUSED
             self.error = str(exc)
             _LOGGER.warning("web: %s calibration of %s: %s", self.procedure.id, self.device, exc)
+        except asyncio.CancelledError:  # the gateway stops: the run ends with it, said so
+            self.phase, self.error = Phase.CANCELLED, "the gateway stopped"
+            raise
+        except Exception as exc:  # a defect: the page says so and the device is free again
+            self.phase, self.error = Phase.ERROR, f"{type(exc).__name__}: {exc}"
+            _LOGGER.exception(
+                "web: the %s calibration of %s stopped with an unexpected error",
+                self.procedure.id,
+                self.device,
+            )
         else:
             self.outcome = outcome.as_dict()
             if self.abandoned:
