@@ -14,7 +14,7 @@ import math
 from array import array
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Final
 
 from gateway.errors import CommandRejectedError
 from gateway.line.samples import Quality
@@ -23,6 +23,9 @@ if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
     from gateway.line.samples import DeviceEvent, Sample
+
+
+MIN_TOLERANCE_S: Final = 5.0  # a grab sample's time is not known closer than this
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -73,6 +76,16 @@ class RecentValues:
         self._slots = math.ceil(window_s / resolution_s) + 1
         self._points = dict(points)
         self._rings: dict[tuple[str, str], _Ring] = {}
+        self._latest: dict[tuple[str, str], tuple[float, float]] = {}  # each poll's, kept
+
+    @property
+    def tolerance_s(self) -> float:
+        """How far from the sample's time the value compared may be.
+
+        Kept values are a resolution step apart or more (and a poll later than that): the
+        nearest is within two steps; a grab sample is not timed closer than a few seconds.
+        """
+        return max(2 * self.resolution_s, MIN_TOLERANCE_S)
 
     @property
     def capacity(self) -> int:
@@ -98,6 +111,7 @@ class RecentValues:
             if sample.unit is not None:  # known once the sensor's unit register was read
                 ring.unit = sample.unit
             at = sample.time.timestamp()
+            self._latest[key] = (at, float(value))  # an entry "now" compares the newest
             newest = ring.newest_time()
             if not math.isnan(newest) and at - newest < self.resolution_s:
                 continue
@@ -125,10 +139,16 @@ class RecentValues:
                 "(check sampled_at, and the host clock)"
             )
         ring = self._rings.get((device, point))
-        found = ring.nearest(at.timestamp()) if ring is not None else None
-        if ring is None or found is None or abs(found[0] - at.timestamp()) > self.resolution_s:
+        wanted = at.timestamp()
+        found = ring.nearest(wanted) if ring is not None else None
+        latest = self._latest.get((device, point))
+        if latest is not None and (
+            found is None or abs(latest[0] - wanted) < abs(found[0] - wanted)
+        ):
+            found = latest
+        if ring is None or found is None or abs(found[0] - wanted) > self.tolerance_s:
             raise CommandRejectedError(
-                f"{device} sent no good {point} value within {self.resolution_s:g} s of "
+                f"{device} sent no good {point} value within {self.tolerance_s:g} s of "
                 f"{at.isoformat(timespec='seconds')}: it was offline or faulty then"
             )
         return ValueAt(at=datetime.fromtimestamp(found[0], tz=UTC), value=found[1], unit=ring.unit)

@@ -150,5 +150,5 @@ async def test_the_window_is_bounded_and_says_why_it_refuses() -> None:
     with pytest.raises(CommandRejectedError, match="in the future"):
         recent.value_at("basin", "concentration", NOW + timedelta(minutes=1), now=NOW)
     await recent.publish([sample(NOW - timedelta(seconds=2), 0.5, quality=Quality.FAULT)])
-    with pytest.raises(CommandRejectedError, match="no good concentration value within 10 s"):
+    with pytest.raises(CommandRejectedError, match="no good concentration value within 20 s"):
         recent.value_at("basin", "concentration", NOW - timedelta(seconds=2), now=NOW)
