@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -25,10 +25,18 @@ from gateway.care import (
     resolve,
 )
 from gateway.care.rules import CareKind
-from gateway.line.samples import Quality, Sample
 from gateway.wire import codec
 from gateway.wire.codec import BitfieldValue
-from tests.care.test_care import H10, NOW, S10, TECLINE, history, logbook, weekly_zero_points
+from tests.care.test_care import (
+    H10,
+    NOW,
+    S10,
+    TECLINE,
+    _samples,
+    history,
+    logbook,
+    weekly_zero_points,
+)
 
 if TYPE_CHECKING:
     from gateway.care import CareReport
@@ -332,25 +340,6 @@ def test_a_verification_needs_an_aware_time() -> None:
 
 
 # --- the book --------------------------------------------------------------------------------
-
-
-def _samples(values: dict[str, Any], *, at: float) -> list[Sample]:
-    return [
-        Sample(
-            bus="b",
-            device="pool",
-            profile=TECLINE.id,
-            point=name,
-            value=value,
-            fault=None,
-            unit=None,
-            quality=Quality.GOOD,
-            monotonic=at,
-            time=NOW,
-            group="diagnostics",
-        )
-        for name, value in values.items()
-    ]
 
 
 def _book() -> CareBook:
