@@ -8,6 +8,7 @@ environment in :mod:`~gateway.config.environment`, the cross-field checks in
 guard in :mod:`gateway.config.flash_policy`. Import from here.
 """
 
+from gateway.config.brokers import MqttServer, TlsConfig
 from gateway.config.flash_policy import FlashPolicy
 from gateway.config.loading import check_config, load_config, parse_config, review_config
 from gateway.config.model import (
@@ -41,7 +42,6 @@ from gateway.config.model import (
     Seconds,
     SparkplugConfig,
     TcpPort,
-    TlsConfig,
     WebConfig,
 )
 from gateway.config.problems import ConfigProblems, Problem
@@ -70,6 +70,7 @@ __all__ = [
     "GatewayConfig",
     "LoggingConfig",
     "MqttConfig",
+    "MqttServer",
     "PointSchedule",
     "PointSettings",
     "Problem",

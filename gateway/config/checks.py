@@ -26,6 +26,7 @@ from pydantic import (
     ValidationError,
 )
 
+from gateway.config.brokers import check_brokers
 from gateway.config.model import (
     BusConfig,
     DeviceConfig,
@@ -122,6 +123,7 @@ def cross_check(data: Mapping[str, Any]) -> Iterator[tuple[KeyPath, str]]:
     yield from _check_prometheus_device_groups(data.get("prometheus"), devices)
     yield from _check_care_profiles(data.get("care"))
     yield from _check_verification_rules(data.get("verification"), devices)
+    yield from check_brokers(data)
 
 
 def _check_prometheus_device_groups(

@@ -44,6 +44,7 @@ from pydantic_settings import (
     SettingsConfigDict,
 )
 
+from gateway.config.brokers import MqttServer, TlsConfig
 from gateway.config.care import CareConfig, CareSettings
 from gateway.config.echo import EchoMode, echo_words
 from gateway.config.flash_policy import FlashPolicy
@@ -448,19 +449,14 @@ class FeedConfig(_Model):
         return f"{self.device}/{self.point}"
 
 
-class TlsConfig(_Model):
-    """TLS to the broker: a CA to trust and, for client authentication, a certificate."""
-
-    ca: Path | None = None  # CA certificate (PEM); None: the system's trust store
-    cert: Path | None = None  # client certificate (PEM)
-    key: Path | None = None  # its private key (PEM)
-
-
 class DiscoveryConfig(_Model):
     """Home Assistant MQTT discovery (opt-in)."""
 
     enabled: bool = False
     prefix: Annotated[str, AfterValidator(_mqtt_topic)] = "homeassistant"
+    # When Home Assistant says it is back (``{prefix}/status`` online) every gateway of a
+    # plant would announce at the same instant: each waits a random time up to this first.
+    announce_delay_max_s: Annotated[float, Field(ge=0, le=600)] = 10.0
 
 
 class MqttConfig(_Model):
@@ -469,6 +465,11 @@ class MqttConfig(_Model):
     enabled: bool = True
     host: Annotated[str, Field(min_length=1)] = "localhost"
     port: TcpPort = 1883
+    # Several brokers (or nodes of a cluster), tried in turn; replaces host, port and tls
+    # (config.brokers). Empty: the one of host and port.
+    servers: list[MqttServer] = []
+    # Back to the first server after this long on another; None: stay where it is.
+    return_to_first_s: Annotated[float, Field(ge=10, le=86400)] | None = 600.0
     base_topic: Annotated[str, AfterValidator(_mqtt_topic)] = "gateway"
     client_id: str | None = None  # None: gateway-<host name>
     username: str | None = None
@@ -486,6 +487,10 @@ class MqttConfig(_Model):
     # some 30 GB a day of writes at 5 sensors). README: What survives a power cut.
     persist: Literal["outage", "always"] = "outage"
     discovery: DiscoveryConfig = DiscoveryConfig()
+
+    def server_list(self) -> list[MqttServer]:
+        """The servers to try, in order: ``servers``, or the one of ``host`` and ``port``."""
+        return list(self.servers) or [MqttServer(host=self.host, port=self.port, tls=self.tls)]
 
 
 def _sparkplug_id(value: str) -> str:
@@ -548,6 +553,18 @@ class SparkplugConfig(_Model):
     device_groups: dict[str, SparkplugGroups] = {}
     birth_wait_s: Annotated[float, Field(ge=0, le=600)] = 10.0
     queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
+    # Its own server list (config.brokers); empty: the one of ``mqtt:``.
+    servers: list[MqttServer] = []
+    # With several servers: how long to wait on one for the primary host's STATE online
+    # before moving to the next (Eclipse Tahu's edge client waits 30 s).
+    host_wait_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
+    # A host's STATE online or a rebirth request reaches every edge node of a plant at
+    # once: each waits a random time up to this before its births (0: at once).
+    birth_delay_max_s: Annotated[float, Field(ge=0, le=60)] = 2.0
+
+    def server_list(self, mqtt: MqttConfig) -> list[MqttServer]:
+        """The servers of the edge node's session, in order (its own, else ``mqtt``'s)."""
+        return list(self.servers) or mqtt.server_list()
 
 
 def _prometheus_group(value: object) -> object:

@@ -57,10 +57,18 @@ class MqttStatus:
     dropped: int = 0
     published: int = 0
     last_error: str | None = None
+    server: str = ""  # host:port of the server in use, or tried last
+    servers: tuple[str, ...] = ()  # the list, in order
+    switches: int = 0  # moves to another server of the list since the start
+    # Another gateway holds this identity (base topic, client id): this one stood down
+    # and publishes nothing until its config is fixed (publish/mqtt/identity).
+    identity_conflict: str | None = None
 
     @property
     def healthy(self) -> bool:
-        """Connected, or buffering within the queue's bound."""
+        """Connected, or buffering within the queue's bound; not standing down."""
+        if self.identity_conflict is not None:
+            return False
         return not self.enabled or self.connected or self.queue_depth < self.queue_max
 
 
@@ -174,6 +182,9 @@ class SparkplugStatus:
     queue_depth: int = 0  # DDATA stored while the host or the broker is away
     dropped: int = 0
     last_error: str | None = None
+    server: str = ""  # host:port of the server in use, or tried last
+    servers: tuple[str, ...] = ()  # the list, in order
+    switches: int = 0  # moves to another server of the list since the start
 
 
 @dataclass(slots=True)

@@ -276,8 +276,8 @@ async def _remaining_length(reader: asyncio.StreamReader) -> int:
 async def test_a_broker_that_stops_acknowledging_ends_the_session_and_keeps_the_messages(
     tmp_path: Path,
 ) -> None:
-    """A half-open broker: it takes the connection and acknowledges ``online``, then
-    swallows every publish without a PUBACK. The session ends at the oldest publish's 4 s
+    """A half-open broker: it takes the connection and acknowledges ``online`` (and the
+    owner marker's subscription and claim), then swallows every publish without a PUBACK. The session ends at the oldest publish's 4 s
     timeout, and what was handed over stays queued on disk, none lost."""
 
     sessions: list[asyncio.StreamWriter] = []
@@ -290,11 +290,14 @@ async def test_a_broker_that_stops_acknowledging_ends_the_session_and_keeps_the_
                 body = await reader.readexactly(await _remaining_length(reader))
                 if kind >> 4 == 1:  # CONNECT: CONNACK, session not present, accepted
                     writer.write(b"\x20\x02\x00\x00")
+                elif kind >> 4 == 8:  # SUBSCRIBE (the owner marker): SUBACK, QoS 1 granted
+                    writer.write(b"\x90\x03" + body[:2] + b"\x01")
                 elif kind >> 4 == 3 and (kind >> 1) & 3:  # PUBLISH at QoS 1
                     topic_length = int.from_bytes(body[:2], "big")
-                    if body[2 : 2 + topic_length].endswith(b"/status"):
+                    if body[2 : 2 + topic_length].endswith((b"/status", b"/owner")):
                         packet_id = body[2 + topic_length : 4 + topic_length]
-                        writer.write(b"\x40\x02" + packet_id)  # PUBACK: only ``online``
+                        # PUBACK: only what a connection begins with, ``online`` and the claim
+                        writer.write(b"\x40\x02" + packet_id)
                 await writer.drain()
 
     server = await asyncio.start_server(swallowing_broker, "127.0.0.1", 0)

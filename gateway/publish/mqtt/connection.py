@@ -1,11 +1,14 @@
 """The session with the broker: connect, subscribe, say online, send, take commands, reconnect.
 
 One client at a time, re-entered in a ``while True`` with ``except MqttError`` (aiomqtt
-2.5's reconnect loop) on a capped, jittered backoff. Each session subscribes the listeners'
-filters, says ``online`` on ``{base}/status`` (the last will says ``offline`` if the gateway
-vanishes), then runs the outbox's sender beside a receiver that hands every incoming message
-to the listeners that asked for it. Whatever ends a session ends it whole: the error goes to
-the reconnect loop, which logs it and starts the next one.
+2.5's reconnect loop) on a capped, jittered backoff, to the servers of ``mqtt.servers`` in
+turn (:class:`~gateway.publish.mqtt.servers.ServerWalk`). Each session subscribes the
+listeners' filters, says ``online`` on ``{base}/status`` (the last will says ``offline`` if
+the gateway vanishes), then runs the outbox's sender beside a receiver that hands every
+incoming message to the listeners that asked for it. Whatever ends a session ends it whole:
+the error goes to the reconnect loop, which logs it and starts the next one. A session on
+another server than the first ends cleanly after ``mqtt.return_to_first_s``; what was not
+acknowledged goes back to the queue and is sent on the first server.
 """
 
 from __future__ import annotations
@@ -20,10 +23,13 @@ from typing import TYPE_CHECKING, Final, Protocol
 import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
 
+from gateway.publish.mqtt.identity import IdentityGuard, IdentityTakenError
 from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, WINDOW
+from gateway.publish.mqtt.servers import ServerWalk
 
 if TYPE_CHECKING:
     from gateway.config import MqttConfig
+    from gateway.config.brokers import MqttServer
     from gateway.publish.message import Message
     from gateway.publish.mqtt.outbox import Outbox
     from gateway.publish.state import MqttStatus
@@ -75,11 +81,16 @@ class Connection:
         self._handling: set[asyncio.Task[None]] = set()
         self._rng = random.Random()  # noqa: S311 - jitter only
         self._failures_in_a_row = 0
+        self.walk = ServerWalk(settings.server_list(), return_to_first_s=settings.return_to_first_s)
+        status.servers = tuple(server.address for server in self.walk.servers)
+        status.server = self.walk.current.address
+        self.identity = IdentityGuard(self.base, client_id)
 
-    def _client_for(self) -> aiomqtt.Client:
+    def _client_for(self, server: MqttServer) -> aiomqtt.Client:
         settings = self.settings
         client = broker_client(
             settings,
+            server,
             client_id=self.client_id,
             will=aiomqtt.Will(f"{self.base}/status", "offline", qos=1, retain=True),
             clean_session=settings.clean_session,
@@ -94,35 +105,93 @@ class Connection:
         fire the will) and what was not sent stays on disk for the next start.
         """
         delay = BACKOFF_FIRST_S
+        walk = self.walk
         try:
             while True:
-                client = self._client_for()
+                server = walk.current
+                self._show_server()
                 try:
-                    async with client:
+                    async with self._client_for(server) as client:
                         try:
-                            await self._on_connect(client)
+                            await self._on_connect(client, server)
                             delay = BACKOFF_FIRST_S
-                            await self._session(client)
+                            if await self._session_while_welcome(client):
+                                continue  # back to the first server, at once
                         except asyncio.CancelledError:
                             await self._say_offline(client)
                             raise
                 except aiomqtt.MqttError as exc:
-                    self._lost(exc)
-                await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
-                delay = min(delay * 2, self.settings.reconnect_max_s)
+                    self._lost(exc, server)
+                except IdentityTakenError as taken:
+                    await self._stand_down(str(taken))
+                if walk.next():  # every server failed once: wait, longer each round
+                    await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
+                    delay = min(delay * 2, self.settings.reconnect_max_s)
+                else:  # the next server at once (a pause only against a tight loop)
+                    await asyncio.sleep(BACKOFF_FIRST_S * self._rng.uniform(0.2, 0.4))
         finally:
             for task in self._handling:
                 task.cancel()
             self.outbox.close()
+
+    async def _session_while_welcome(self, client: aiomqtt.Client) -> bool:
+        """The session, until it fails (raised) or its time on this server is up (True).
+
+        A session on another server than the first ends cleanly after
+        ``return_to_first_s``: what was not acknowledged goes back to the queue, the
+        gateway says ``offline`` on this server (it no longer publishes there) and the
+        walk goes back to the first.
+        """
+        stay = self.walk.stay_for()
+        time_here = asyncio.timeout(stay)
+        try:
+            async with time_here:
+                await self._session(client)
+        except TimeoutError:
+            if not time_here.expired():
+                raise
+        if not time_here.expired():
+            return False
+        away = self.walk.current.address
+        self.outbox.lost()
+        self.outbox.update_status()
+        await self._say_offline(client)
+        self.walk.first()
+        _LOGGER.info(
+            "MQTT: %.0f s on %s: back to the first server, %s",
+            stay or 0.0,
+            away,
+            self.walk.current.address,
+        )
+        return True
+
+    async def _stand_down(self, why: str) -> None:
+        """Another gateway holds this identity: publish nothing until the config is fixed.
+
+        Disconnected cleanly (no will: the other gateway is online under this base topic);
+        messages keep going to the queue on disk, within its bound.
+        """
+        self.outbox.lost()
+        self.status.identity_conflict = why
+        self.status.last_error = why
+        self.outbox.update_status()
+        _LOGGER.error("MQTT: %s", why)
+        await asyncio.Event().wait()  # until a reload or a stop cancels the connection
+
+    def _show_server(self) -> None:
+        self.status.server = self.walk.current.address
+        self.status.switches = self.walk.switches
 
     async def _say_offline(self, client: aiomqtt.Client) -> None:
         with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
             async with asyncio.timeout(2):
                 await client.publish(f"{self.base}/status", "offline", qos=1, retain=True)
 
-    async def _on_connect(self, client: aiomqtt.Client) -> None:
+    async def _on_connect(self, client: aiomqtt.Client, server: MqttServer) -> None:
         if self._failures_in_a_row:
-            _LOGGER.info("MQTT: connected to %s:%d again", self.settings.host, self.settings.port)
+            _LOGGER.info("MQTT: connected to %s again", server.address)
+        elif self.walk.several:
+            _LOGGER.info("MQTT: connected to %s", server.address)
         self._failures_in_a_row = 0
         self.status.last_error = None
         # Subscribed before saying online: a plant system may send a command as soon as it
@@ -131,9 +200,13 @@ class Connection:
         # backlog drains in the session, while commands are already taken.
         for topic_filter in self._filters():
             await client.subscribe(topic_filter, qos=1)
+        # The owner marker: read (a retained one arrives first), then claimed.
+        await client.subscribe(self.identity.topic, qos=1)
         await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
+        claim = self.identity.claim()
+        await client.publish(claim.topic, claim.payload, qos=1, retain=True)
 
-    def _lost(self, exc: aiomqtt.MqttError) -> None:
+    def _lost(self, exc: aiomqtt.MqttError, server: MqttServer) -> None:
         """Note the failure, loudly at the first of a streak; the outbox keeps what was unsent."""
         was_connected = self.outbox.lost()
         self._failures_in_a_row += 1
@@ -144,24 +217,24 @@ class Connection:
             who = self.settings.username or "an anonymous client"
             reason = f"the broker refused the credentials of {who} ({exc})"
         else:
-            reason = f"{self.settings.host}:{self.settings.port}: {exc}"
+            reason = f"{server.address}: {exc}"
         self.status.last_error = reason
         log = _LOGGER.error if refused else _LOGGER.warning
         if was_connected or self._failures_in_a_row == 1:
-            log("MQTT: %s; buffering on disk and retrying", reason)
+            then = "trying the next server" if self.walk.several else "retrying"
+            log("MQTT: %s; buffering on disk and %s", reason, then)
         else:
             _LOGGER.debug("MQTT: %s", reason)
         self.outbox.update_status()
 
     async def _session(self, client: aiomqtt.Client) -> None:
         """Send, and take messages for the listeners, until the connection fails."""
-        if not self._filters():
-            await self.outbox.send_forever(client)
-            return
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self.outbox.send_forever(client))
                 group.create_task(self._receive_forever(client))
+        except* IdentityTakenError as taken:
+            raise taken.exceptions[0] from None
         except* aiomqtt.MqttError as failed:
             raise failed.exceptions[0] from None  # the reconnect loop handles one error
 
@@ -181,6 +254,9 @@ class Connection:
             topic = message.topic
             payload = message.payload
             data = payload if isinstance(payload, bytes) else str(payload or "").encode()
+            if topic.value == self.identity.topic:
+                self.outbox.enqueue(self.identity.judge(data, retained=message.retain))
+                continue
             for listener in self.listeners:
                 if any(topic.matches(f) for f in listener.subscriptions()):
                     task = asyncio.create_task(
@@ -203,23 +279,28 @@ class Connection:
 
 
 def broker_client(
-    settings: MqttConfig, *, client_id: str, will: aiomqtt.Will, clean_session: bool
+    settings: MqttConfig,
+    server: MqttServer,
+    *,
+    client_id: str,
+    will: aiomqtt.Will,
+    clean_session: bool,
 ) -> aiomqtt.Client:
-    """A client of the configured broker (address, credentials, TLS, keepalive).
+    """A client of one server of the list (its address and TLS; credentials, keepalive).
 
     The plain topics' connection and the Sparkplug session each have one, with a will and
     a session kind of their own.
     """
     tls = None
-    if settings.tls is not None:
+    if server.tls is not None:
         tls = aiomqtt.TLSParameters(
-            ca_certs=str(settings.tls.ca) if settings.tls.ca else None,
-            certfile=str(settings.tls.cert) if settings.tls.cert else None,
-            keyfile=str(settings.tls.key) if settings.tls.key else None,
+            ca_certs=str(server.tls.ca) if server.tls.ca else None,
+            certfile=str(server.tls.cert) if server.tls.cert else None,
+            keyfile=str(server.tls.key) if server.tls.key else None,
         )
     return aiomqtt.Client(
-        settings.host,
-        settings.port,
+        server.host,
+        server.port,
         username=settings.username,
         password=settings.password.get_secret_value() if settings.password else None,
         identifier=client_id,

@@ -30,6 +30,19 @@ if TYPE_CHECKING:
     from gateway.publish.state import GatewayState
 
 
+def check_tls_files(settings: MqttConfig, section: str) -> None:
+    """Every TLS file of the server list exists (a missing one fails at start, not later)."""
+    servers = settings.server_list()
+    for index, server in enumerate(servers):
+        if server.tls is None:
+            continue
+        where = f"{section}.servers[{index}].tls" if settings.servers else f"{section}.tls"
+        for name in ("ca", "cert", "key"):
+            path = getattr(server.tls, name)
+            if path is not None and not path.is_file():
+                raise PublishError(f"{where}.{name}: {path} does not exist")
+
+
 class MqttSink:
     """Publishes samples and availability; keeps the broker connection up.
 
@@ -57,11 +70,7 @@ class MqttSink:
         """The topics, the queue on disk and the connection, for these settings."""
         client_id = settings.client_id or f"gateway-{socket.gethostname()}"
         topics = Topics(settings, self.state, client_id=client_id, publish=publish)
-        if settings.tls is not None:
-            for name in ("ca", "cert", "key"):
-                path = getattr(settings.tls, name)
-                if path is not None and not path.is_file():
-                    raise PublishError(f"mqtt.tls.{name}: {path} does not exist")
+        check_tls_files(settings, "mqtt")
         store = MessageStore(self.state_dir / "mqtt-queue.sqlite", max_messages=settings.queue_max)
         self.state.storage.track(store.health)
         status = self.state.mqtt

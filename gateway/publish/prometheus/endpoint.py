@@ -179,7 +179,9 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         elif stats.noisy is not None:
             reasons.append(f"bus {bus}: {stats.noisy}")
     mqtt = snapshot.mqtt
-    if not mqtt.healthy:
+    if mqtt.identity_conflict is not None:
+        reasons.append(f"mqtt: {mqtt.identity_conflict}")
+    elif not mqtt.healthy:
         why = f": {mqtt.last_error}" if mqtt.last_error else ""
         reasons.append(
             f"mqtt: not connected and the queue is full ({mqtt.queue_depth}/{mqtt.queue_max}){why}"
@@ -212,6 +214,10 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
             "dropped": mqtt.dropped,
             "published": mqtt.published,
             "last_error": mqtt.last_error,
+            "server": mqtt.server,
+            "servers": list(mqtt.servers),
+            "switches": mqtt.switches,
+            "identity_conflict": mqtt.identity_conflict,
         },
     }
     sparkplug = snapshot.sparkplug
@@ -225,6 +231,9 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
             "queue_depth": sparkplug.queue_depth,
             "dropped": sparkplug.dropped,
             "last_error": sparkplug.last_error,
+            "server": sparkplug.server,
+            "servers": list(sparkplug.servers),
+            "switches": sparkplug.switches,
         }
     return not reasons, body
 

@@ -35,6 +35,31 @@ def mqtt_families(snapshot: GatewayState) -> Iterator[Metric]:
     yield CounterMetricFamily(
         "gateway_mqtt_published", "Messages delivered to the broker", value=mqtt.published
     )
+    yield from _servers("gateway_mqtt", "MQTT connection", mqtt.server, mqtt.servers, mqtt.switches)
+    yield GaugeMetricFamily(
+        "gateway_mqtt_identity_conflict",
+        "1 while another gateway holds this base topic first and this one stands down",
+        value=float(mqtt.identity_conflict is not None),
+    )
+
+
+def _servers(
+    prefix: str, what: str, server: str, servers: tuple[str, ...], switches: int
+) -> Iterator[Metric]:
+    """Which server of the list is in use (1) and the others (0); the moves between them."""
+    info = GaugeMetricFamily(
+        f"{prefix}_server",
+        f"1 for the server of the list the {what} uses or tries now, 0 for the others",
+        labels=["server", "position"],
+    )
+    for position, address in enumerate(servers):
+        info.add_metric([address, str(position)], float(address == server))
+    yield info
+    yield CounterMetricFamily(
+        f"{prefix}_server_switches",
+        f"Moves of the {what} to another server of its list",
+        value=switches,
+    )
 
 
 def sparkplug_families(snapshot: GatewayState) -> Iterator[Metric]:
@@ -54,6 +79,13 @@ def sparkplug_families(snapshot: GatewayState) -> Iterator[Metric]:
     )
     yield GaugeMetricFamily(
         "gateway_sparkplug_bdseq", "bdSeq of the current Sparkplug session", value=sparkplug.bd_seq
+    )
+    yield from _servers(
+        "gateway_sparkplug",
+        "Sparkplug session",
+        sparkplug.server,
+        sparkplug.servers,
+        sparkplug.switches,
     )
     yield CounterMetricFamily(
         "gateway_sparkplug_births",

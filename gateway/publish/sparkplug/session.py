@@ -10,6 +10,17 @@ away (historical DDATA), then live messages; every message after the NBIRTH take
 its NDEATH itself): messages are stored until it is back, and the new session births anew.
 A rebirth (NCMD ``Node Control/Rebirth``) sends the births again in the same session.
 
+With several servers (``sparkplug.servers``, else ``mqtt.servers``) the edge node is
+connected to one at a time (Sparkplug 3.0, 5.10,
+``tck-id-operational-behavior-primary-application-state-with-multiple-servers-single-server``);
+a host offline on it, or not online within ``sparkplug.host_wait_s``, ends the session
+with an NDEATH and the next server is tried (``...-multiple-servers-walk``), where the
+births again wait for the host's STATE online (``...-edge-node-birth-sequence-wait``).
+Every CONNECT takes the next ``bdSeq``; a rebirth keeps it. A host's STATE online that
+arrives live, and a rebirth request, reach every edge node of a plant at once: each waits
+a random time up to ``sparkplug.birth_delay_max_s`` before its births, sending no data
+meanwhile.
+
 The host's STATE is judged by its timestamp (Sparkplug 3.0,
 ``tck-id-operational-behavior-edge-node-termination-host-offline-timestamp``): one older
 than the STATE acted on last is ignored, so a stale retained will of the host (after its
@@ -34,6 +45,7 @@ import aiomqtt
 
 from gateway.errors import CommandRejectedError
 from gateway.publish.mqtt.connection import broker_client
+from gateway.publish.mqtt.servers import ServerWalk
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import REBIRTH
 from gateway.publish.sparkplug.reports import ndeath_payload
@@ -56,6 +68,14 @@ BD_SEQ_MODULUS: Final = 256  # bdSeq runs 0..255 (Sparkplug 3.0, 6.4.3)
 
 class HostOfflineError(Exception):
     """The primary host said it is offline: the session ends, and the next one waits."""
+
+
+class HostAbsentError(HostOfflineError):
+    """The primary host was not online on this server within ``host_wait_s``."""
+
+
+class TimeUpError(Exception):
+    """The session's time on another server than the first is up."""
 
 
 class Births(Protocol):
@@ -123,6 +143,12 @@ class SparkplugSession:
         self._handling: set[asyncio.Task[None]] = set()
         self._rng = random.Random()  # noqa: S311 - jitter only
         self._failures_in_a_row = 0
+        self._birth_delay = 0.0  # before the next births: a host back, or a rebirth
+        self.walk = ServerWalk(
+            settings.server_list(broker), return_to_first_s=broker.return_to_first_s
+        )
+        self.status.servers = tuple(server.address for server in self.walk.servers)
+        self.status.server = self.walk.current.address
 
     @property
     def live(self) -> bool:
@@ -152,8 +178,13 @@ class SparkplugSession:
         status.queue_depth = len(self.store)
         status.dropped = self.store.dropped
 
-    def rebirth(self) -> None:
-        """Send the births again, in this session (NCMD ``Node Control/Rebirth``)."""
+    def rebirth(self, *, delay: bool = False) -> None:
+        """Send the births again, in this session (NCMD ``Node Control/Rebirth``).
+
+        ``delay``: after a random wait up to ``birth_delay_max_s`` (a fleet-wide request).
+        """
+        if delay:
+            self._birth_delay = self._rng.uniform(0, self.settings.birth_delay_max_s)
         self._rebirth = True
         self._wake.set()
 
@@ -169,6 +200,7 @@ class SparkplugSession:
     def _client(self, bd_seq: int) -> aiomqtt.Client:
         return broker_client(
             self.broker,
+            self.walk.current,
             client_id=self.client_id,
             will=aiomqtt.Will(self.topics.ndeath, ndeath_payload(bd_seq, _now_ms()), qos=1),
             clean_session=True,  # Sparkplug 3.0, 7.1: a clean session at every connect
@@ -180,9 +212,12 @@ class SparkplugSession:
         On cancellation the NDEATH is published (a clean disconnect does not fire the will).
         """
         delay = BACKOFF_FIRST_S
+        walk = self.walk
         try:
             while True:
                 bd_seq = self._next_bd_seq()
+                self.status.server = walk.current.address
+                self.status.switches = walk.switches
                 try:
                     async with self._client(bd_seq) as client:
                         try:
@@ -193,13 +228,23 @@ class SparkplugSession:
                         except HostOfflineError:
                             await self._say_dead(client, bd_seq)
                             delay = BACKOFF_FIRST_S
+                            if walk.several:
+                                walk.next()
+                            continue
+                        except TimeUpError:
+                            await self._say_dead(client, bd_seq)
+                            delay = BACKOFF_FIRST_S
+                            walk.first()
                             continue
                 except aiomqtt.MqttError as exc:
                     self._lost(exc)
                 finally:
                     self._end_session()
-                await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
-                delay = min(delay * 2, self.broker.reconnect_max_s)
+                if walk.next():  # every server failed once: wait, longer each round
+                    await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
+                    delay = min(delay * 2, self.broker.reconnect_max_s)
+                else:
+                    await asyncio.sleep(BACKOFF_FIRST_S * self._rng.uniform(0.2, 0.4))
         finally:
             for task in self._handling:
                 task.cancel()
@@ -225,7 +270,7 @@ class SparkplugSession:
 
     def _lost(self, exc: aiomqtt.MqttError) -> None:
         self._failures_in_a_row += 1
-        reason = f"{self.broker.host}:{self.broker.port}: {exc}"
+        reason = f"{self.walk.current.address}: {exc}"
         self.status.last_error = reason
         if self._failures_in_a_row == 1:
             _LOGGER.warning("Sparkplug: %s; storing data and retrying", reason)
@@ -234,7 +279,9 @@ class SparkplugSession:
 
     async def _session(self, client: aiomqtt.Client, bd_seq: int) -> None:
         if self._failures_in_a_row:
-            _LOGGER.info("Sparkplug: connected to %s again", self.broker.host)
+            _LOGGER.info("Sparkplug: connected to %s again", self.walk.current.address)
+        elif self.walk.several:
+            _LOGGER.info("Sparkplug: connected to %s", self.walk.current.address)
         self._failures_in_a_row = 0
         self.status.last_error = None
         topics = self.topics
@@ -248,12 +295,37 @@ class SparkplugSession:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._send_forever(client, bd_seq))
                 group.create_task(self._receive_forever(client))
-        except* HostOfflineError:
-            raise HostOfflineError from None
+                if self.walk.several and topics.host is not None:
+                    group.create_task(self._host_awaited(self.settings.host_wait_s))
+                stay = self.walk.stay_for()
+                if stay is not None:
+                    group.create_task(_time_up(stay))
+        except* HostOfflineError as offline:
+            raise offline.exceptions[0] from None
+        except* TimeUpError:
+            _LOGGER.info(
+                "Sparkplug: %.0f s on %s: back to the first server, %s",
+                self.walk.stay_for() or 0.0,
+                self.walk.current.address,
+                self.walk.servers[0].address,
+            )
+            raise TimeUpError from None
         except* aiomqtt.MqttError as failed:
             raise failed.exceptions[0] from None
 
     # --- sending ---------------------------------------------------------------------
+
+    async def _host_awaited(self, wait_s: float) -> None:
+        """End the session if the primary host is not online on this server in time."""
+        await asyncio.sleep(wait_s)
+        if not self.host_online:
+            _LOGGER.warning(
+                "Sparkplug: primary host %s not online on %s within %.0f s; next server",
+                self.topics.host,
+                self.walk.current.address,
+                wait_s,
+            )
+            raise HostAbsentError
 
     async def _send_forever(self, client: aiomqtt.Client, bd_seq: int) -> None:
         """Births once the host is online, then the stored history, then live messages."""
@@ -261,11 +333,13 @@ class SparkplugSession:
         while not self.host_online:
             wake.clear()
             await wake.wait()
+        await self._births_delayed()
         await self._birth(client, bd_seq)
         await self._drain(client)
         while True:
             wake.clear()
             if self._rebirth:
+                await self._births_delayed()
                 await self._birth(client, bd_seq)
             while self._live:
                 await self._publish(client, self._live[0])
@@ -274,6 +348,13 @@ class SparkplugSession:
                     break
             if not self._live and not self._rebirth:
                 await wake.wait()
+
+    async def _births_delayed(self) -> None:
+        """The random wait a fleet-wide event asked for, if any; no data is sent meanwhile."""
+        delay, self._birth_delay = self._birth_delay, 0.0
+        if delay > 0:
+            _LOGGER.info("Sparkplug: births in %.1f s (spread over the fleet)", delay)
+            await asyncio.sleep(delay)
 
     async def _birth(self, client: aiomqtt.Client, bd_seq: int) -> None:
         self._rebirth = False
@@ -310,17 +391,19 @@ class SparkplugSession:
             payload = message.payload
             data = payload if isinstance(payload, bytes) else str(payload or "").encode()
             if topic == self.topics.state:
-                self._host_state(data)
+                self._host_state(data, retained=message.retain)
             elif topic == self.topics.ncmd:
                 self._node_command(data)
             elif (device := self.topics.device_of(topic)) is not None:
                 self._device_command(device, data)
 
-    def _host_state(self, payload: bytes) -> None:
+    def _host_state(self, payload: bytes, *, retained: bool = False) -> None:
         """``{"online": true|false, "timestamp": …}`` (3.0), or ``ONLINE``/``OFFLINE`` (2.2).
 
         A 3.0 STATE older than the one acted on last is ignored; an equal one is not (a
-        host's will carries the timestamp of the birth it ends).
+        host's will carries the timestamp of the birth it ends). A live (not retained)
+        online is the host coming back, seen by the whole fleet at once: the births wait
+        a random time first.
         """
         text = payload.decode("utf-8", "replace").strip()
         timestamp = None
@@ -348,6 +431,8 @@ class SparkplugSession:
             self.host_timestamp = timestamp
         if online and not self.host_online:
             _LOGGER.info("Sparkplug: primary host %s is online", self.topics.host)
+            if not retained:
+                self._birth_delay = self._rng.uniform(0, self.settings.birth_delay_max_s)
             self.host_online = True
             self._update_status()
             self._wake.set()
@@ -367,7 +452,7 @@ class SparkplugSession:
             return
         if any(metrics):
             _LOGGER.info("Sparkplug: rebirth requested")
-            self.rebirth()
+            self.rebirth(delay=True)
 
     def _device_command(self, device: str, payload: bytes) -> None:
         if self.commands is None:
@@ -402,6 +487,12 @@ def _node_command_metrics(payload: bytes) -> list[bool]:
             raise CommandRejectedError(f"the node has no metric {metric.label} to command")
         values.append(bool(payloads.command_value(metric, payloads.SpType.BOOLEAN)))
     return values
+
+
+async def _time_up(stay_s: float) -> None:
+    """End the session after ``stay_s`` on another server than the first."""
+    await asyncio.sleep(stay_s)
+    raise TimeUpError
 
 
 def _read_bd_seq(path: Path) -> int:

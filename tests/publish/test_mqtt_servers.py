@@ -1,0 +1,156 @@
+"""Several brokers, one at a time, and one identity per gateway: with real mosquittos.
+
+``mqtt.servers`` lists three brokers; the first is down at the start, the second is stopped
+while the gateway publishes, the first comes back: the gateway moves down the list and back,
+and every state document of the run reaches one broker or another, in order (each device's
+``seq`` has no gap). Two gateways started from a copied config: the second stands down
+within seconds, the first publishes on (publish/mqtt/identity).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import TYPE_CHECKING
+
+import pytest
+
+from tests.mqtt_broker import Broker, Recorder, recording
+from tests.publish.test_mqtt import gateway, simulated
+from tests.waiting import eventually
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+STATE = "gw/basin/state"
+
+
+def config(tmp_path: Path, servers: list[Broker], *, extra: str = "", state: str = "state") -> str:
+    """A gateway of the two simulated sensors on the given brokers, in order."""
+    listed = ", ".join(f"{{host: 127.0.0.1, port: {b.port}}}" for b in servers)
+    return (
+        f"buses:\n  - {{name: line1, port: {tmp_path / 'ttySIM'}}}\n"
+        "devices:\n"
+        "  - {name: basin, bus: line1, address: 10, profile: reiss-m0c, poll_interval: 0.3}\n"
+        f"mqtt: {{servers: [{listed}], base_topic: gw, reconnect_max_s: 1{extra}}}\n"
+        "prometheus: {enabled: false}\n"
+        f"state_dir: {tmp_path / state}\n"
+    )
+
+
+def brokers(tmp_path: Path, *names: str) -> list[Broker]:
+    made = []
+    for name in names:
+        directory = tmp_path / f"broker-{name}"
+        directory.mkdir()
+        made.append(Broker(directory))
+    return made
+
+
+def seqs(*recorders: Recorder) -> list[int]:
+    """Every ``seq`` of the state documents the recorders got, each once, in order."""
+    return sorted({json.loads(p)["seq"] for r in recorders for p in r.on(STATE)})
+
+
+def gaps(numbers: list[int]) -> list[int]:
+    return [n for n in range(numbers[0], numbers[-1]) if n not in set(numbers)] if numbers else []
+
+
+@pytest.mark.line
+@pytest.mark.broker
+async def test_the_next_server_takes_over_and_the_first_comes_back_losing_nothing(
+    tmp_path: Path,
+) -> None:
+    a, b, c = brokers(tmp_path, "a", "b", "c")
+    b.start()
+    c.start()
+    address = {x.port: f"127.0.0.1:{x.port}" for x in (a, b, c)}
+    text = config(tmp_path, [a, b, c], extra=", return_to_first_s: 10")
+    try:
+        async with (
+            simulated(tmp_path),
+            recording(b.port, "gw/#", name="on-b") as on_b,
+            recording(c.port, "gw/#", name="on-c") as on_c,
+            gateway(text) as state,
+        ):
+            mqtt = state.mqtt
+            # The first refuses: the second at once (no backoff within a round).
+            await eventually(lambda: mqtt.connected and mqtt.server == address[b.port], within_s=10)
+            assert mqtt.servers == tuple(address[x.port] for x in (a, b, c))
+            assert mqtt.switches == 1
+            await eventually(lambda: len(on_b.on(STATE)) >= 3, within_s=10)
+            b.stop()
+            await eventually(lambda: mqtt.connected and mqtt.server == address[c.port], within_s=10)
+            await eventually(lambda: len(on_c.on(STATE)) >= 3, within_s=10)
+            a.start()
+            async with recording(a.port, "gw/#", name="on-a") as on_a:
+                # Ten seconds on the third, then home to the first.
+                await eventually(
+                    lambda: mqtt.connected and mqtt.server == address[a.port], within_s=25
+                )
+                assert mqtt.switches == 3
+                await eventually(lambda: len(on_a.on(STATE)) >= 3, within_s=10)
+                # The third was told the gateway left it; the first has it online.
+                assert on_c.on("gw/status")[-1] == "offline"
+                assert on_a.on("gw/status")[-1] == "online"
+                assert json.loads(on_a.on("gw/owner")[-1])["client_id"]
+                # What the second took before it stopped reaches its recorder once it is
+                # back (its persistence kept the recorder's session).
+                b.start()
+                await eventually(lambda: not gaps(seqs(on_a, on_b, on_c)), within_s=15)
+            numbers = seqs(on_a, on_b, on_c)
+            assert numbers[0] == 1, numbers[:5]
+            assert len(numbers) >= 9
+            # In order on each broker (a repeat allowed, QoS 1: one in flight at a switch).
+            for recorder in (on_a, on_b, on_c):
+                got = [json.loads(p)["seq"] for p in recorder.on(STATE)]
+                assert got == sorted(got), got
+    finally:
+        for x in (a, b, c):
+            x.stop()
+
+
+@pytest.mark.line
+@pytest.mark.broker
+@pytest.mark.parametrize("client_ids", ["same", "own"])
+async def test_a_copied_config_stands_down_and_the_first_gateway_publishes_on(
+    tmp_path: Path, broker: Broker, client_ids: str
+) -> None:
+    """A copied config: one base topic, the same client id (sessions taken over) or not."""
+    first_dir, second_dir = tmp_path / "first", tmp_path / "second"
+    first_dir.mkdir()
+    second_dir.mkdir()
+    first_text = config(first_dir, [broker], extra=", client_id: cab-1")
+    second_id = "cab-1" if client_ids == "same" else "cab-2"
+    second_text = config(second_dir, [broker], extra=f", client_id: {second_id}")
+    async with (
+        simulated(first_dir),
+        simulated(second_dir),
+        recording(broker.port, "gw/#", name="watcher") as seen,
+        gateway(first_text) as first,
+    ):
+        await eventually(lambda: first.mqtt.connected, within_s=10)
+        await seen.wait_for("gw/owner")
+        holder = json.loads(seen.on("gw/owner")[-1])["start_id"]
+        loop = asyncio.get_running_loop()
+        async with gateway(second_text) as second:
+            started = loop.time()
+            await eventually(lambda: second.mqtt.identity_conflict is not None, within_s=60)
+            stood_down_s = loop.time() - started
+            conflict = second.mqtt.identity_conflict or ""
+            assert "cab-1" in conflict  # it names the holder
+            assert "mqtt.base_topic" in conflict  # and what to change
+            assert second.mqtt.healthy is False
+            # The first is connected and publishing, and holds the marker.
+            await eventually(lambda: first.mqtt.connected, within_s=10)
+            count = len(seen.on(STATE))
+            await eventually(lambda: len(seen.on(STATE)) >= count + 3, within_s=10)
+            assert first.mqtt.identity_conflict is None
+            assert first.mqtt.healthy is True
+            assert second.mqtt.connected is False
+            await eventually(
+                lambda: json.loads(seen.on("gw/owner")[-1])["start_id"] == holder, within_s=10
+            )
+            assert seen.on("gw/status")[-1] == "online"
+    print(f"stood down after {stood_down_s:.2f} s ({client_ids} client id)")  # noqa: T201
+    assert stood_down_s < 60
