@@ -27,18 +27,15 @@ import socket
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Any
 
-import typer
 from rich.console import Console, Group
 from rich.markup import escape
 from rich.table import Table
 
 from gateway.app import run
-from gateway.cli.device import fail
-from gateway.cli.heap import return_large_blocks
 from gateway.config import parse_config
-from gateway.errors import ConfigError, GatewayError
+from gateway.errors import ConfigError
 from gateway.line.samples import Quality
 from gateway.publish.console import ConsoleSink, format_sample
 from gateway.publish.state import GatewayState
@@ -438,50 +435,3 @@ async def run_demo(
                 await gateway
         finally:
             await simulator.close()
-
-
-def demo(
-    mqtt_port: Annotated[
-        int, typer.Option(help="MQTT port: a broker there, else an embedded one.")
-    ] = 1883,
-    metrics_port: Annotated[int, typer.Option(help="Port of /metrics and /healthz.")] = 9108,
-    web_port: Annotated[int, typer.Option(help="Port of the web page.")] = 8080,
-    modbus_port: Annotated[
-        int,
-        typer.Option(help="Modbus TCP port for other masters (the shared bus); 0: off."),
-    ] = 1502,
-    bind: Annotated[
-        str,
-        typer.Option(
-            help="Address /metrics, the web page and the embedded MQTT broker listen on; "
-            "0.0.0.0 for every interface (a container with published ports)."
-        ),
-    ] = LOCAL_BIND,
-    live: Annotated[
-        bool,
-        typer.Option(
-            "--live/--no-live",
-            help="The live table (on a terminal); without it, one line per poll cycle.",
-        ),
-    ] = True,
-) -> None:
-    """Try it all with no hardware: simulated sensors, MQTT, metrics, the web page, a live table."""
-    try:
-        return_large_blocks()
-        asyncio.run(
-            run_demo(
-                mqtt_port=mqtt_port,
-                metrics_port=metrics_port,
-                web_port=web_port,
-                modbus_port=modbus_port,
-                bind=bind,
-                live=live,
-            )
-        )
-    except GatewayError as exc:
-        raise fail(exc) from exc
-
-
-def register(app: typer.Typer) -> None:
-    """Add ``gateway demo`` to the command line."""
-    app.command("demo")(demo)

@@ -40,7 +40,7 @@ if TYPE_CHECKING:
 # as the gateway runs. The commands of a module of their own are imported only when one
 # of them is run or listed (tests/cli/test_imports.py checks what `gateway run` imports).
 LAZY_COMMANDS: Final = {
-    "demo": "gateway.cli.demo",
+    "demo": "gateway.cli.demo_command",
     "write": "gateway.cli.write",
     "calibrate": "gateway.cli.calibrate",
     "set-clock": "gateway.cli.operations",

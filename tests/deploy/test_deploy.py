@@ -6,6 +6,10 @@ otherwise:
 
 - Prometheus: ``promtool check config``, ``check rules`` and ``test rules``
   (``deploy/prometheus/alerts_test.yml``); the Debian package ``prometheus`` ships promtool.
+  The fleet's configs (``deploy/prometheus/fleet/``): ``check config`` (``--agent`` for a
+  cabinet's agent) and ``check service-discovery``, which reads the targets files as
+  Prometheus does: every target has its ``site`` and ``cabinet``.
+  ``tests/deploy/test_fleet_metrics.py`` runs the agent into a real VictoriaMetrics.
 - systemd: ``systemd-analyze verify`` on a copy of the unit whose ``ExecStart=`` points at
   this checkout's ``gateway`` (verify refuses a unit whose executable is missing, and
   ``/usr/local/bin/gateway`` is not installed here; nothing else is changed), then
@@ -18,7 +22,11 @@ otherwise:
   each other (scrape target, data source URL, dashboard path). ``tests/deploy/test_compose.py``
   resolves the files with Docker Compose v2 and podman-compose and compares the stacks.
 - Grafana: the dashboard's PromQL is compiled by promtool (as recording rules) and every
-  metric it names is in ``docs/metrics.md``; so are the metrics of the alert rules.
+  metric it names is documented (``docs/metrics.md``, or the README for the config's
+  reloads); so are the metrics of the alert rules. Its variables are chained (cabinet,
+  gateway, bus, device), every panel follows them, and its Fleet row aggregates by cabinet.
+  That the gateway exports every metric the dashboard names is checked on a real scrape
+  (``tests/publish/prometheus/test_prometheus_names.py``).
 
 A missing tool fails its test with what to install: a skipped check would pass CI unseen.
 """
@@ -31,6 +39,7 @@ import shlex
 import shutil
 import subprocess
 import sys
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,9 +59,12 @@ ADAPTER_ID = "/dev/serial/by-id/usb-FTDI_FT232R_USB_UART_A10K1234-if00-port0"
 ADAPTER = f"{ADAPTER_ID}:{ADAPTER_ID}"
 DOCKERFILE = ROOT / "Dockerfile"
 PROMETHEUS_DIR = DEPLOY / "prometheus"
+FLEET_DIR = PROMETHEUS_DIR / "fleet"
+JOB = "rs485-gateway"  # the job of every scrape config, the alert rules and the dashboard
 UNIT = DEPLOY / "systemd" / "rs485-gateway.service"
 DASHBOARD = DEPLOY / "grafana" / "dashboards" / "gateway.json"
 METRICS_DOC = ROOT / "docs" / "metrics.md"
+README = ROOT / "README.md"
 
 VENV_BIN = Path(sys.executable).parent
 PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
@@ -96,9 +108,11 @@ _DOC_ROW = re.compile(r"^\| `(gateway_\w+)` \| (\w+) \|", re.MULTILINE)
 
 
 def documented_metrics() -> tuple[frozenset[str], frozenset[str]]:
-    """Every ``gateway_*`` name docs/metrics.md mentions, and those it lists as histograms."""
+    """Every ``gateway_*`` name docs/metrics.md or the README mentions (the config's reload
+    metrics are in the README's "Reloading the config" only), and the histograms."""
     text = METRICS_DOC.read_text(encoding="utf-8")
-    names = frozenset(re.findall(r"(?<![\w:])gateway_[a-z0-9_]+", text))
+    readme = README.read_text(encoding="utf-8")
+    names = frozenset(re.findall(r"(?<![\w:])gateway_[a-z0-9_]+", text + readme))
     histograms = frozenset(name for name, kind in _DOC_ROW.findall(text) if kind == "histogram")
     return names, histograms
 
@@ -185,6 +199,72 @@ def test_alerts_have_severity_and_summary() -> None:
         assert rule["annotations"]["summary"], rule["alert"]
 
 
+def service_discovery(config: Path) -> list[dict[str, str]]:
+    """The labels of each target of the job, as ``promtool check service-discovery`` finds
+    them in the config's targets files (and relabels them)."""
+    result = run_tool(promtool(), "check", "service-discovery", "--timeout=1s", config, JOB)
+    assert_ok(result)
+    return [target["labels"] for target in json.loads(result.stdout)]
+
+
+def test_the_fleets_central_prometheus_is_valid_and_applies_the_alert_rules() -> None:
+    result = run_tool(promtool(), "check", "config", FLEET_DIR / "prometheus.yml")
+    assert_ok(result)
+    assert "SUCCESS: 1 rule files found" in result.stdout + result.stderr
+    config = yaml.safe_load((FLEET_DIR / "prometheus.yml").read_text(encoding="utf-8"))
+    assert [(FLEET_DIR / f).resolve() for f in config["rule_files"]] == [
+        PROMETHEUS_DIR / "alerts.yml"
+    ]
+
+
+def test_a_cabinets_agent_is_valid_and_writes_to_victoria_metrics() -> None:
+    assert_ok(run_tool(promtool(), "check", "config", "--agent", FLEET_DIR / "agent.yml"))
+    config = yaml.safe_load((FLEET_DIR / "agent.yml").read_text(encoding="utf-8"))
+    assert "rule_files" not in config  # an agent evaluates none: the central store does
+    (remote,) = config["remote_write"]
+    store = urllib.parse.urlsplit(remote["url"])
+    assert store.path == "/api/v1/write"  # VictoriaMetrics' endpoint for Prometheus
+    # The Debian defaults files: the agent runs agent.yml in agent mode; the store listens
+    # where the agent writes.
+    (agent_args,) = re.findall(
+        r'^ARGS="(.*)"$',
+        (FLEET_DIR / "prometheus.default").read_text(encoding="utf-8"),
+        re.MULTILINE,
+    )
+    assert "--enable-feature=agent" in agent_args.split()
+    assert "--config.file=/etc/prometheus/agent.yml" in agent_args.split()
+    (store_args,) = re.findall(
+        r'^ARGS="(.*)"$',
+        (FLEET_DIR / "victoria-metrics.default").read_text(encoding="utf-8"),
+        re.MULTILINE,
+    )
+    assert f"-httpListenAddr=:{store.port}" in store_args.split()
+
+
+@pytest.mark.parametrize("config", ["prometheus.yml", "agent.yml"])
+def test_the_fleets_targets_carry_site_and_cabinet(config: str) -> None:
+    """Target labels from the files, as the exporter guidelines say: not the gateway's."""
+    targets = service_discovery(FLEET_DIR / config)
+    assert targets
+    for labels in targets:
+        assert labels["job"] == JOB
+        assert labels["site"], labels
+        assert labels["cabinet"], labels
+    instances = [labels["instance"] for labels in targets]
+    assert len(instances) == len(set(instances))
+
+
+def test_every_scrape_config_alert_and_the_dashboard_name_one_job() -> None:
+    jobs = set()
+    for path in (PROMETHEUS_DIR / "prometheus.yml", *FLEET_DIR.glob("*.yml")):
+        config = yaml.safe_load(path.read_text(encoding="utf-8"))
+        if isinstance(config, dict):  # the targets files are lists
+            jobs |= {job["job_name"] for job in config["scrape_configs"]}
+    named = {m for rule in rules() for m in re.findall(r'job="([^"]+)"', rule["expr"])}
+    named |= {m for q in dashboard_queries().values() for m in re.findall(r'job="([^"]+)"', q)}
+    assert jobs == named == {JOB}
+
+
 # --- Grafana -------------------------------------------------------------------------------
 
 
@@ -222,11 +302,101 @@ def test_dashboard_is_provisionable() -> None:
     ids = [panel["id"] for panel in data["panels"]]
     assert len(ids) == len(set(ids))
     variables = {variable["name"] for variable in data["templating"]["list"]}
-    assert {"datasource", "bus", "device"} <= variables
+    assert {"datasource", "cabinet", "instance", "bus", "device"} <= variables
     for panel in data["panels"]:
         if panel["type"] != "row":
             assert panel["datasource"] == {"type": "prometheus", "uid": "${datasource}"}
             assert panel["targets"], panel["title"]
+
+
+# Each variable, and the variables its query is filtered by: a chain, cabinet first.
+CHAINED = {
+    "cabinet": [],
+    "instance": ["cabinet"],
+    "bus": ["cabinet", "instance"],
+    "device": ["cabinet", "instance", "bus"],
+}
+_SELECTOR = re.compile(r"(?<![\w:$])((?:gateway_\w+|up))\{([^}]*)\}")
+
+
+def rows() -> list[tuple[str, dict[str, Any]]]:
+    """Every panel with the title of the row it is in (panels sorted as Grafana lays them)."""
+    row = ""
+    result = []
+    for panel in sorted(
+        dashboard()["panels"], key=lambda p: (p["gridPos"]["y"], p["gridPos"]["x"])
+    ):
+        if panel["type"] == "row":
+            row = panel["title"]
+            assert not panel.get("panels"), f"row {row}: collapsed rows hide panels from the checks"
+        else:
+            result.append((row, panel))
+    return result
+
+
+def test_dashboard_variables_are_chained_cabinet_gateway_bus_device() -> None:
+    variables = [v for v in dashboard()["templating"]["list"] if v["type"] == "query"]
+    assert [v["name"] for v in variables] == list(CHAINED)  # each after those it follows
+    for variable in variables:
+        query = variable["query"]["query"]
+        assert variable["definition"] == query
+        filters = dict(re.findall(r'(\w+)=~"\$(\w+)"', query))
+        assert filters == {name: name for name in CHAINED[variable["name"]]}, query
+        # Several or all at once: a fleet view, and what a single gateway needs.
+        assert variable["multi"], variable["name"]
+        assert variable["includeAll"], variable["name"]
+        assert variable["allValue"] == ".*", variable["name"]  # also a series without it
+    cabinet, instance = variables[0]["query"]["query"], variables[1]["query"]["query"]
+    # Gateways are listed from the scrapes, so that one that is down can be chosen too.
+    assert cabinet == f'label_values(up{{job="{JOB}"}}, cabinet)'
+    assert instance == f'label_values(up{{job="{JOB}",cabinet=~"$cabinet"}}, instance)'
+
+
+def test_dashboard_panels_follow_the_cabinet_and_the_gateway_chosen() -> None:
+    checked = 0
+    for row, panel in rows():
+        for target in panel["targets"]:
+            selectors = _SELECTOR.findall(target["expr"])
+            assert selectors, f"{panel['title']}: {target['expr']}"
+            for metric, matchers in selectors:
+                where = f"{row} / {panel['title']}: {metric}{{{matchers}}}"
+                assert 'cabinet=~"$cabinet"' in matchers, where
+                # The Fleet row sums up the cabinets chosen; the rows below show gateways.
+                assert ('instance=~"$instance"' in matchers) == (row != "Fleet"), where
+                checked += 1
+    assert checked > 50
+
+
+def test_dashboard_fleet_row_stays_usable_at_50_gateways() -> None:
+    """At the top, and one number or one row per cabinet: never a line per gateway."""
+    panels = rows()
+    fleet = [panel for row, panel in panels if row == "Fleet"]
+    assert fleet
+    assert panels[: len(fleet)] == [("Fleet", panel) for panel in fleet]  # the first row
+    used: set[str] = set()
+    for panel in fleet:
+        assert panel["type"] in {"stat", "table"}, panel["title"]
+        for target in panel["targets"]:
+            expr = target["expr"]
+            assert target["instant"], panel["title"]  # the state now, not 50 lines of history
+            assert re.match(r"(sum|count)\b", expr), expr  # aggregated ...
+            for labels in re.findall(r"\bby \(([^)]*)\)", expr):  # ... to cabinets at most
+                assert {label.strip() for label in labels.split(",")} <= {"site", "cabinet"}, expr
+            used |= {name for name, _ in _SELECTOR.findall(expr)}
+    assert used >= {
+        "up",
+        "gateway_bus_port_open",
+        "gateway_device_online",
+        "gateway_care_state",
+        "gateway_config_last_reload_successful",
+        "gateway_clock_synchronized",
+    }
+    tables = [p for p in fleet if p["type"] == "table"]
+    for table in tables:  # one row per cabinet: the queries' results merged on its labels
+        assert {"id": "merge", "options": {}} in table["transformations"], table["title"]
+    assert any(
+        'up{job="' + JOB + '"' in t["expr"] for p in fleet for t in p["targets"]
+    )  # gateways up: Prometheus' own record of each scrape
 
 
 def test_dashboard_queries_compile(tmp_path: Path) -> None:

@@ -6,8 +6,9 @@ pseudo-terminal) with ``prometheus:`` from its config, scraped as Prometheus scr
 clean by default and with every poll group, the values in base units (the simulator's nA,
 hPa, mbar and hours as amperes, pascals and seconds), only the poll groups asked for, sensor
 care still fed by the logbook Prometheus no longer carries, and with ``legacy_names`` the
-old families beside the new ones, as the sensor sent them. The config keys, the migration
-note and the deployment files are checked against what the code names.
+old families beside the new ones, as the sensor sent them; every metric the Grafana
+dashboard reads is in that scrape. The config keys, the migration note and the deployment
+files are checked against what the code names.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from gateway.publish.prometheus.naming import NUMERIC_POINT_TYPES, point_naming
 from gateway.publish.state import DeviceInfo, GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests import paths
+from tests.deploy.test_deploy import dashboard_queries, metric_names
 from tests.mqtt_broker import Broker, free_port
 from tests.publish.prometheus.test_prometheus import Exposition, fetch, scrape, scrape_until
 
@@ -380,6 +382,12 @@ def scrape_port(port: int) -> Exposition:
     return Exposition.parse(reply.body)
 
 
+def dashboard_families() -> set[str]:
+    """The families the Grafana dashboard reads (a counter by its family's name)."""
+    names = {name for query in dashboard_queries().values() for name in metric_names(query)}
+    return {name.removesuffix("_total") for name in names}
+
+
 def everything_read(metrics: Exposition) -> bool:
     """Every demo sensor's diagnostics and identity read, and care assessed."""
     cared = {labels["device"] for labels, _ in metrics.find("gateway_care_state")}
@@ -413,6 +421,9 @@ async def test_a_real_scrape_of_the_demo_plant_passes_promtool_in_base_units(
     assert promtool_check(default.text) == []
     for family in ("gateway_mqtt_connected", "gateway_feed_writes", "gateway_shared_bus_share"):
         assert family in every.families  # ... checked with the rest
+    # Every metric the dashboard reads is one a gateway exports: none invented, none renamed.
+    assert dashboard_families() - set(every.families) == set()
+    assert len(dashboard_families()) > 30
     # Values in base units, from what the simulated sensors hold in theirs (held still).
     assert held == {(d, p): v for d, points in HELD.items() for p, v in points.items()}
     assert every.value("gateway_cell_current_amperes", device="pool_chlorine") == 152.5 / 10**9
