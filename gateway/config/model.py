@@ -454,9 +454,6 @@ class DiscoveryConfig(_Model):
 
     enabled: bool = False
     prefix: Annotated[str, AfterValidator(_mqtt_topic)] = "homeassistant"
-    # When Home Assistant says it is back (``{prefix}/status`` online) every gateway of a
-    # plant would announce at the same instant: each waits a random time up to this first.
-    announce_delay_max_s: Annotated[float, Field(ge=0, le=600)] = 10.0
 
 
 class MqttConfig(_Model):
