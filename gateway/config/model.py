@@ -556,8 +556,9 @@ class SparkplugConfig(_Model):
     # before moving to the next (Eclipse Tahu's edge client waits 30 s).
     host_wait_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
     # A host's STATE online or a rebirth request reaches every edge node of a plant at
-    # once: each waits a random time up to this before its births (0: at once).
-    birth_delay_max_s: Annotated[float, Field(ge=0, le=60)] = 2.0
+    # once: each waits a random time up to this before its births. 0 (the default, one
+    # gateway): at once; a fleet sets a few seconds (README: A plant of many cabinets).
+    birth_delay_max_s: Annotated[float, Field(ge=0, le=60)] = 0.0
 
     def server_list(self, mqtt: MqttConfig) -> list[MqttServer]:
         """The servers of the edge node's session, in order (its own, else ``mqtt``'s)."""
