@@ -17,7 +17,7 @@ from gateway.cli.demo import Listen
 from gateway.cli.demo_fleet import Cabinet, cabinet_config, plan
 from gateway.config import parse_config
 from gateway.errors import ConfigError
-from tests.cli.test_demo import get_when_up
+from tests.cli.test_demo import get_when_up, read_banner
 from tests.mqtt_broker import free_port
 
 FLEET = 3
@@ -80,12 +80,7 @@ async def test_a_fleet_of_three_publishes_under_three_topics_and_stops_on_ctrl_c
     )
     children: dict[int, str | None] = {}
     try:
-        assert process.stdout is not None
-        banner = ""
-        while "Ctrl-C" not in banner:
-            line = await asyncio.wait_for(process.stdout.readline(), timeout=60)
-            assert line, f"the demo ended before its table: {banner}"
-            banner += line.decode()
+        banner = await read_banner(process, within_s=60)
         rows = ROW.findall(banner)
         assert [name for name, *_ in rows] == ["cabinet-01", "cabinet-02", "cabinet-03"]
         assert f"mosquitto_sub -h 127.0.0.1 -p {mqtt_port} -t 'demo/+/+/state' -v" in banner

@@ -34,7 +34,7 @@ import logging
 import os
 import socket
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Final
 
@@ -114,7 +114,6 @@ class IdentityGuard:
         )
         self.connections = 0  # sessions begun, this one included
         self.contested: set[str] = set()  # start ids this run defended against
-        self.defences = 0
 
     def claim(self) -> Message:
         """The claim published at every connection (retained, QoS 1)."""
@@ -142,7 +141,6 @@ class IdentityGuard:
 
     def _defend(self, other: Claim) -> list[Message]:
         self.contested.add(other.start_id)
-        self.defences += 1
         _LOGGER.error(
             "MQTT: another gateway claims base topic %r, %s; this one has held it since %s "
             "and told it to stand down: give one of them its own identity",
@@ -150,14 +148,7 @@ class IdentityGuard:
             other.who(),
             self.mine.since,
         )
-        defence = Claim(
-            start_id=self.mine.start_id,
-            client_id=self.mine.client_id,
-            host=self.mine.host,
-            pid=self.mine.pid,
-            since=self.mine.since,
-            contested_by=other.start_id,
-        )
+        defence = replace(self.mine, contested_by=other.start_id)
         return [
             Message(topic=self.topic, payload=defence.payload(), qos=1, retain=True),
             Message.text(f"{self.base}/status", "online", qos=1, retain=True),
