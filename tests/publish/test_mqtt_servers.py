@@ -62,11 +62,11 @@ async def test_the_next_server_takes_over_and_the_first_comes_back_losing_nothin
     tmp_path: Path,
 ) -> None:
     a, b, c = brokers(tmp_path, "a", "b", "c")
-    b.start()
-    c.start()
     address = {x.port: f"127.0.0.1:{x.port}" for x in (a, b, c)}
     text = config(tmp_path, [a, b, c], extra=", return_to_first_s: 10")
     try:
+        b.start()
+        c.start()
         async with (
             simulated(tmp_path),
             recording(b.port, "gw/#", name="on-b") as on_b,
