@@ -48,6 +48,7 @@ RECORD_VARIABLE: Final = "GATEWAY_TEST_NEEDS_RECORD"
 _PROGRAMS: Final[dict[str, str]] = {
     "mosquitto": "broker",
     "amqtt": "broker",
+    "nats-server": "broker",
     "socat": "line",
     "mbpoll": "line",
     # A scraper and a metrics store in real time: only ever run with the gateway on a line.

@@ -23,8 +23,9 @@ from typing import TYPE_CHECKING, Final, Protocol
 import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
 
+from gateway.publish.mqtt.client import BrokerClient
 from gateway.publish.mqtt.identity import IdentityGuard, IdentityTakenError
-from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, WINDOW
+from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, SUBSCRIBE_TIMEOUT_S, WINDOW
 from gateway.publish.mqtt.servers import ServerWalk
 
 if TYPE_CHECKING:
@@ -199,9 +200,9 @@ class Connection:
         # (the soak lost a command sent while a broker restart's backlog drained). The
         # backlog drains in the session, while commands are already taken.
         for topic_filter in self._filters():
-            await client.subscribe(topic_filter, qos=1)
+            await client.subscribe(topic_filter, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
         # The owner marker: read (a retained one arrives first), then claimed.
-        await client.subscribe(self.identity.topic, qos=1)
+        await client.subscribe(self.identity.topic, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
         await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
         claim = self.identity.claim()
         await client.publish(claim.topic, claim.payload, qos=1, retain=True)
@@ -298,7 +299,7 @@ def broker_client(
             certfile=str(server.tls.cert) if server.tls.cert else None,
             keyfile=str(server.tls.key) if server.tls.key else None,
         )
-    return aiomqtt.Client(
+    return BrokerClient(
         server.host,
         server.port,
         username=settings.username,

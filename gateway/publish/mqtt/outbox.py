@@ -40,6 +40,11 @@ BATCH: Final = 100  # messages read from disk at a time while a backlog drains
 # which it would hold messages back in a queue of its own.
 WINDOW: Final = 16
 CLIENT_TIMEOUT_S: Final = 4.0  # connect, PUBACK and disconnect: within the app's stop bound
+# A SUBACK may take longer: a clustered broker (NATS's JetStream MQTT) makes each QoS 1
+# subscription a replicated consumer, which waits for a leader while the cluster elects one
+# after a node failure. Seen up to 10 s; with 4 s the gateways gave up and walked the list
+# again and again while the cluster settled, and the late SUBACK was logged as an error.
+SUBSCRIBE_TIMEOUT_S: Final = 15.0
 
 NOT_STORED: Final = 0  # the id of a live message that is not on disk (``persist: outage``)
 

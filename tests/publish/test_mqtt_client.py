@@ -1,0 +1,110 @@
+"""The broker client after a failed or cancelled connection attempt (``publish.mqtt.client``).
+
+A slow broker (a cluster electing a leader answers CONNECT after seconds) is a TCP server
+here that reads CONNECT and answers only when told. aiomqtt 2.5.1 alone fails both tests:
+the attempt's socket stays open, and a cancelled attempt's socket logs asyncio's "Exception
+in callback" (a ``CancelledError`` traceback) when the broker answers and closes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import TYPE_CHECKING, Any, Final
+
+import aiomqtt
+import pytest
+
+from gateway.publish.mqtt.client import BrokerClient
+
+if TYPE_CHECKING:
+    from collections.abc import AsyncIterator
+
+CONNACK_ACCEPTED: Final = b"\x20\x02\x00\x00"
+WAIT_S: Final = 5.0
+
+
+class SlowBroker:
+    """Accepts, reads the CONNECT, answers CONNACK and closes when :attr:`answer` is set."""
+
+    def __init__(self) -> None:
+        self.connect_read = asyncio.Event()
+        self.answer = asyncio.Event()
+        self.client_closed = asyncio.Event()  # the client's side of the socket is closed
+
+    async def serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        await reader.read(1024)  # the CONNECT, whole in one small segment
+        self.connect_read.set()
+        answered = asyncio.ensure_future(self.answer.wait())
+        eof = asyncio.ensure_future(reader.read(1024))
+        await asyncio.wait({answered, eof}, return_when=asyncio.FIRST_COMPLETED)
+        if eof.done() and eof.result() == b"":
+            self.client_closed.set()
+        if not answered.done():
+            answered.cancel()
+        else:
+            with contextlib.suppress(ConnectionError):
+                writer.write(CONNACK_ACCEPTED)
+                await writer.drain()
+        eof.cancel()
+        writer.close()
+        with contextlib.suppress(ConnectionError):
+            await writer.wait_closed()
+
+
+@contextlib.asynccontextmanager
+async def slow_broker() -> AsyncIterator[tuple[SlowBroker, int]]:
+    broker = SlowBroker()
+    server = await asyncio.start_server(broker.serve, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        yield broker, port
+
+
+@contextlib.contextmanager
+def loop_errors() -> Any:
+    """Every context the event loop's exception handler got meanwhile."""
+    loop = asyncio.get_running_loop()
+    seen: list[dict[str, Any]] = []
+    previous = loop.get_exception_handler()
+    loop.set_exception_handler(lambda _loop, context: seen.append(context))
+    try:
+        yield seen
+    finally:
+        loop.set_exception_handler(previous)
+
+
+async def cancelled_attempt(broker: SlowBroker, port: int) -> None:
+    """Connect to ``broker`` and cancel the attempt once the broker has read CONNECT."""
+    client = BrokerClient("127.0.0.1", port, timeout=WAIT_S)
+    attempt = asyncio.create_task(client.__aenter__())
+    await asyncio.wait_for(broker.connect_read.wait(), WAIT_S)
+    attempt.cancel()  # a stop or a reload while connecting
+    with pytest.raises(asyncio.CancelledError):
+        await attempt
+
+
+async def test_a_cancelled_attempt_logs_nothing_when_the_broker_answers_late() -> None:
+    async with slow_broker() as (broker, port):
+        with loop_errors() as errors:
+            await cancelled_attempt(broker, port)
+            broker.answer.set()  # CONNACK, then the broker closes
+            for _ in range(20):  # the loop's turns in which the answer would be read
+                await asyncio.sleep(0.01)
+        assert errors == []
+
+
+async def test_a_cancelled_attempt_is_closed() -> None:
+    async with slow_broker() as (broker, port):
+        await cancelled_attempt(broker, port)
+        await asyncio.wait_for(broker.client_closed.wait(), WAIT_S)
+
+
+async def test_a_timed_out_attempt_is_closed() -> None:
+    async with slow_broker() as (broker, port):
+        with loop_errors() as errors:
+            client = BrokerClient("127.0.0.1", port, timeout=0.3)
+            with pytest.raises(aiomqtt.MqttError, match="timed out"):
+                await client.__aenter__()
+            await asyncio.wait_for(broker.client_closed.wait(), WAIT_S)
+        assert errors == []
