@@ -91,7 +91,14 @@ ABSENT = 7  # configured, but no sensor answers there
 
 
 def _config(
-    tty: Path, port: int, state_dir: Path, *, password: str | None, absent: bool, web: str
+    tty: Path,
+    port: int,
+    state_dir: Path,
+    *,
+    password: str | None,
+    absent: bool,
+    web: str,
+    mqtt: str = "{enabled: false}",
 ) -> str:
     devices = "".join(
         f"  - {{name: {name}, bus: basin, address: {address}, "
@@ -113,7 +120,7 @@ def _config(
         f"buses:\n  - {{name: basin, port: {json.dumps(str(tty))}, baudrate: 19200, parity: E,"
         " timeout: 0.3}\n"
         f"devices:\n{devices}"
-        "mqtt: {enabled: false}\n"
+        f"mqtt: {mqtt}\n"
         "prometheus: {enabled: false}\n"
         f"web: {{enabled: true, port: {port}{secret}{web}}}\n"
         f"state_dir: {json.dumps(str(state_dir))}\n"
@@ -122,18 +129,26 @@ def _config(
 
 @contextlib.asynccontextmanager
 async def plant(
-    tmp_path: Path, *, password: str | None = PASSWORD, absent: bool = False, web: str = ""
+    tmp_path: Path,
+    *,
+    password: str | None = PASSWORD,
+    absent: bool = False,
+    web: str = "",
+    mqtt: str = "{enabled: false}",
 ) -> AsyncIterator[Plant]:
     """The gateway with its page polling the simulated plant; stopped at the end.
 
     With ``absent``, one more device is configured where no sensor answers; ``web`` adds
-    keys to the ``web`` section (``", confirm_minutes: 0.1"``).
+    keys to the ``web`` section (``", confirm_minutes: 0.1"``); ``mqtt`` is the ``mqtt``
+    section (off by default).
     """
     server = SimulatorServer(build_bus(parse_settings({"devices": PLANT, "line": LINE})))
     tty = tmp_path / "ttyRS485"
     server.open_pty(tty)
     port = free_port()
-    text = _config(tty, port, tmp_path / "state", password=password, absent=absent, web=web)
+    text = _config(
+        tty, port, tmp_path / "state", password=password, absent=absent, web=web, mqtt=mqtt
+    )
     config = parse_config(text, environ={})
     state = GatewayState()
     stop = asyncio.Event()

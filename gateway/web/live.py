@@ -156,16 +156,40 @@ def overview(state: GatewayState, paused: Mapping[str, str] | None = None) -> di
     return {
         "time": _iso(datetime.now(tz=UTC)),
         "uptime_s": round(now - state.started, 1),
-        "mqtt": {
-            "enabled": state.mqtt.enabled,
-            "connected": state.mqtt.connected,
-            "queue_depth": state.mqtt.queue_depth,
-        },
+        "mqtt": _broker_view(state),
         "lines": lines,
         "devices": devices,
         "clock": state.clock.status().as_dict(),
         "care_version": care_version(state),  # the page asks /api/care again when it changes
     }
+
+
+def _broker_view(state: GatewayState) -> dict[str, object]:
+    """The MQTT connection: which server of the list, how often it moved, a stand-down.
+
+    With one server the page says only connected or not; with a list it names the server
+    in use and its place, as ``/healthz`` and ``gateway_mqtt_server`` do.
+    """
+    mqtt = state.mqtt
+    view: dict[str, object] = {
+        "enabled": mqtt.enabled,
+        "connected": mqtt.connected,
+        "queue_depth": mqtt.queue_depth,
+        "server": mqtt.server,
+        "servers": len(mqtt.servers),
+        "position": mqtt.servers.index(mqtt.server) + 1 if mqtt.server in mqtt.servers else 0,
+        "switches": mqtt.switches,
+        "identity_conflict": mqtt.identity_conflict,
+    }
+    sparkplug = state.sparkplug
+    if sparkplug.enabled:
+        view["sparkplug"] = {
+            "connected": sparkplug.connected,
+            "host_online": sparkplug.host_online,
+            "server": sparkplug.server,
+            "switches": sparkplug.switches,
+        }
+    return view
 
 
 def register_map(

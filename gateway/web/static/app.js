@@ -431,13 +431,31 @@ function healthPage() {
           el("tbody", {}, rows),
         ),
       ),
-      el("p", { class: "meta", text: `MQTT: ${state.mqtt.enabled ? (state.mqtt.connected ? "connected" : "not connected") : "off"} · queue ${state.mqtt.queue_depth}` }),
+      el("p", { class: "meta", "data-broker": "mqtt", text: brokerLine(state.mqtt) }),
+      ...(state.mqtt.sparkplug ? [el("p", { class: "meta", "data-broker": "sparkplug", text: sparkplugLine(state.mqtt.sparkplug) })] : []),
+      ...(state.mqtt.identity_conflict ? [el("p", { class: "error", role: "alert", text: `MQTT stood down: ${state.mqtt.identity_conflict}` })] : []),
       ...clockNote(state.clock),
     );
   };
   show(el("h1", { text: "Bus health" }), body);
   onState = render;
   if (latest) render(latest);
+}
+
+function plural(count, word) {
+  return `${count} ${word}${count === 1 ? "" : "es"}`;
+}
+
+// The broker connection in one line: with a list of servers, which one and how often it moved.
+function brokerLine(mqtt) {
+  if (!mqtt.enabled) return "MQTT: off";
+  const where = mqtt.servers > 1 ? ` to ${mqtt.server} (${mqtt.position} of ${mqtt.servers}) · ${plural(mqtt.switches, "switch")}` : "";
+  return `MQTT: ${mqtt.connected ? "connected" : "not connected"}${where} · queue ${mqtt.queue_depth}`;
+}
+
+function sparkplugLine(sparkplug) {
+  const host = sparkplug.host_online ? "host online" : "host not online";
+  return `Sparkplug: ${sparkplug.connected ? "connected" : "not connected"} to ${sparkplug.server} · ${host} · ${plural(sparkplug.switches, "switch")}`;
 }
 
 // --- one device -------------------------------------------------------------------------------
