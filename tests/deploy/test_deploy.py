@@ -22,8 +22,7 @@ otherwise:
   each other (scrape target, data source URL, dashboard path). ``tests/deploy/test_compose.py``
   resolves the files with Docker Compose v2 and podman-compose and compares the stacks.
 - Grafana: the dashboard's PromQL is compiled by promtool (as recording rules) and every
-  metric it names is documented (``docs/metrics.md``, or the README for the config's
-  reloads); so are the metrics of the alert rules. Its variables are chained (cabinet,
+  metric it names is documented in ``docs/metrics.md``; so are the metrics of the alert rules. Its variables are chained (cabinet,
   gateway, bus, device), every panel follows them, and its Fleet row aggregates by cabinet.
   That the gateway exports every metric the dashboard names is checked on a real scrape
   (``tests/publish/prometheus/test_prometheus_names.py``).
@@ -64,7 +63,6 @@ JOB = "rs485-gateway"  # the job of every scrape config, the alert rules and the
 UNIT = DEPLOY / "systemd" / "rs485-gateway.service"
 DASHBOARD = DEPLOY / "grafana" / "dashboards" / "gateway.json"
 METRICS_DOC = ROOT / "docs" / "metrics.md"
-README = ROOT / "README.md"
 
 VENV_BIN = Path(sys.executable).parent
 PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
@@ -108,11 +106,9 @@ _DOC_ROW = re.compile(r"^\| `(gateway_\w+)` \| (\w+) \|", re.MULTILINE)
 
 
 def documented_metrics() -> tuple[frozenset[str], frozenset[str]]:
-    """Every ``gateway_*`` name docs/metrics.md or the README mentions (the config's reload
-    metrics are in the README's "Reloading the config" only), and the histograms."""
+    """Every ``gateway_*`` name docs/metrics.md mentions, and the histograms."""
     text = METRICS_DOC.read_text(encoding="utf-8")
-    readme = README.read_text(encoding="utf-8")
-    names = frozenset(re.findall(r"(?<![\w:])gateway_[a-z0-9_]+", text + readme))
+    names = frozenset(re.findall(r"(?<![\w:])gateway_[a-z0-9_]+", text))
     histograms = frozenset(name for name, kind in _DOC_ROW.findall(text) if kind == "histogram")
     return names, histograms
 
