@@ -220,11 +220,20 @@ def simulate_process(directory: Path, config: str) -> Iterator[tuple[Path, Path]
         stderr=subprocess.PIPE,
         text=True,
     ) as simulator:
-        assert simulator.stdout is not None
-        assert simulator.stdout.readline().startswith("simulating")
-        yield port, stats
-        simulator.send_signal(signal.SIGINT)
-        _, stderr = simulator.communicate(timeout=10)
+        stderr = ""
+        try:
+            assert simulator.stdout is not None
+            assert simulator.stdout.readline().startswith("simulating")
+            yield port, stats
+        finally:
+            # Stopped whatever happened in the test: Popen's own exit would wait for a
+            # simulator that runs until it is told to stop.
+            simulator.send_signal(signal.SIGINT)
+            try:
+                _, stderr = simulator.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                simulator.kill()
+                _, stderr = simulator.communicate(timeout=10)
     assert not reported_in(stderr), stderr
 
 
