@@ -450,10 +450,30 @@ class FeedConfig(_Model):
 
 
 class DiscoveryConfig(_Model):
-    """Home Assistant MQTT discovery (opt-in)."""
+    """Home Assistant MQTT discovery (opt-in).
+
+    Example::
+
+        DiscoveryConfig(enabled=True, prefix="homeassistant", announce_delay_max_s=5.0)
+    """
 
     enabled: bool = False
     prefix: Annotated[str, AfterValidator(_mqtt_topic)] = "homeassistant"
+    announce_delay_max_s: Annotated[
+        float,
+        Field(
+            ge=0,
+            le=300,
+            description=(
+                "Home Assistant's restart (`online` on `{prefix}/status`) reaches every gateway "
+                "of a plant at once; each sends its discovery configs again after a random wait "
+                "of up to this many seconds, so that tens of gateways do not answer in the same "
+                "instant. 5 s by default: the configs are retained, so Home Assistant has its "
+                "entities at its start and the re-announce only repairs what a broker lost; "
+                "nothing else waits for it, and 5 s spreads tens of gateways apart. 0: at once."
+            ),
+        ),
+    ] = 5.0
 
 
 class MqttConfig(_Model):

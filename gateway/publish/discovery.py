@@ -13,6 +13,10 @@ all of them unavailable unless both ``{base}/status`` and ``{base}/{device}/avai
 say ``online``. Config topics are ``{prefix}/{component}/{gateway_id}_{device}/{object}/config``;
 payloads are compact JSON with sorted keys, so identical inputs give identical bytes and the
 sink can skip republishing what Home Assistant already has.
+
+Home Assistant says ``online`` on ``{prefix}/status`` when it (re)starts (its birth message);
+:class:`ReannounceGate` decides which of those messages ask for the configs again, and how
+long to wait first (a random time, so that a plant's gateways do not all answer at once).
 """
 
 from __future__ import annotations
@@ -30,11 +34,16 @@ from gateway.publish.message import Message
 from gateway.wire.codec import BITFIELD_TYPES, NUMERIC_TYPES
 
 if TYPE_CHECKING:
+    import random
     from collections.abc import Iterable, Mapping
 
     from gateway.profiles.model import Point, Profile
 
 DEFAULT_PREFIX: Final = "homeassistant"
+# Home Assistant's birth message: ``online`` on ``{prefix}/status``, QoS 0, not retained by
+# default (Home Assistant's MQTT documentation, "Birth and last will messages"); its last
+# will says ``offline`` there.
+HA_ONLINE: Final = b"online"
 ORIGIN: Final = MappingProxyType({"name": "rs485-sensor-gateway", "sw_version": __version__})
 
 # Entity category of the sensors each poll group yields; groups not listed yield none.
@@ -290,6 +299,76 @@ def removal_messages(
     ]
 
 
+def status_topic(prefix: str = DEFAULT_PREFIX) -> str:
+    """Where Home Assistant says ``online`` and ``offline``: ``{prefix}/status``."""
+    return f"{prefix}/status"
+
+
+@dataclass(frozen=True, slots=True)
+class StatusVerdict:
+    """What one message on ``{prefix}/status`` asks of the gateway."""
+
+    delay_s: float | None  # the wait before the configs go again; None: nothing to send
+    reason: str  # why, in a few words, for the log
+
+
+class ReannounceGate:
+    """Which of Home Assistant's status messages ask for the discovery again, and when.
+
+    Pure: the random wait is drawn from ``rng``, given, so that a test can seed it; the
+    listener that owns the gate does the waiting. At most one re-announce waits at a time:
+    every gateway of a plant hears the same ``online``, and a second one while a wait runs
+    (Home Assistant restarted twice, or two of them on one broker) is answered by the wait
+    already under way, which sends every config anyway.
+
+    Only a live ``online`` counts. A *retained* one is an old birth the broker replays when
+    the gateway (re)subscribes, not a restart: answering it would send every config again
+    at each reconnect, from every gateway at once after a broker restart, for nothing, since
+    the configs are retained and the gateway does not forget them across a reconnect. A
+    birth that Home Assistant publishes retained still reaches a gateway already subscribed
+    as a live message (the broker clears the flag on delivery to an existing subscription:
+    MQTT 3.1.1, 3.3.1.3), so it counts like any other. ``offline`` (Home Assistant's last
+    will) asks for nothing: the configs wait on the broker for its return.
+    """
+
+    def __init__(self, rng: random.Random) -> None:
+        """Draw the waits from ``rng``."""
+        self._rng = rng
+        self._waiting = False
+
+    @property
+    def waiting(self) -> bool:
+        """Whether a re-announce is waiting (between :meth:`on_status` and :meth:`done`)."""
+        return self._waiting
+
+    def on_status(self, payload: bytes, *, retained: bool, delay_max_s: float) -> StatusVerdict:
+        """Judge one status message; a delay (uniform in [0, ``delay_max_s``]) starts a wait.
+
+        Example::
+
+            gate = ReannounceGate(random.Random(1))
+            gate.on_status(b"online", retained=False, delay_max_s=5.0).delay_s  # 0.67
+            gate.on_status(b"online", retained=False, delay_max_s=5.0).delay_s  # None
+        """
+        if payload != HA_ONLINE:
+            return StatusVerdict(None, f"{_shown(payload)}, not online")
+        if retained:
+            return StatusVerdict(None, "retained: an old birth replayed at subscribing")
+        if self._waiting:
+            return StatusVerdict(None, "a re-announce already waits")
+        self._waiting = True
+        return StatusVerdict(self._rng.uniform(0.0, delay_max_s), "Home Assistant (re)started")
+
+    def done(self) -> None:
+        """The wait is over (sent, or cancelled): the next ``online`` starts another."""
+        self._waiting = False
+
+
+def _shown(payload: bytes) -> str:
+    """A status payload for the log, never more than a line."""
+    return repr(payload[:32].decode(errors="replace"))
+
+
 def is_problem(flag: str) -> bool:
     """Whether a status bit's name reads like a fault or a warning (``cap_missing``: yes)."""
     padded = f"_{flag}_"
@@ -395,10 +474,14 @@ def _config_topic(prefix: str, entity: _Entity, node: str) -> str:
 __all__ = [
     "CARE_TOPIC_SUFFIX",
     "DEFAULT_PREFIX",
+    "HA_ONLINE",
     "ORIGIN",
+    "ReannounceGate",
+    "StatusVerdict",
     "care_discovery_messages",
     "discovery_messages",
     "entity_name",
     "is_problem",
     "removal_messages",
+    "status_topic",
 ]

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from tests.mqtt_broker import Broker, Recorder, recording
+from tests.nats_cluster import retained_on
 from tests.publish.test_mqtt import gateway, simulated
 from tests.waiting import eventually
 
@@ -154,3 +155,58 @@ async def test_a_copied_config_stands_down_and_the_first_gateway_publishes_on(
             assert seen.on("gw/status")[-1] == "online"
     print(f"stood down after {stood_down_s:.2f} s ({client_ids} client id)")  # noqa: T201
     assert stood_down_s < 60
+
+
+@pytest.mark.line
+@pytest.mark.broker
+async def test_the_next_server_gets_the_retained_discovery_availability_and_values(
+    tmp_path: Path,
+) -> None:
+    """Separate servers share no retained messages: after a switch the gateway sends its
+    discovery configs and availability again at once, and every value at the next cycle,
+    even one published on change only (the simulator's values do not change)."""
+    a, b = brokers(tmp_path, "a", "b")
+    listed = ", ".join(f"{{host: 127.0.0.1, port: {x.port}}}" for x in (a, b))
+    text = (
+        f"buses:\n  - {{name: line1, port: {tmp_path / 'ttySIM'}}}\n"
+        "devices:\n"
+        "  - {name: basin, bus: line1, address: 10, profile: reiss-m0c, poll_interval: 0.3,"
+        " publish: {mode: on_change}}\n"
+        f"mqtt: {{servers: [{listed}], base_topic: gw, reconnect_max_s: 1,"
+        " return_to_first_s: null, discovery: {enabled: true}}\n"
+        "prometheus: {enabled: false}\n"
+        f"state_dir: {tmp_path / 'state'}\n"
+    )
+    try:
+        a.start()
+        b.start()
+        async with (
+            simulated(tmp_path),
+            recording(a.port, "#", name="on-a") as seen_a,
+            recording(b.port, "#", name="on-b") as seen_b,
+            gateway(text) as state,
+        ):
+            mqtt = state.mqtt
+            await eventually(
+                lambda: mqtt.connected and mqtt.server.endswith(f":{a.port}"), within_s=10
+            )
+            values = {"gw/basin/availability", "gw/basin/concentration"}
+            await eventually(lambda: all(seen_a.on(t) for t in values), within_s=10)
+            await eventually(lambda: seen_a.on("gw/basin/care"), within_s=10)  # care's configs too
+            configs = {m.topic for m in seen_a.messages if m.topic.startswith("homeassistant/")}
+            assert len(configs) >= 3, configs  # the device's entities and its care's
+            on_a = await retained_on(("127.0.0.1", a.port), ["#"], configs | values, within_s=10)
+            a.stop()
+            await eventually(
+                lambda: mqtt.connected and mqtt.server.endswith(f":{b.port}"), within_s=10
+            )
+            wanted = configs | values
+            await eventually(lambda: all(seen_b.on(t) for t in wanted), within_s=10)
+            on_b = await retained_on(("127.0.0.1", b.port), ["#"], wanted, within_s=10)
+            assert sorted(wanted - on_b.keys()) == []
+            assert on_b["gw/basin/availability"] == b"online"
+            assert on_b["gw/basin/concentration"] == on_a["gw/basin/concentration"]
+            assert all(on_b[t] == on_a[t] for t in configs)  # the same configs, byte for byte
+    finally:
+        for x in (a, b):
+            x.stop()

@@ -10,8 +10,9 @@ retained clears, discovery) in :mod:`~gateway.publish.mqtt.topics`, built withou
 messages on their way (the live queue, the disk backlog, the in-flight window) in
 :mod:`~gateway.publish.mqtt.outbox`; the session with the broker (reconnects, subscriptions,
 ``online``/``offline``, commands coming in for each :class:`Listener`) in
-:mod:`~gateway.publish.mqtt.connection`; and :class:`MqttSink`, the sink that joins them, in
-:mod:`~gateway.publish.mqtt.sink`.
+:mod:`~gateway.publish.mqtt.connection`; Home Assistant's restart answered with the discovery
+again, after a random wait, in :mod:`~gateway.publish.mqtt.reannounce`; and :class:`MqttSink`,
+the sink that joins them, in :mod:`~gateway.publish.mqtt.sink`.
 """
 
 from gateway.publish.mqtt.connection import Listener

@@ -29,6 +29,8 @@ from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, SUBSCRIBE_TIMEOUT_S, W
 from gateway.publish.mqtt.servers import ServerWalk
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from gateway.config import MqttConfig
     from gateway.config.brokers import MqttServer
     from gateway.publish.message import Message
@@ -71,8 +73,13 @@ class Connection:
         *,
         client_id: str,
         listeners: list[Listener],
+        for_a_new_server: Callable[[], list[Message]] | None = None,
     ) -> None:
-        """Connect with ``settings`` as ``client_id``; report on ``status``."""
+        """Connect with ``settings`` as ``client_id``; report on ``status``.
+
+        ``for_a_new_server`` gives what is sent first on a server of the list other than the
+        one of the session before (separate servers share no retained messages).
+        """
         self.settings = settings
         self.status = status
         self.outbox = outbox
@@ -86,6 +93,8 @@ class Connection:
         status.servers = tuple(server.address for server in self.walk.servers)
         status.server = self.walk.current.address
         self.identity = IdentityGuard(self.base, client_id)
+        self._for_a_new_server = for_a_new_server
+        self._last_server: MqttServer | None = None  # of the last session that connected
 
     def _client_for(self, server: MqttServer) -> aiomqtt.Client:
         settings = self.settings
@@ -206,6 +215,9 @@ class Connection:
         await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
         claim = self.identity.claim()
         await client.publish(claim.topic, claim.payload, qos=1, retain=True)
+        if self._last_server not in (None, server) and self._for_a_new_server is not None:
+            self.outbox.enqueue(self._for_a_new_server())
+        self._last_server = server
 
     def _lost(self, exc: aiomqtt.MqttError, server: MqttServer) -> None:
         """Note the failure, loudly at the first of a streak; the outbox keeps what was unsent."""

@@ -16,16 +16,19 @@ from typing import TYPE_CHECKING
 from gateway.errors import PublishError
 from gateway.publish.mqtt.connection import Connection
 from gateway.publish.mqtt.outbox import Outbox
+from gateway.publish.mqtt.reannounce import Reannouncer
 from gateway.publish.mqtt.topics import Topics
 from gateway.publish.store import MessageStore
 
 if TYPE_CHECKING:
+    import random
     from collections.abc import Iterable, Mapping, Sequence
     from pathlib import Path
 
     from gateway.config import MqttConfig, PublishSettings
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.profiles import Profile
+    from gateway.publish.message import Message
     from gateway.publish.mqtt.connection import Listener
     from gateway.publish.state import GatewayState
 
@@ -47,6 +50,9 @@ class MqttSink:
     """Publishes samples and availability; keeps the broker connection up.
 
     ``listeners`` (commands, feed sources) may be appended to until :meth:`run` starts.
+    The sink adds one of its own: Home Assistant's restart heard, the discovery sent again
+    (:class:`~gateway.publish.mqtt.reannounce.Reannouncer`; it subscribes only while
+    discovery is on).
     """
 
     def __init__(
@@ -57,12 +63,19 @@ class MqttSink:
         state_dir: Path,
         publish: Mapping[tuple[str, str], PublishSettings] | None = None,
         listeners: Sequence[Listener] = (),
+        rng: random.Random | None = None,
     ) -> None:
-        """Check the settings that can fail at start (TLS files, the state directory)."""
+        """Check the settings that can fail at start (TLS files, the state directory).
+
+        ``rng`` draws the waits before a re-announce (seeded in tests; by default the
+        re-announcer's own).
+        """
         self.state = state
         self.state_dir = state_dir
         self.listeners = list(listeners)
         self._build(settings, publish)
+        # Reads the topics of the moment: a reload's reconfigure builds new ones.
+        self.listeners.append(Reannouncer(lambda: self.topics, rng=rng))
 
     def _build(
         self, settings: MqttConfig, publish: Mapping[tuple[str, str], PublishSettings] | None
@@ -82,8 +95,17 @@ class MqttSink:
         self.topics = topics
         self.outbox = Outbox(store, status, write_ahead=settings.persist == "always")
         self.connection = Connection(
-            settings, status, self.outbox, client_id=client_id, listeners=self.listeners
+            settings,
+            status,
+            self.outbox,
+            client_id=client_id,
+            listeners=self.listeners,
+            for_a_new_server=self._for_a_new_server,
         )
+
+    def _for_a_new_server(self) -> list[Message]:
+        # The topics of the moment: a reload's reconfigure builds new ones.
+        return self.topics.for_a_new_server()
 
     def reconfigure(
         self, settings: MqttConfig, publish: Mapping[tuple[str, str], PublishSettings]

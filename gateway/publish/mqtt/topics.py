@@ -112,7 +112,8 @@ class Topics:
     It remembers across cycles only what the contract needs to stay correct: the last value
     sent on each topic (the change and deadband modes), the status bits last sent (a bit is
     sent when it changes), the value topics already cleared for a fault (cleared once, not
-    every cycle), the devices announced to Home Assistant, and each device's document count
+    every cycle), the discovery configs each device was announced with (sent again as they
+    are when Home Assistant restarts: :meth:`announced`), and each device's document count
     (``seq``, so a subscriber sees a document it missed).
     """
 
@@ -137,7 +138,12 @@ class Topics:
         # string shared by every device of the profile, not a topic made per bit).
         self._flags: dict[str, dict[str, bool]] = {}
         self._fault_cleared: set[str] = set()
-        self._discovered: set[tuple[str, str]] = set()
+        # The discovery configs sent, by device: kept (some 1 KB an entity, 42 KB for an
+        # H10; built once anyway) so that a re-announce is the retained bytes again, not a
+        # rebuild from whatever was read since, and costs the poll loop no JSON encoding
+        # just as Home Assistant starts.
+        self._discovered: dict[tuple[str, str], list[Message]] = {}
+        self._care_announced: dict[str, list[Message]] = {}  # the care entities' configs
         self._sequence: dict[str, int] = {}  # state documents per device since the start
         # Each device's points in the document's order with their intervals, made once.
         self._layouts: dict[str, _DocumentLayout] = {}
@@ -157,8 +163,10 @@ class Topics:
         first = samples[0]
         messages.append(self._state_document(first.bus, first.device, first.time))
         if self.settings.discovery.enabled and (first.bus, first.device) not in self._discovered:
-            self._discovered.add((first.bus, first.device))
-            messages.extend(self._discovery(first.bus, first.device))
+            announced = self._discovered[first.bus, first.device] = self._discovery(
+                first.bus, first.device
+            )
+            messages.extend(announced)
         self._care(first.bus, first.device, messages)
         return messages
 
@@ -187,20 +195,49 @@ class Topics:
         )
         if first and self.settings.discovery.enabled:
             mine = self.state.device_samples(bus, device)
-            messages.extend(
-                care_discovery_messages(
-                    prefix=self.settings.discovery.prefix,
-                    base_topic=self.base,
-                    gateway_id=self.client_id,
-                    device=device,
-                    profile=get_profile(report.profile),
-                    identity={
-                        p: s.value for p, s in mine.items() if s.group == "identity" and s.good
-                    },
-                    slope=report.slope_limit is not None,
-                    qos=self.settings.qos,
-                )
+            announced = self._care_announced[device] = care_discovery_messages(
+                prefix=self.settings.discovery.prefix,
+                base_topic=self.base,
+                gateway_id=self.client_id,
+                device=device,
+                profile=get_profile(report.profile),
+                identity={p: s.value for p, s in mine.items() if s.group == "identity" and s.good},
+                slope=report.slope_limit is not None,
+                qos=self.settings.qos,
             )
+            messages.extend(announced)
+
+    def announced(self) -> list[Message]:
+        """Every discovery config announced and still standing, as it was sent (retained).
+
+        What Home Assistant is sent again when it restarts: the devices' entities, then the
+        care entities. A device a reload changed is left out until its next cycle announces
+        it anew; one a reload removed, for good.
+        """
+        entities = [message for sent in self._discovered.values() for message in sent]
+        return entities + [message for sent in self._care_announced.values() for message in sent]
+
+    def for_a_new_server(self) -> list[Message]:
+        """What a server without this gateway's retained messages needs first.
+
+        That is, after a switch to another server of ``mqtt.servers``: the discovery
+        configs and each device's availability, at once. Separate servers (not a cluster)
+        share no retained messages: Home Assistant and every new subscriber there would
+        otherwise lack the entities, and a value published on change only (or a status
+        bit) until it changed. So the memory of what was sent is dropped: at each device's
+        next cycle every value and status bit goes again, as at the start.
+        """
+        self._last.clear()
+        for sent in self._flags.values():
+            sent.clear()
+        availability = [
+            self._message(
+                f"{info.name}/availability", "online" if info.online else "offline", retain=True
+            )
+            for info in list(self.state.devices.values())
+            if info.online is not None
+        ]
+        return availability + self.announced()
 
     def set_publish(self, publish: Mapping[tuple[str, str], PublishSettings]) -> None:
         """The publish settings per ``(device, point)`` after a reload."""
@@ -218,7 +255,9 @@ class Topics:
         clear = [f"{self.base}/{device}/{point}" for point in dropped]
         if dropped and (bus, device) in self._discovered:
             clear += self._entity_topics(device, profile, dropped)
-        self._discovered = {known for known in self._discovered if known[1] != device}
+        self._discovered = {
+            known: sent for known, sent in self._discovered.items() if known[1] != device
+        }
         self._layouts.pop(device, None)
         for topic in clear:
             self._last.pop(topic, None)
@@ -266,8 +305,9 @@ class Topics:
                 slope=True,
             )
             clear += [message.topic for message in announced]
-        self._discovered.discard((bus, device))
+        self._discovered.pop((bus, device), None)
         self._care_sent.pop(device, None)
+        self._care_announced.pop(device, None)
         self._sequence.pop(device, None)
         self._layouts.pop(device, None)
         prefix = f"{self.base}/{device}/"
