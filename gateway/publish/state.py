@@ -63,6 +63,9 @@ class MqttStatus:
     # Another gateway holds this identity (base topic, client id): this one stood down
     # and publishes nothing until its config is fixed (publish/mqtt/identity).
     identity_conflict: str | None = None
+    # Monotonic time this connection published its owner claim; None while not connected.
+    # The Sparkplug session connects once a claim has stood a while (sparkplug/identity).
+    identity_claimed_at: float | None = None
 
     @property
     def healthy(self) -> bool:
@@ -185,6 +188,9 @@ class SparkplugStatus:
     server: str = ""  # host:port of the server in use, or tried last
     servers: tuple[str, ...] = ()  # the list, in order
     switches: int = 0  # moves to another server of the list since the start
+    # The gateway's MQTT identity is another gateway's: the session stood down and
+    # publishes nothing until a reload (sparkplug/identity).
+    identity_conflict: str | None = None
 
 
 @dataclass(slots=True)

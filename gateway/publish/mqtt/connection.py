@@ -18,6 +18,7 @@ import contextlib
 import logging
 import random
 import socket
+import time
 from typing import TYPE_CHECKING, Final, Protocol
 
 import aiomqtt
@@ -95,6 +96,10 @@ class Connection:
         self.identity = IdentityGuard(self.base, client_id)
         self._for_a_new_server = for_a_new_server
         self._last_server: MqttServer | None = None  # of the last session that connected
+        # A new claim (a start, or a reload that rebuilt the connection): a stand-down of
+        # the one before is judged anew.
+        status.identity_conflict = None
+        status.identity_claimed_at = None
 
     def _client_for(self, server: MqttServer) -> aiomqtt.Client:
         settings = self.settings
@@ -130,6 +135,8 @@ class Connection:
                         except asyncio.CancelledError:
                             await self._say_offline(client)
                             raise
+                        finally:
+                            self.status.identity_claimed_at = None
                 except aiomqtt.MqttError as exc:
                     self._lost(exc, server)
                 except IdentityTakenError as taken:
@@ -218,6 +225,7 @@ class Connection:
         if self._last_server not in (None, server) and self._for_a_new_server is not None:
             self.outbox.enqueue(self._for_a_new_server())
         self._last_server = server
+        self.status.identity_claimed_at = time.monotonic()
 
     def _lost(self, exc: aiomqtt.MqttError, server: MqttServer) -> None:
         """Note the failure, loudly at the first of a streak; the outbox keeps what was unsent."""
@@ -246,10 +254,15 @@ class Connection:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self.outbox.send_forever(client))
                 group.create_task(self._receive_forever(client))
-        except* IdentityTakenError as taken:
-            raise taken.exceptions[0] from None
-        except* aiomqtt.MqttError as failed:
-            raise failed.exceptions[0] from None  # the reconnect loop handles one error
+        except* (IdentityTakenError, aiomqtt.MqttError) as ended:
+            # One handler for both: a stand-down as the connection drops (seen) made two
+            # handlers raise one each, which left as a group that ended the task. The
+            # reconnect loop handles one error, the stand-down first.
+            first = next(
+                (e for e in ended.exceptions if isinstance(e, IdentityTakenError)),
+                ended.exceptions[0],
+            )
+            raise first from None
 
     def _filters(self) -> list[str]:
         """The listeners' topic filters, each once."""

@@ -210,6 +210,7 @@ class Outbox:
         self.store.remove(done)
         self.status.published += len(done)
         self.update_status()
+        _cancelled_meanwhile()
 
     def _retire(self, window: _Window, disconnected: asyncio.Future[None]) -> None:
         """The acknowledged head of the window leaves it, the live queue and the disk, in order."""
@@ -288,6 +289,21 @@ def _why_ended(disconnected: asyncio.Future[None]) -> BaseException | None:
 
 async def _send(client: aiomqtt.Client, message: Message) -> None:
     await client.publish(message.topic, message.payload, qos=message.qos, retain=message.retain)
+
+
+def _cancelled_meanwhile() -> None:
+    """Re-raise a cancellation that a publish of the backlog swallowed.
+
+    Cancelling the sender while it awaits a publish's task cancels that task, and aiomqtt's
+    publish (``asyncio.wait_for`` on Python 3.11) may return its result rather than the
+    cancellation when both arrive together: the sender then went on, sending the rest of
+    the backlog and live messages, while its session waited for it to end. Seen when a
+    gateway stood down (identity taken) as its backlog drained: it published on for a
+    minute under the other gateway's base topic. The task still counts the request.
+    """
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
 
 
 def _succeeded(task: asyncio.Task[None]) -> bool:

@@ -186,6 +186,8 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         reasons.append(
             f"mqtt: not connected and the queue is full ({mqtt.queue_depth}/{mqtt.queue_max}){why}"
         )
+    if snapshot.sparkplug.identity_conflict is not None:
+        reasons.append(f"sparkplug: {snapshot.sparkplug.identity_conflict}")
     storage_reasons, storage = storage_health(snapshot)
     reasons.extend(storage_reasons)
     body: dict[str, object] = {
@@ -234,6 +236,7 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
             "server": sparkplug.server,
             "servers": list(sparkplug.servers),
             "switches": sparkplug.switches,
+            "identity_conflict": sparkplug.identity_conflict,
         }
     return not reasons, body
 

@@ -22,9 +22,16 @@ a random time up to ``sparkplug.birth_delay_max_s`` before its births, sending n
 meanwhile.
 
 The host's STATE is judged by its timestamp (Sparkplug 3.0,
-``tck-id-operational-behavior-edge-node-termination-host-offline-timestamp``): one older
-than the STATE acted on last is ignored, so a stale retained will of the host (after its
-restart, or of the other host of a redundant pair) does not end a session the host is in.
+``tck-id-operational-behavior-edge-node-termination-host-offline-timestamp``) against the
+one acted on last on the same server, as a host keeps one series per server
+(``...-host-application-multi-server-timestamp``): an older one is ignored, so a stale
+retained will of the host (after its restart, or of the other host of a redundant pair)
+does not end a session the host is in, and its online STATE on a server it joined long
+ago still counts after a newer will on another.
+
+It speaks under the gateway's identity once the plain connection's owner claim has
+stood, and stands down with it (a copied config) until a reload
+(:mod:`~gateway.publish.sparkplug.identity` says why, and when an NDEATH is sent).
 
 Messages are published with QoS 0 and never retained (Sparkplug 3.0, 7.1); the will and
 the NDEATH with QoS 1.
@@ -45,9 +52,11 @@ import aiomqtt
 
 from gateway.errors import CommandRejectedError
 from gateway.publish.mqtt.connection import broker_client
+from gateway.publish.mqtt.outbox import SUBSCRIBE_TIMEOUT_S
 from gateway.publish.mqtt.servers import ServerWalk
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import REBIRTH
+from gateway.publish.sparkplug.identity import IdentityConflictError
 from gateway.publish.sparkplug.reports import ndeath_payload
 from gateway.publish.state import SparkplugStatus
 
@@ -56,6 +65,7 @@ if TYPE_CHECKING:
 
     from gateway.config import MqttConfig, SparkplugConfig
     from gateway.publish.message import Message
+    from gateway.publish.sparkplug.identity import IdentityWatch
     from gateway.publish.sparkplug.topics import SparkplugTopics
     from gateway.publish.store import MessageStore
 
@@ -118,8 +128,13 @@ class SparkplugSession:
         bd_seq_path: Path,
         on_rejected: DeviceCommandCounter | None = None,
         status: SparkplugStatus | None = None,
+        identity: IdentityWatch | None = None,
     ) -> None:
-        """Connect to ``broker`` as ``client_id``; keep messages in ``store`` while away."""
+        """Connect to ``broker`` as ``client_id``; keep messages in ``store`` while away.
+
+        ``identity``: the gateway's, to connect once it is held and stand down with it
+        (None: no guard).
+        """
         self.broker = broker
         self.settings = settings
         self.topics = topics
@@ -131,12 +146,16 @@ class SparkplugSession:
         self.status = status or SparkplugStatus()
         self.status.enabled = True
         self.commands: DeviceCommands | None = None
+        self.identity = identity
         self.bd_seq = _read_bd_seq(bd_seq_path)
+        self._born = False  # births went out on the connection now up
         self.seq = 0
         self.connected = False
         self.host_online = topics.host is None
-        # The timestamp of the host's STATE acted on last (kept across sessions).
-        self.host_timestamp: int | None = None
+        # The timestamp of the host's STATE acted on last, by server (kept across
+        # sessions): a host keeps one series per server (Sparkplug 3.0,
+        # tck-id-operational-behavior-host-application-multi-server-timestamp).
+        self.host_timestamps: dict[str, int] = {}
         self._live: deque[Message] = deque()
         self._wake = asyncio.Event()
         self._rebirth = False
@@ -149,6 +168,11 @@ class SparkplugSession:
         )
         self.status.servers = tuple(server.address for server in self.walk.servers)
         self.status.server = self.walk.current.address
+
+    @property
+    def host_timestamp(self) -> int | None:
+        """The timestamp of the host's STATE acted on last on the current server."""
+        return self.host_timestamps.get(self.walk.current.address)
 
     @property
     def live(self) -> bool:
@@ -210,45 +234,85 @@ class SparkplugSession:
         """Keep the session, reconnecting on a capped jittered backoff, until cancelled.
 
         On cancellation the NDEATH is published (a clean disconnect does not fire the will).
+        The first connection waits until the gateway's identity is held; a conflict found
+        then or later stands the session down until a reload.
         """
         delay = BACKOFF_FIRST_S
-        walk = self.walk
         try:
+            if self.identity is not None:
+                await self.identity.held()
             while True:
-                bd_seq = self._next_bd_seq()
-                self.status.server = walk.current.address
-                self.status.switches = walk.switches
-                try:
-                    async with self._client(bd_seq) as client:
-                        try:
-                            await self._session(client, bd_seq)
-                        except asyncio.CancelledError:
-                            await self._say_dead(client, bd_seq)
-                            raise
-                        except HostOfflineError:
-                            await self._say_dead(client, bd_seq)
-                            delay = BACKOFF_FIRST_S
-                            if walk.several:
-                                walk.next()
-                            continue
-                        except TimeUpError:
-                            await self._say_dead(client, bd_seq)
-                            delay = BACKOFF_FIRST_S
-                            walk.first()
-                            continue
-                except aiomqtt.MqttError as exc:
-                    self._lost(exc)
-                finally:
-                    self._end_session()
-                if walk.next():  # every server failed once: wait, longer each round
+                if await self._connection(self._next_bd_seq()):
+                    delay = BACKOFF_FIRST_S
+                    continue  # the next server (or the first again) at once
+                if self.walk.next():  # every server failed once: wait, longer each round
                     await asyncio.sleep(delay * self._rng.uniform(0.8, 1.2))
                     delay = min(delay * 2, self.broker.reconnect_max_s)
                 else:
                     await asyncio.sleep(BACKOFF_FIRST_S * self._rng.uniform(0.2, 0.4))
+        except IdentityConflictError as conflict:
+            await self._stand_down(str(conflict))
         finally:
             for task in self._handling:
                 task.cancel()
             self.store.close()
+
+    async def _connection(self, bd_seq: int) -> bool:
+        """One connection to the current server; whether the next follows at once.
+
+        True after a session ended on purpose with an NDEATH (the host offline or absent:
+        the next server; time up: the first); False after a failure. A stand-down leaves
+        with a DISCONNECT (no will), after an NDEATH only if births went out, and is raised.
+        """
+        walk = self.walk
+        self.status.server = walk.current.address
+        self.status.switches = walk.switches
+        try:
+            async with self._client(bd_seq) as client:
+                try:
+                    await self._session(client, bd_seq)
+                except asyncio.CancelledError:
+                    await self._say_dead(client, bd_seq)
+                    raise
+                except HostOfflineError:
+                    await self._say_dead(client, bd_seq)
+                    if walk.several:
+                        walk.next()
+                    return True
+                except TimeUpError:
+                    _LOGGER.info(
+                        "Sparkplug: %.0f s on %s: back to the first server, %s",
+                        walk.stay_for() or 0.0,
+                        walk.current.address,
+                        walk.servers[0].address,
+                    )
+                    await self._say_dead(client, bd_seq)
+                    walk.first()
+                    return True
+                except IdentityConflictError:
+                    if self._born:
+                        await self._say_dead(client, bd_seq)
+                    raise
+        except aiomqtt.MqttError as exc:
+            self._lost(exc)
+        finally:
+            self._end_session()
+        return False
+
+    async def _stand_down(self, conflict: str) -> None:
+        """Another gateway holds this identity: publish nothing until a reload.
+
+        Data goes on to the store, within its bound, as while the host is away.
+        """
+        why = (
+            f"edge node {self.topics.group}/{self.topics.edge} stood down with the MQTT "
+            f"connection (a copied config?): {conflict}"
+        )
+        self.status.identity_conflict = why
+        self.status.last_error = why
+        self._update_status()
+        _LOGGER.error("Sparkplug: %s", why)
+        await asyncio.Event().wait()  # until a reload or a stop cancels the session
 
     def _end_session(self) -> None:
         """Unsent live messages go to the store, as history, ahead of anything newer."""
@@ -277,41 +341,40 @@ class SparkplugSession:
         else:
             _LOGGER.debug("Sparkplug: %s", reason)
 
-    async def _session(self, client: aiomqtt.Client, bd_seq: int) -> None:
+    async def _on_connect(self, client: aiomqtt.Client) -> None:
+        """Subscribe NCMD, DCMD and the primary host's STATE (before any birth)."""
         if self._failures_in_a_row:
             _LOGGER.info("Sparkplug: connected to %s again", self.walk.current.address)
         elif self.walk.several:
             _LOGGER.info("Sparkplug: connected to %s", self.walk.current.address)
         self._failures_in_a_row = 0
         self.status.last_error = None
+        self._born = False
         topics = self.topics
-        await client.subscribe(topics.ncmd, qos=1)
-        await client.subscribe(topics.dcmd_filter, qos=1)
+        await client.subscribe(topics.ncmd, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
+        await client.subscribe(topics.dcmd_filter, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
         if topics.state is not None:
-            await client.subscribe(topics.state, qos=1)
+            await client.subscribe(topics.state, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
         self.connected = True
         self._update_status()
+
+    async def _session(self, client: aiomqtt.Client, bd_seq: int) -> None:
+        await self._on_connect(client)
         try:
             async with asyncio.TaskGroup() as group:
                 group.create_task(self._send_forever(client, bd_seq))
                 group.create_task(self._receive_forever(client))
-                if self.walk.several and topics.host is not None:
+                if self.walk.several and self.topics.host is not None:
                     group.create_task(self._host_awaited(self.settings.host_wait_s))
                 stay = self.walk.stay_for()
                 if stay is not None:
                     group.create_task(_time_up(stay))
-        except* HostOfflineError as offline:
-            raise offline.exceptions[0] from None
-        except* TimeUpError:
-            _LOGGER.info(
-                "Sparkplug: %.0f s on %s: back to the first server, %s",
-                self.walk.stay_for() or 0.0,
-                self.walk.current.address,
-                self.walk.servers[0].address,
-            )
-            raise TimeUpError from None
-        except* aiomqtt.MqttError as failed:
-            raise failed.exceptions[0] from None
+                if self.identity is not None:
+                    group.create_task(self.identity.contested())
+        except* _ENDINGS as ended:
+            # One handler: two endings at once (the host's offline STATE as the connection
+            # drops) would each raise, and leave as a group that nothing catches.
+            raise _deciding(ended) from None
 
     # --- sending ---------------------------------------------------------------------
 
@@ -361,6 +424,7 @@ class SparkplugSession:
         self.seq = 0
         # Data queued before the births is older than them: the births carry its values.
         self._live.clear()
+        self._born = True
         for message in self.births.births(bd_seq, _now_ms()):
             await self._publish(client, message)
         self.status.births += 1
@@ -400,10 +464,10 @@ class SparkplugSession:
     def _host_state(self, payload: bytes, *, retained: bool = False) -> None:
         """``{"online": true|false, "timestamp": …}`` (3.0), or ``ONLINE``/``OFFLINE`` (2.2).
 
-        A 3.0 STATE older than the one acted on last is ignored; an equal one is not (a
-        host's will carries the timestamp of the birth it ends). A live (not retained)
-        online is the host coming back, seen by the whole fleet at once: the births wait
-        a random time first.
+        A 3.0 STATE older than the one acted on last on this server is ignored; an equal
+        one is not (a host's will carries the timestamp of the birth it ends). A live (not
+        retained) online is the host coming back, seen by the whole fleet at once: the
+        births wait a random time first.
         """
         text = payload.decode("utf-8", "replace").strip()
         timestamp = None
@@ -428,7 +492,7 @@ class SparkplugSession:
                     last,
                 )
                 return
-            self.host_timestamp = timestamp
+            self.host_timestamps[self.walk.current.address] = timestamp
         if online and not self.host_online:
             _LOGGER.info("Sparkplug: primary host %s is online", self.topics.host)
             if not retained:
@@ -487,6 +551,21 @@ def _node_command_metrics(payload: bytes) -> list[bool]:
             raise CommandRejectedError(f"the node has no metric {metric.label} to command")
         values.append(bool(payloads.command_value(metric, payloads.SpType.BOOLEAN)))
     return values
+
+
+# What ends a session, the one that decides most first: a stand-down, the host's STATE,
+# the time away from the first server, a failure.
+_ENDINGS: Final = (IdentityConflictError, HostOfflineError, TimeUpError, aiomqtt.MqttError)
+
+
+def _deciding(ended: BaseExceptionGroup[Exception]) -> Exception:
+    """The exception of ``ended`` (a session's task group) that decides what comes next."""
+    leaves = [e for e in ended.exceptions if not isinstance(e, BaseExceptionGroup)]
+    for kind in _ENDINGS:
+        for exc in leaves:
+            if isinstance(exc, kind):
+                return exc
+    return ended.exceptions[0]  # type: ignore[return-value]
 
 
 async def _time_up(stay_s: float) -> None:

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import FIRST_DEVICE_ALIAS, Catalogue
+from gateway.publish.sparkplug.identity import GatewayIdentity
 from gateway.publish.sparkplug.reports import Reported, Reporter
 from gateway.publish.sparkplug.session import SparkplugSession
 from gateway.publish.sparkplug.topics import SparkplugTopics
@@ -79,6 +80,8 @@ class SparkplugSink:
             bd_seq_path=state_dir / BD_SEQ_FILE,
             on_rejected=self.count_rejected,
             status=state.sparkplug if state is not None else None,
+            # One identity per gateway: the MQTT connection's owner claim decides.
+            identity=GatewayIdentity(state.mqtt) if state is not None else None,
         )
 
     # --- the sink -------------------------------------------------------------------
