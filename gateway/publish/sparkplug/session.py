@@ -176,8 +176,8 @@ class SparkplugSession:
 
     @property
     def live(self) -> bool:
-        """Whether a message handed over now goes out as it is (not stored as history)."""
-        return self.connected and self.host_online
+        """Whether a message goes out as it is: once the births are out (else: history)."""
+        return self.connected and self.host_online and self._born
 
     def enqueue(self, messages: list[Message]) -> None:
         """Live messages to the sender; otherwise DDATA to the store (births are redone)."""
