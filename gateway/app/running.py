@@ -45,7 +45,7 @@ from gateway.app.reload import (
     write_pid_file,
     write_status,
 )
-from gateway.app.tasks import stop_tasks
+from gateway.app.tasks import ended_unasked, stop_tasks
 from gateway.config import ConfigProblems, load_config
 from gateway.config.changes import ConfigChanges
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
@@ -483,9 +483,8 @@ async def run(
                 )
                 if stopping in done:
                     break
-                for task in done:
-                    if task not in {stopping, asked} and task.exception() is not None:
-                        raise task.exception()  # type: ignore[misc]
+                for task in done - {stopping, asked}:
+                    raise ended_unasked(task)
                 if asked in done:
                     if config_path is not None:
                         await gateway.reload(config_path)

@@ -12,6 +12,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from gateway.app import run
+from gateway.app.tasks import TaskEndedError
 from gateway.config import parse_config
 from gateway.errors import ConfigError
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -202,3 +203,36 @@ def scrape(port: int) -> dict[str, list[tuple[dict[str, str], float]]]:
         for sample in family.samples:
             samples.setdefault(sample.name, []).append((dict(sample.labels), float(sample.value)))
     return samples
+
+
+async def test_a_part_cancelled_from_outside_stops_the_gateway_with_its_name(
+    tmp_path: Path,
+) -> None:
+    """A part that should run until the stop ends otherwise: the gateway stops and says
+    which. (Cancelled: run() raised CancelledError out of the task's ``exception()``;
+    returned: run() waited again at once on the finished task, round and round.)"""
+    line = SimulatorServer(
+        build_bus(parse_settings({"devices": [{"profile": "reiss-m0c", "address": 10}]}))
+    )
+    port = tmp_path / "ttyA"
+    line.open_pty(port)
+    config = parse_config(
+        f"buses: [{{name: basin, port: {port}}}]\n"
+        "devices: [{name: basin_chlorine, bus: basin, address: 10, profile: reiss-m0c}]\n"
+        "mqtt: {enabled: false}\n"
+        "prometheus: {enabled: false}\n"
+        f"web: {{enabled: true, port: {free_port()}}}\n"
+        f"state_dir: {tmp_path / 'state'}\n",
+        environ={},
+    )
+    try:
+        gateway = asyncio.create_task(run(config, stop=asyncio.Event()))
+        page = await eventually(
+            lambda: next((t for t in asyncio.all_tasks() if t.get_name() == "web"), None),
+            within_s=10,
+        )
+        page.cancel()
+        with pytest.raises(TaskEndedError, match="web was cancelled while the gateway ran"):
+            await asyncio.wait_for(gateway, timeout=10)
+    finally:
+        await line.close()
