@@ -49,7 +49,7 @@ from gateway.line.samples import Quality, Sample
 from gateway.profiles import get_profile
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.prometheus import GatewayCollector
-from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 from tests.mqtt_broker import free_port
 
 if TYPE_CHECKING:

@@ -30,7 +30,7 @@ from bench.publish import mosquitto, plant_config, rss_mib, simulators
 from bench.soak import process_figures
 from gateway.app import run
 from gateway.config import parse_config
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 
 RESULTS = Path(__file__).parent / "results"
 POLL_INTERVAL_S = 1.0

@@ -42,7 +42,7 @@ from gateway.line.samples import Quality, Sample
 from gateway.profiles import PollGroup, get_profile
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.sparkplug import SparkplugSink
-from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable

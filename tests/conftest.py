@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import pytest
 
-from gateway.publish.host_clock import TRUST_VARIABLE
+from gateway.shared.host_clock import TRUST_VARIABLE
 from tests import tiers, unretrieved
 from tests.mqtt_broker import Broker
 

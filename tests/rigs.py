@@ -22,7 +22,7 @@ from gateway.line.devices import DeviceTarget
 from gateway.line.serial_line import SerialLine
 from gateway.line.worker import BusWorker
 from gateway.profiles import PollGroup, get_profile
-from gateway.publish.host_clock import TRUST_VARIABLE
+from gateway.shared.host_clock import TRUST_VARIABLE
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in

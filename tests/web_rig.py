@@ -18,7 +18,7 @@ from playwright.async_api import async_playwright
 
 from gateway.app import run
 from gateway.config import parse_config
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import free_port
 

@@ -32,9 +32,9 @@ if TYPE_CHECKING:
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
     from gateway.publish.mqtt import MqttSink
-    from gateway.publish.state import GatewayState
     from gateway.records import Record
     from gateway.records.verification import AcceptanceRule
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -28,8 +28,8 @@ from gateway.line.port_names import SystemRoots, port_name_advice
 from gateway.line.schedule import spread_phase
 from gateway.line.worker import BusWorker
 from gateway.profiles.serial_number import pinned_serial
-from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 from gateway.records.actor import Actor, Via
+from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 
 # What only an optional feature needs (MQTT and its client, Prometheus and its server, the
 # commands, the feeds, Sparkplug with protobuf, the shared bus, the web page with aiohttp)
@@ -52,10 +52,10 @@ if TYPE_CHECKING:
     from gateway.line.boundary import Line
     from gateway.line.samples import Sink
     from gateway.profiles import Profile
-    from gateway.publish.host_clock import HostClock
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.sparkplug import SparkplugSink
     from gateway.records import FeedCounts, RecordStore
+    from gateway.shared.host_clock import HostClock
     from gateway.web import LineScans, Sessions, WebServer
     from gateway.web.calibration import Calibrations
 

@@ -40,8 +40,8 @@ if TYPE_CHECKING:
     from gateway.line.samples import Sink
     from gateway.line.worker import BusWorker
     from gateway.publish.mqtt import MqttSink
-    from gateway.publish.state import GatewayState
     from gateway.records import FeedCounts, RecordStore
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 

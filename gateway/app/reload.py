@@ -5,7 +5,7 @@ A reload is asked for with SIGHUP: by ``kill -HUP``, by systemd's ``systemctl re
 finds the running gateway by the PID file it keeps in its state directory. The file is read
 and validated first, exactly as ``check-config`` does: a file with problems is not applied,
 the running config stays, the log names every problem with its key path and line, and
-:class:`~gateway.publish.state.ConfigStatus` says so (``/healthz`` and the metrics
+:class:`~gateway.shared.state.ConfigStatus` says so (``/healthz`` and the metrics
 ``gateway_config_last_reload_successful`` and ``…_success_timestamp_seconds``, the names
 Prometheus uses for its own). A valid file is applied by
 :meth:`~gateway.app.running.RunningGateway.reload`, which changes only what differs.

@@ -50,9 +50,9 @@ from gateway.config import ConfigProblems, load_config
 from gateway.config.changes import ConfigChanges
 from gateway.control.flash import LEDGER_FILE, FlashLedger, utc_today
 from gateway.errors import ConfigError, GatewayError
-from gateway.publish.host_clock import trust_from_environment
-from gateway.publish.state import GatewayState
 from gateway.records.reloads import record_reload
+from gateway.shared.host_clock import trust_from_environment
+from gateway.shared.state import GatewayState
 
 if TYPE_CHECKING:
     from collections.abc import Coroutine, Sequence

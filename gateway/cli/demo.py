@@ -38,7 +38,7 @@ from gateway.config import parse_config
 from gateway.errors import ConfigError
 from gateway.line.samples import Quality
 from gateway.publish.console import ConsoleSink, format_sample
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.wire.timing import LineFormat
 
 if TYPE_CHECKING:

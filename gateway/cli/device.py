@@ -31,8 +31,8 @@ from gateway.errors import ConfigError, GatewayError
 from gateway.line.devices import DeviceTarget
 from gateway.line.port_access import PortOptions
 from gateway.profiles import get_profile
-from gateway.publish.host_clock import HostClock
 from gateway.records import RecordStore, records_path
+from gateway.shared.host_clock import HostClock
 from gateway.wire import codec
 from gateway.wire.timing import LineFormat
 

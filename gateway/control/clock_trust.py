@@ -8,7 +8,7 @@ earlier than the last calibration's overwrites history entry 0 instead of adding
 
 So every write that reaches a date-and-time register (a writable ``datetime`` or
 ``yymmddhhmm`` point, or a view over one: the S10's ``clock_year``) is refused while the
-host clock is not synchronised (:class:`~gateway.publish.host_clock.HostClock`), whoever
+host clock is not synchronised (:class:`~gateway.shared.host_clock.HostClock`), whoever
 asks: ``set-clock``, a guided calibration (before it reads or asks anything), a
 ``…/set`` or Sparkplug DCMD or the page (:class:`~gateway.control.writes.SafeWriter`),
 another master on the shared bus. One rule for every path: the gateway cannot vouch for a
@@ -21,12 +21,12 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import CommandRejectedError
-from gateway.publish.host_clock import FIX
+from gateway.shared.host_clock import FIX
 from gateway.wire.codec import DataType
 
 if TYPE_CHECKING:
     from gateway.profiles.model import Point, Profile
-    from gateway.publish.host_clock import HostClock
+    from gateway.shared.host_clock import HostClock
 
 TIME_TYPES: Final = frozenset({DataType.DATETIME, DataType.YYMMDDHHMM})
 

@@ -42,7 +42,7 @@ if TYPE_CHECKING:
 
     from gateway.control.verification import Verifier
     from gateway.control.writes import SafeWriter
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.errors import GatewayError
 from gateway.line.samples import Quality
-from gateway.publish.state import FeedStatus
+from gateway.shared.state import FeedStatus
 from gateway.wire import codec
 
 if TYPE_CHECKING:
@@ -48,7 +48,7 @@ if TYPE_CHECKING:
     from gateway.control.writes import SafeWriter
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.publish.message import Message
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 Flash and EEPROM cells survive some 10,000 to 100,000 writes, so a setpoint written
 every poll by a careless automation wears a sensor out within weeks. Three rules guard
 against that, decided by :func:`check_flash_write` before anything is sent (the ledger's
-counts go to the metrics as :class:`~gateway.publish.state.FlashCounts`):
+counts go to the metrics as :class:`~gateway.shared.state.FlashCounts`):
 
 1. A flash-backed point is written only if the device's
    :class:`~gateway.config.FlashPolicy` allows it by name (the device's ``flash_writes``).
@@ -38,8 +38,8 @@ from typing import TYPE_CHECKING
 from gateway.control.commands import require_writable
 from gateway.errors import CommandRejectedError, ConfigError
 from gateway.profiles.model import Storage
-from gateway.publish.state import FlashCounts
-from gateway.publish.storage import (
+from gateway.shared.state import FlashCounts
+from gateway.shared.storage import (
     RETRY_S,
     StoreHealth,
     failure_cause,

@@ -47,8 +47,8 @@ from gateway.errors import (
     GatewayError,
 )
 from gateway.profiles.model import Storage
-from gateway.publish.host_clock import HostClock
 from gateway.records.model import Result, json_decoded
+from gateway.shared.host_clock import HostClock
 from gateway.wire import codec
 
 if TYPE_CHECKING:

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.errors import PublishError
 from gateway.publish.message import Message
-from gateway.publish.storage import (
+from gateway.shared.storage import (
     RETRY_S,
     StoreHealth,
     can_write,

@@ -23,8 +23,8 @@ from gateway.records.model import Entry, Kind, Result
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from gateway.publish.host_clock import ClockStatus, HostClock
     from gateway.records.store import RecordStore
+    from gateway.shared.host_clock import ClockStatus, HostClock
 
 _LOGGER = logging.getLogger(__name__)
 

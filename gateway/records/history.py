@@ -37,8 +37,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Mapping, Sequence
 
     from gateway.care.records import PastEntries, SensorEntry
-    from gateway.publish.state import GatewayState
     from gateway.records.store import RecordStore
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -284,7 +284,7 @@ def device_refs(state: GatewayState) -> Callable[[str], DeviceRef | None]:
     """A device by name as the running gateway knows it, with the serial its sensor sent.
 
     The serial is the newest good sample of the profile's serial-number point, which the
-    bus reads with the identity (and :class:`~gateway.publish.state.StateSink` records
+    bus reads with the identity (and :class:`~gateway.shared.state.StateSink` records
     before care sees the same poll); a profile that polls none is keyed on the name.
     Called from the bus tasks, on the event loop's thread that records the samples.
     """

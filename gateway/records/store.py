@@ -32,15 +32,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import RecordError
-from gateway.publish.storage import (
+from gateway.records.chain import EMPTY, Head, Row, Verdict, canonical, link, verify
+from gateway.records.model import Entry, Record
+from gateway.shared.storage import (
     RETRY_S,
     StoreHealth,
     failure_cause,
     open_database,
     takes_a_change,
 )
-from gateway.records.chain import EMPTY, Head, Row, Verdict, canonical, link, verify
-from gateway.records.model import Entry, Record
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Iterator
@@ -83,7 +83,7 @@ class Query:
 
 
 def _synchronised_now() -> bool:
-    from gateway.publish.host_clock import HostClock  # noqa: PLC0415 - the default only
+    from gateway.shared.host_clock import HostClock  # noqa: PLC0415 - the default only
 
     return HostClock().status().synchronised
 
@@ -102,7 +102,7 @@ class RecordStore:
         """Open (or, unless ``read_only``, create) the store at ``path``.
 
         ``clock_synchronised`` says whether the host clock is synchronised at each record
-        (the running gateway's :class:`~gateway.publish.host_clock.HostClock`); ``now``
+        (the running gateway's :class:`~gateway.shared.host_clock.HostClock`); ``now``
         dates them.
         """
         self.path = path

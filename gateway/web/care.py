@@ -20,7 +20,7 @@ from gateway.profiles import get_profile
 
 if TYPE_CHECKING:
     from gateway.care import CareReport
-    from gateway.publish.state import DeviceInfo, GatewayState
+    from gateway.shared.state import DeviceInfo, GatewayState
 
 NOT_READ: Final = "records not read yet"
 # What a document holds besides device, bus, profile, state and reasons: nothing known yet.

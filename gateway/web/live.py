@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     from gateway.line.samples import Sample
     from gateway.line.stats import LineStats
     from gateway.profiles import Profile
-    from gateway.publish.state import DeviceInfo, GatewayState
+    from gateway.shared.state import DeviceInfo, GatewayState
 
 # The groups of the live table: what is measured and what the sensor says of itself.
 LIVE_GROUPS: Final = frozenset({PollGroup.PROCESS.value, PollGroup.STATUS.value})

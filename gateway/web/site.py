@@ -87,8 +87,8 @@ if TYPE_CHECKING:
     from gateway.config import WebConfig
     from gateway.control.verification import Verifier
     from gateway.control.writes import SafeWriter
-    from gateway.publish.state import GatewayState
     from gateway.records import RecordStore
+    from gateway.shared.state import GatewayState
     from gateway.web.scan import LineScans
     from gateway.web.users import UserBook
 

@@ -12,7 +12,7 @@ from gateway.app.buses import Buses
 from gateway.config import parse_config
 from gateway.config.changes import ConfigChanges
 from gateway.control.flash import FlashLedger
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 
 if TYPE_CHECKING:
     from pathlib import Path

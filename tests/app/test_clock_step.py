@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from gateway.publish.host_clock import TRUST_VARIABLE
+from gateway.shared.host_clock import TRUST_VARIABLE
 from tests.mqtt_broker import free_port
 from tests.rigs import simulate_process, stats_of
 from tests.storage_rig import Subscriber, get, metric

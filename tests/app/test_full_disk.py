@@ -29,7 +29,7 @@ import paho.mqtt.client as paho
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
-from gateway.publish.storage import RETRY_S
+from gateway.shared.storage import RETRY_S
 from tests.mqtt_broker import free_port
 from tests.rigs import simulate_process, stats_of
 from tests.storage_rig import (

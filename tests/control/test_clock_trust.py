@@ -34,7 +34,7 @@ from gateway.control.operations import set_clock
 from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError
 from gateway.profiles import builtin_profiles, get_profile
-from gateway.publish.host_clock import (
+from gateway.shared.host_clock import (
     MAX_ERROR_LIMIT_US,
     STA_UNSYNC,
     TIME_ERROR,
@@ -46,7 +46,7 @@ from gateway.publish.host_clock import (
     synchronised,
     trust_from_environment,
 )
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.wire.codec import DataType
 from tests.control.shared_bus.test_shared_bus import TECLINE, _mbap, _raw
 from tests.control.shared_bus.test_shared_bus import plant as shared_plant

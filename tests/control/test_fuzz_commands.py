@@ -52,7 +52,7 @@ from gateway.control.writes import SafeWriter
 from gateway.errors import BusError, CommandRejectedError, EncodeError
 from gateway.profiles import get_profile
 from gateway.profiles.model import Storage
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.wire import codec, frames
 from gateway.wire.codec import (
     BITFIELD_TYPES,

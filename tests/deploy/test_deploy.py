@@ -48,7 +48,7 @@ import yaml
 
 from gateway.config import check_config, load_config
 from gateway.publish.prometheus import MetricsServer
-from gateway.publish.state import GatewayState, MqttStatus
+from gateway.shared.state import GatewayState, MqttStatus
 from tests import paths
 
 ROOT = paths.ROOT

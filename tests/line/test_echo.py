@@ -21,7 +21,7 @@ from gateway.config.echo import EchoMode
 from gateway.errors import BusTimeoutError, EchoMismatchError
 from gateway.line.echo import AUTO_DECISION_READS
 from gateway.line.stats import ErrorKind
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.shim import FTDI_LATENCY_S, LineShim
 from gateway.wire import frames

@@ -19,7 +19,7 @@ from gateway.line.rtu import QUIET_WAIT_FRAMES, QUIET_WAIT_MIN_S
 from gateway.line.stats import ErrorKind
 from gateway.profiles import get_profile
 from gateway.publish.prometheus import health_report
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.wire import frames
 from tests.shimmed import shimmed
 

@@ -35,7 +35,7 @@ from gateway.line.serial_line import SerialLine
 from gateway.line.stats import LineStats
 from gateway.line.usb_adapter import read_latency_timer, usb_serial_of
 from gateway.publish.prometheus import GatewayCollector, MetricsServer
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests import paths

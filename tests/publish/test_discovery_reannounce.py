@@ -26,7 +26,7 @@ from gateway.publish.discovery import ReannounceGate, status_topic
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.mqtt.reannounce import Reannouncer
 from gateway.publish.mqtt.topics import Topics
-from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 from tests.mqtt_broker import recording
 from tests.publish.prometheus.test_prometheus import sample
 from tests.publish.test_mqtt import SENSORS, gateway, simulated

@@ -20,7 +20,7 @@ from gateway.app import run
 from gateway.config import MqttConfig, parse_config
 from gateway.errors import GatewayError, PublishError
 from gateway.publish.mqtt import MqttSink
-from gateway.publish.state import DeviceInfo, GatewayState, StateSink
+from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.publish.prometheus.test_prometheus import sample

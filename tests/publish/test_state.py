@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 
 from gateway.line.samples import Quality, Sample
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 
 
 def sample(device: str, point: str, value: float | None, at: float, *, good: bool = True) -> Sample:

@@ -11,7 +11,7 @@ from datetime import UTC, datetime
 from gateway.config import MqttConfig
 from gateway.line.samples import Quality
 from gateway.publish.mqtt.topics import Topics
-from gateway.publish.state import STALE_FACTOR, STALE_MARGIN_S, DeviceInfo, GatewayState
+from gateway.shared.state import STALE_FACTOR, STALE_MARGIN_S, DeviceInfo, GatewayState
 from tests.publish.prometheus.test_prometheus import sample
 
 M0C = "reiss-m0c"

@@ -17,8 +17,8 @@ from gateway.config import ConfigProblems, parse_config
 from gateway.control.flash import FlashLedger
 from gateway.errors import CommandRejectedError
 from gateway.publish.message import Message
-from gateway.publish.storage import RETRY_S, StorageStatus
 from gateway.publish.store import MessageStore
+from gateway.shared.storage import RETRY_S, StorageStatus
 from tests.storage_rig import fill, read_only_bind, small_tmpfs
 
 if TYPE_CHECKING:

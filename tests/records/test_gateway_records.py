@@ -6,10 +6,10 @@ import hashlib
 from datetime import date
 from typing import TYPE_CHECKING
 
-from gateway.publish.host_clock import STA_UNSYNC, HostClock, KernelClock
 from gateway.records import FeedCounts, Kind, RecordStore, records_path
 from gateway.records.clock_watch import ClockWatch
 from gateway.records.reloads import record_reload
+from gateway.shared.host_clock import STA_UNSYNC, HostClock, KernelClock
 
 if TYPE_CHECKING:
     from pathlib import Path

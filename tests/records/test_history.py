@@ -33,9 +33,9 @@ from gateway.control.link import DeviceLink
 from gateway.line.devices import DeviceTarget
 from gateway.line.samples import Quality, Sample
 from gateway.profiles import PollGroup, get_profile
-from gateway.publish.state import DeviceInfo, GatewayState, StateSink
 from gateway.records import DeviceRef, Kind, Query, RecordStore
 from gateway.records.history import HistoryKeeper, device_refs
+from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 from gateway.simulator import build_bus, parse_settings
 from gateway.wire import codec, frames
 from tests.rigs import rig

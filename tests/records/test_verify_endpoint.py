@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from gateway.publish.prometheus import MetricsServer
 from gateway.publish.prometheus.endpoint import MAX_POST_BYTES
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 
 if TYPE_CHECKING:
     from collections.abc import Mapping

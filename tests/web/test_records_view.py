@@ -15,7 +15,6 @@ import pytest
 
 from gateway.config import WebConfig
 from gateway.errors import CommandRejectedError
-from gateway.publish.state import GatewayState
 from gateway.records import (
     Actor,
     DeviceRef,
@@ -27,6 +26,7 @@ from gateway.records import (
     Via,
     records_path,
 )
+from gateway.shared.state import GatewayState
 from gateway.web import WebServer
 from gateway.web.records import MAX_LIMIT, RecordsRequest, read_records, value_text
 from tests.mqtt_broker import free_port

@@ -16,7 +16,7 @@ from prometheus_client import CollectorRegistry, generate_latest
 from gateway.config import ConfigProblems, WebConfig, parse_config
 from gateway.errors import ConfigError
 from gateway.publish.prometheus import GatewayCollector
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.web import Sessions, WebServer
 from gateway.web.auth import MAX_FAILURES, WRONG_DELAY_S, host_allowed, is_loopback
 from tests.mqtt_broker import free_port

@@ -24,7 +24,7 @@ from gateway.care import CareBook, care_order, resolve
 from gateway.config import WebConfig
 from gateway.line.samples import Quality, Sample
 from gateway.profiles import get_profile
-from gateway.publish.state import DeviceInfo, GatewayState
+from gateway.shared.state import DeviceInfo, GatewayState
 from gateway.web import WebServer
 from gateway.wire import codec
 from tests.mqtt_broker import free_port

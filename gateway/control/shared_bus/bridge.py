@@ -41,9 +41,9 @@ from gateway.errors import (
     RecordError,
 )
 from gateway.profiles.model import Storage
-from gateway.publish.host_clock import HostClock
 from gateway.records.actor import Actor, Via
 from gateway.records.model import DeviceRef, Entry, Kind, PointChange, Result
+from gateway.shared.host_clock import HostClock
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -53,9 +53,9 @@ if TYPE_CHECKING:
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
     from gateway.line.fair_share import Origin
     from gateway.line.worker import BusWorker
-    from gateway.publish.state import SharedBusClient
     from gateway.records.model import Record
     from gateway.records.store import RecordStore
+    from gateway.shared.state import SharedBusClient
     from gateway.wire import frames
 
 _LOGGER = logging.getLogger(__name__)

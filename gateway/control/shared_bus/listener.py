@@ -37,9 +37,9 @@ if TYPE_CHECKING:
     from gateway.control.shared_bus.framing import Framer
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
     from gateway.line.worker import BusWorker
-    from gateway.publish.host_clock import HostClock
-    from gateway.publish.state import GatewayState, SharedBusClient
     from gateway.records.store import RecordStore
+    from gateway.shared.host_clock import HostClock
+    from gateway.shared.state import GatewayState, SharedBusClient
 
 _LOGGER = logging.getLogger(__name__)
 

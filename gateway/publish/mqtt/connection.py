@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from gateway.config.brokers import MqttServer
     from gateway.publish.message import Message
     from gateway.publish.mqtt.outbox import Outbox
-    from gateway.publish.state import MqttStatus
+    from gateway.shared.state import MqttStatus
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -30,8 +30,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Coroutine
 
     from gateway.publish.message import Message
-    from gateway.publish.state import MqttStatus
     from gateway.publish.store import MessageStore
+    from gateway.shared.state import MqttStatus
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from gateway.profiles import Profile
     from gateway.publish.message import Message
     from gateway.publish.mqtt.connection import Listener
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 def check_tls_files(settings: MqttConfig, section: str) -> None:

@@ -30,7 +30,7 @@ from gateway.publish.discovery import (
     discovery_messages,
 )
 from gateway.publish.message import Message
-from gateway.publish.state import STALE_FACTOR, STALE_MARGIN_S
+from gateway.shared.state import STALE_FACTOR, STALE_MARGIN_S
 from gateway.wire.codec import BitfieldValue
 
 if TYPE_CHECKING:
@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from gateway.config import MqttConfig
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.profiles import Profile
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 @dataclass(slots=True)

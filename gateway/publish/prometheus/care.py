@@ -18,7 +18,7 @@ from gateway.publish.prometheus.naming import VALUE_LABELS
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 def care_families(snapshot: GatewayState) -> Iterator[Metric]:

@@ -20,7 +20,7 @@ from prometheus_client.metrics_core import GaugeMetricFamily, Metric
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 def clock_families(snapshot: GatewayState) -> Iterator[Metric]:

@@ -27,7 +27,7 @@ from gateway.publish.prometheus.writes import (
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 class GatewayCollector(Collector):

@@ -38,7 +38,7 @@ if TYPE_CHECKING:
     from prometheus_client.metrics_core import Metric
 
     from gateway.config.model import PrometheusConfig
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 

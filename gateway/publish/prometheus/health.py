@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
     from gateway.line.health import DeviceHealth
     from gateway.line.stats import LineStats
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 # The failure classes exported (zero included) for every configured device.
 ERROR_KINDS: Final = (

@@ -16,7 +16,7 @@ from prometheus_client.metrics_core import GaugeMetricFamily, Metric
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 def reload_families(snapshot: GatewayState) -> Iterator[Metric]:

@@ -13,12 +13,12 @@ from prometheus_client.metrics_core import (
 )
 
 from gateway.publish.prometheus.health import cumulative_buckets
-from gateway.publish.state import WAIT_BUCKETS_S
+from gateway.shared.state import WAIT_BUCKETS_S
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 def shared_bus_families(snapshot: GatewayState) -> Iterator[Metric]:

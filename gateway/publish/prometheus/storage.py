@@ -1,7 +1,7 @@
 """The state directory's files as metrics and in ``/healthz``: can each be written, and room.
 
 A full disk or a read-only file system under ``state_dir`` does not stop the polling: the
-queues keep messages in memory and flash writes are refused (``publish/storage``). That is
+queues keep messages in memory and flash writes are refused (``shared/storage``). That is
 a state the plant must hear of, so ``/healthz`` names each file that cannot be written,
 with the cause and since when, and the metrics carry it for an alert; the room left is a
 metric too, so a disk that fills up is seen before the first write fails.
@@ -17,8 +17,8 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
-    from gateway.publish.storage import FileHealth
+    from gateway.shared.state import GatewayState
+    from gateway.shared.storage import FileHealth
 
 
 def storage_families(snapshot: GatewayState) -> Iterator[Metric]:

@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 
     from gateway.line.samples import Sample
     from gateway.publish.prometheus.naming import ValueNaming
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)
 _Row = Any  # what a lazy family's samples are made from: its own kind of row

@@ -12,7 +12,7 @@ from prometheus_client.metrics_core import CounterMetricFamily, GaugeMetricFamil
 if TYPE_CHECKING:
     from collections.abc import Iterator
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
 
 
 def mqtt_families(snapshot: GatewayState) -> Iterator[Metric]:

@@ -40,7 +40,7 @@ import time
 from typing import TYPE_CHECKING, Final, NoReturn, Protocol
 
 if TYPE_CHECKING:
-    from gateway.publish.state import MqttStatus
+    from gateway.shared.state import MqttStatus
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -58,7 +58,7 @@ from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import REBIRTH
 from gateway.publish.sparkplug.identity import IdentityConflictError
 from gateway.publish.sparkplug.reports import ndeath_payload
-from gateway.publish.state import SparkplugStatus
+from gateway.shared.state import SparkplugStatus
 
 if TYPE_CHECKING:
     from pathlib import Path

@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from gateway.profiles.model import Profile
     from gateway.publish.message import Message
     from gateway.publish.sparkplug.catalogue import MetricSpec
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
     from gateway.wire.codec import Decoded
 
 QUEUE_FILE = "sparkplug-queue.sqlite"

@@ -27,7 +27,7 @@ from gateway.app import run
 from gateway.config import parse_config
 from gateway.control.flash import LEDGER_FILE
 from gateway.errors import ConfigError
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames
 from tests.mqtt_broker import free_port

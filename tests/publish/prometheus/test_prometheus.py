@@ -34,7 +34,7 @@ from gateway.line.health import DeviceHealth
 from gateway.line.samples import Quality, Sample
 from gateway.line.stats import LineStats
 from gateway.publish.prometheus import MetricsServer, ValueNaming, value_naming
-from gateway.publish.state import DeviceInfo, GatewayState, MqttStatus
+from gateway.shared.state import DeviceInfo, GatewayState, MqttStatus
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.codec import BitfieldValue, EnumValue
 from tests.mqtt_broker import free_port

@@ -13,7 +13,7 @@ from prometheus_client.registry import Collector
 from gateway.line.samples import Quality, Sample
 from gateway.publish.prometheus.endpoint import PIECE_SAMPLES, exposition
 from gateway.publish.prometheus.values import value_families
-from gateway.publish.state import DeviceInfo, GatewayState
+from gateway.shared.state import DeviceInfo, GatewayState
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:

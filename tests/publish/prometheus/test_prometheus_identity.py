@@ -14,7 +14,7 @@ import pytest
 from gateway.app import run
 from gateway.config import parse_config
 from gateway.publish.prometheus import MetricsServer
-from gateway.publish.state import GatewayState
+from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.publish.prometheus.test_prometheus import Exposition, fetch, scrape_until
 from tests.rigs import ListSink

@@ -42,7 +42,7 @@ from gateway.publish.prometheus import (
     renames,
 )
 from gateway.publish.prometheus.naming import NUMERIC_POINT_TYPES, point_naming
-from gateway.publish.state import DeviceInfo, GatewayState
+from gateway.shared.state import DeviceInfo, GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests import paths
 from tests.deploy.test_deploy import dashboard_queries, metric_names

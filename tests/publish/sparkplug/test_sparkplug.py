@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Iterator
     from pathlib import Path
 
-    from gateway.publish.state import GatewayState
+    from gateway.shared.state import GatewayState
     from gateway.simulator import SimulatorServer
 
 pytestmark = [pytest.mark.line, pytest.mark.broker]

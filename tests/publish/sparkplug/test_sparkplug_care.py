@@ -25,7 +25,7 @@ from gateway.publish.sparkplug.catalogue import Catalogue
 from gateway.publish.sparkplug.payloads import QUALITY_GOOD, QUALITY_STALE, epoch_ms
 from gateway.publish.sparkplug.reports import Reporter
 from gateway.publish.sparkplug.topics import SparkplugTopics
-from gateway.publish.state import GatewayState, StateSink
+from gateway.shared.state import GatewayState, StateSink
 from gateway.wire.codec import EnumValue
 from tests.mqtt_broker import Broker
 from tests.publish.prometheus.test_prometheus import sample

@@ -39,8 +39,8 @@ from gateway.publish.sparkplug import SparkplugSink
 from gateway.publish.sparkplug.identity import GatewayIdentity, IdentityConflictError
 from gateway.publish.sparkplug.session import HostOfflineError, SparkplugSession, _deciding
 from gateway.publish.sparkplug.topics import SparkplugTopics
-from gateway.publish.state import GatewayState, MqttStatus, SparkplugStatus
 from gateway.publish.store import MessageStore
+from gateway.shared.state import GatewayState, MqttStatus, SparkplugStatus
 from tests.mqtt_broker import Broker
 from tests.publish.sparkplug.test_sparkplug_tahu import HOST_JS, NODE_JS, tahu_encode
 from tests.publish.test_mqtt import gateway, simulated

@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING, Protocol
 
 from gateway.care import CareBook
 from gateway.line.samples import Quality
-from gateway.publish.host_clock import HostClock
-from gateway.publish.storage import StorageStatus
+from gateway.shared.host_clock import HostClock
+from gateway.shared.storage import StorageStatus
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator, Sequence
