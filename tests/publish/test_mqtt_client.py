@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 from typing import TYPE_CHECKING, Any, Final
 
 import aiomqtt
@@ -107,4 +108,36 @@ async def test_a_timed_out_attempt_is_closed() -> None:
             with pytest.raises(aiomqtt.MqttError, match="timed out"):
                 await client.__aenter__()
             await asyncio.wait_for(broker.client_closed.wait(), WAIT_S)
+        assert errors == []
+
+
+async def _closes_at_subscribe(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    """Accepts the connection, then closes it when the SUBSCRIBE comes (as a RabbitMQ node
+    refuses a QoS 1 subscription whose queue's node is down)."""
+    await reader.read(1024)  # CONNECT
+    writer.write(CONNACK_ACCEPTED)
+    await writer.drain()
+    await reader.read(1024)  # SUBSCRIBE
+    writer.close()
+    with contextlib.suppress(ConnectionError):
+        await writer.wait_closed()
+
+
+async def test_a_connection_closed_during_a_subscribe_fails_it_at_once_and_logs_nothing() -> None:
+    server = await asyncio.start_server(_closes_at_subscribe, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        with loop_errors() as errors:
+            loop = asyncio.get_running_loop()
+            client = BrokerClient("127.0.0.1", port, timeout=WAIT_S)
+            async with contextlib.AsyncExitStack() as stack:
+                await stack.enter_async_context(client)
+                started = loop.time()
+                with pytest.raises(aiomqtt.MqttError, match="Disconnected while subscribing"):
+                    await client.subscribe("gw/cmd/#", qos=1, timeout=15)
+                took_s = loop.time() - started
+            del client, stack
+            gc.collect()  # a future whose exception nobody read says so when it is freed
+            await asyncio.sleep(0)
+        assert took_s < 1.0  # not the subscribe timeout of 15 s
         assert errors == []

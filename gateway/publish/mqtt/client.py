@@ -1,4 +1,4 @@
-"""aiomqtt's client, mended where a connection attempt fails or is cancelled.
+"""aiomqtt's client, mended where a connection attempt fails or a connection drops early.
 
 aiomqtt 2.5.1 leaves the socket of a failed attempt open and watched by the event loop,
 and when the attempt was cancelled (a stop or a reload while connecting; a broker that took
@@ -9,21 +9,31 @@ asyncio's "Exception in callback" with a traceback. It was seen with a clustered
 socket could also complete a session on that server later, under the gateway's client id,
 beside the one it made on the next server.
 
-Both are mended here, at the one place where the gateway makes a client, so that the
-reconnect loops above it see only :class:`aiomqtt.MqttError` and a closed socket.
+A broker that closes the connection while a SUBSCRIBE waits for its SUBACK (a RabbitMQ
+cluster refuses a QoS 1 subscription whose queue's node is down) left the gateway waiting
+the whole subscribe timeout, 15 s per attempt, and the client's "unexpected disconnection"
+was logged as an error nobody retrieved ("Future exception was never retrieved").
+
+All are mended here, at the one place where the gateway makes a client, so that the
+reconnect loops above it see only :class:`aiomqtt.MqttError`, at once, and a closed socket.
 """
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 from typing import TYPE_CHECKING, Any, Self
 
 import aiomqtt
 
 if TYPE_CHECKING:
+    from types import TracebackType
+
     import paho.mqtt.client as mqtt
+    from aiomqtt.types import SubscribeTopic
     from paho.mqtt.properties import Properties
     from paho.mqtt.reasoncodes import ReasonCode
+    from paho.mqtt.subscribeoptions import SubscribeOptions
 
 
 class BrokerClient(aiomqtt.Client):
@@ -36,6 +46,46 @@ class BrokerClient(aiomqtt.Client):
         except BaseException:
             self._close_attempt()
             raise
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        """Disconnect; a connection the broker dropped has told its reason already."""
+        if self._disconnected.done() and not self._disconnected.cancelled():
+            self._disconnected.exception()  # retrieved: the caller learnt it as an MqttError
+        await super().__aexit__(exc_type, exc, tb)
+
+    async def subscribe(
+        self,
+        /,
+        topic: SubscribeTopic,
+        qos: int = 0,
+        options: SubscribeOptions | None = None,
+        properties: Properties | None = None,
+        *args: Any,  # noqa: ANN401 - passed on to paho, as aiomqtt types them
+        timeout: float | None = None,  # noqa: ASYNC109 - aiomqtt's own parameter
+        **kwargs: Any,  # noqa: ANN401
+    ) -> tuple[int, ...] | list[ReasonCode]:
+        """Subscribe, or raise :class:`aiomqtt.MqttError` as soon as the connection drops."""
+        subscribing = asyncio.ensure_future(
+            super().subscribe(topic, qos, options, properties, *args, timeout=timeout, **kwargs)
+        )
+        try:
+            dropped: asyncio.Future[Any] = self._disconnected
+            await asyncio.wait({subscribing, dropped}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            if not subscribing.done():
+                subscribing.cancel()
+                with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
+                    await subscribing
+        if subscribing.cancelled():
+            reason = None if self._disconnected.cancelled() else self._disconnected.exception()
+            msg = "Disconnected while subscribing"
+            raise aiomqtt.MqttError(msg) from reason
+        return subscribing.result()
 
     def _close_attempt(self) -> None:
         # paho's own close: it also unregisters the socket from the loop (aiomqtt's
