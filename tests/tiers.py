@@ -49,6 +49,9 @@ _PROGRAMS: Final[dict[str, str]] = {
     "mosquitto": "broker",
     "amqtt": "broker",
     "nats-server": "broker",
+    "rabbitmq-server": "broker",
+    "rabbitmqctl": "broker",
+    "epmd": "broker",
     "socat": "line",
     "mbpoll": "line",
     # A scraper and a metrics store in real time: only ever run with the gateway on a line.
