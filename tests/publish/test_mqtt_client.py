@@ -1,7 +1,7 @@
 """The broker client after a failed or cancelled connection attempt (``publish.mqtt.client``).
 
 A slow broker (a cluster electing a leader answers CONNECT after seconds) is a TCP server
-here that reads CONNECT and answers only when told. aiomqtt 2.5.1 alone fails both tests:
+here that reads CONNECT and answers only when told. aiomqtt 2.5.1 alone fails these tests:
 the attempt's socket stays open, and a cancelled attempt's socket logs asyncio's "Exception
 in callback" (a ``CancelledError`` traceback) when the broker answers and closes.
 """
@@ -11,12 +11,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import socket
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 import aiomqtt
 import pytest
 
 from gateway.publish.mqtt.client import BrokerClient
+from tests.waiting import eventually
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
@@ -108,6 +111,56 @@ async def test_a_timed_out_attempt_is_closed() -> None:
             with pytest.raises(aiomqtt.MqttError, match="timed out"):
                 await client.__aenter__()
             await asyncio.wait_for(broker.client_closed.wait(), WAIT_S)
+        assert errors == []
+
+
+def syn_sent_to(port: int) -> bool:
+    """Whether a TCP connect to ``port`` on this machine waits for its SYN's answer."""
+    for line in Path("/proc/net/tcp").read_text(encoding="ascii").splitlines()[1:]:
+        fields = line.split()
+        remote_port = int(fields[2].split(":")[1], 16)
+        if remote_port == port and fields[3] == "02":  # TCP_SYN_SENT
+            return True
+    return False
+
+
+async def test_an_attempt_cancelled_while_connecting_in_its_thread_is_closed_after_it() -> None:
+    """A stop while paho's connect still waits in its thread: the session is not kept.
+
+    The broker's accept queue is full (a listener with a backlog of 0, one connection
+    queued), so the kernel drops the client's SYN and paho's connect waits in its thread
+    for the retransmission, as it would for a far broker. The attempt is cancelled then;
+    the queue is emptied, the SYN sent again gets through, and the socket is closed before
+    or just after paho writes its CONNECT. Before the fix the broker kept that connection
+    (under the gateway's client id, with its will) until it stopped, and the drop was then
+    reported as an exception nobody retrieved.
+    """
+    loop = asyncio.get_running_loop()
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)
+        listener.setblocking(False)  # noqa: FBT003 - the socket API's own
+        port = listener.getsockname()[1]
+        filler = socket.create_connection(("127.0.0.1", port))  # the accept queue is full
+        with loop_errors() as errors:
+            client = BrokerClient("127.0.0.1", port, timeout=WAIT_S)
+            attempt = asyncio.create_task(client.__aenter__())
+            await eventually(lambda: syn_sent_to(port), within_s=WAIT_S)
+            attempt.cancel()  # a stop, with paho's connect waiting in its thread
+            queued, _ = await loop.sock_accept(listener)
+            queued.close()
+            filler.close()
+            connection, _ = await asyncio.wait_for(loop.sock_accept(listener), WAIT_S)
+            with connection:  # paho's connect got through: its socket is closed at once
+                sent = b""
+                while chunk := await asyncio.wait_for(loop.sock_recv(connection, 1024), WAIT_S):
+                    sent += chunk
+            assert sent == b"" or sent[:1] == b"\x10"  # nothing, or its CONNECT
+            with pytest.raises(asyncio.CancelledError):
+                await attempt
+            del client, attempt
+            gc.collect()  # a future whose exception nobody read says so when it is freed
+            await asyncio.sleep(0)
         assert errors == []
 
 

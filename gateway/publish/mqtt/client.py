@@ -14,6 +14,13 @@ cluster refuses a QoS 1 subscription whose queue's node is down) left the gatewa
 the whole subscribe timeout, 15 s per attempt, and the client's "unexpected disconnection"
 was logged as an error nobody retrieved ("Future exception was never retrieved").
 
+paho's connect runs in an executor thread, and a cancellation that came while it ran
+(a stop, a reload, a Sparkplug session moving to its next server as the gateway stopped)
+found no socket yet to close: the thread went on, the broker accepted the session under the
+gateway's client id and kept it (with its will) until the broker itself stopped, and the
+drop was then logged as an exception nobody retrieved. The attempt now waits for the thread
+(paho gives up connecting after 5 s) and closes what it made.
+
 All are mended here, at the one place where the gateway makes a client, so that the
 reconnect loops above it see only :class:`aiomqtt.MqttError`, at once, and a closed socket.
 """
@@ -22,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 from typing import TYPE_CHECKING, Any, Self
 
 import aiomqtt
@@ -36,16 +44,65 @@ if TYPE_CHECKING:
     from paho.mqtt.subscribeoptions import SubscribeOptions
 
 
+class ConnectCall:
+    """The blocking paho connect in its executor thread: whether it began, and when it ended.
+
+    The lock orders a cancellation against the thread's start: either the call never
+    begins, or the attempt knows it did and waits for :attr:`ended` before closing.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._began = False
+        self._abandoned = False
+        self.ended = asyncio.Event()
+
+    def begin(self) -> bool:
+        """In the thread: whether to connect (not if the attempt was given up first)."""
+        with self._lock:
+            self._began = not self._abandoned
+            return self._began
+
+    def abandon(self) -> bool:
+        """In the loop: give the call up; whether it began (then wait for :attr:`ended`)."""
+        with self._lock:
+            self._abandoned = True
+            return self._began
+
+
 class BrokerClient(aiomqtt.Client):
     """An :class:`aiomqtt.Client` whose failed or cancelled connection attempt is closed."""
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:  # noqa: ANN401 - aiomqtt's own
+        """Make aiomqtt's client (in the running loop), with a record of its connect call."""
+        super().__init__(*args, **kwargs)
+        self._connect_call = ConnectCall()
+
     async def __aenter__(self) -> Self:
-        """Connect; on any failure, close the attempt's socket before raising."""
+        """Connect; on any failure, close the attempt's socket before raising.
+
+        If paho's connect is still running in its thread (a cancellation came meanwhile),
+        the socket it is making is closed once it returns.
+        """
         try:
             return await super().__aenter__()
         except BaseException:
-            self._close_attempt()
+            try:
+                if self._connect_call.abandon():
+                    await self._connect_call.ended.wait()
+            finally:
+                self._close_attempt()
             raise
+
+    def _client_connect(self) -> None:
+        """Run paho's connect, in the executor's thread; the loop is told when it returns."""
+        if not self._connect_call.begin():
+            msg = "connection attempt given up before it began"
+            raise OSError(msg)
+        try:
+            super()._client_connect()
+        finally:
+            self._loop.call_soon_threadsafe(self._connect_call.ended.set)
 
     async def __aexit__(
         self,
