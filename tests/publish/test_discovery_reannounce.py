@@ -541,3 +541,36 @@ def test_check_config_knows_the_key(tmp_path: Path) -> None:
     path.write_text(CONFIG + "    announce_delay_max: 1.5\n", encoding="utf-8")  # misspelt
     [problem] = check_config(path, environ={})  # refused, not ignored
     assert str(problem).startswith("mqtt.discovery.announce_delay_max (line 8): ")
+
+
+# --- a point first read after the device's first cycle ---------------------------------------
+
+
+async def test_a_point_first_read_after_the_first_cycle_is_announced_then() -> None:
+    """A device's first cycle without one of its points (a slower rate, a first read put off
+    by a late line) announced the others only, and that point never: Home Assistant lacked
+    its entity until a restart (seen on a RabbitMQ node that lacked one config for good).
+    """
+    state = GatewayState()
+    state.add_device(BASIN)
+    settings = MqttConfig(
+        host="127.0.0.1",
+        base_topic="gw",
+        client_id="plant-gw",
+        discovery=DiscoveryConfig(enabled=True),
+    )
+    topics = Topics(settings, state, client_id="plant-gw")
+    prefix = "homeassistant/sensor/plant-gw_basin"
+
+    async def configs_of(cycle: list[Sample]) -> list[str]:
+        await StateSink(state).publish(cycle)
+        return sorted(m.topic for m in topics.cycle(cycle) if m.topic.endswith("/config"))
+
+    concentration, temperature = basin_cycle()
+    assert await configs_of([concentration]) == [f"{prefix}/concentration/config"]
+    assert await configs_of([concentration, temperature]) == [f"{prefix}/temperature/config"]
+    assert await configs_of([concentration, temperature]) == []  # announced: not again
+    assert sorted(m.topic for m in topics.announced()) == [
+        f"{prefix}/concentration/config",
+        f"{prefix}/temperature/config",
+    ]

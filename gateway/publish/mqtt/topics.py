@@ -143,6 +143,9 @@ class Topics:
         # rebuild from whatever was read since, and costs the poll loop no JSON encoding
         # just as Home Assistant starts.
         self._discovered: dict[tuple[str, str], list[Message]] = {}
+        # The points each device's announcement covers: a point first read after it (a
+        # slower rate, or a first read put off by a late line) is announced then.
+        self._discovered_points: dict[tuple[str, str], frozenset[str]] = {}
         self._care_announced: dict[str, list[Message]] = {}  # the care entities' configs
         self._sequence: dict[str, int] = {}  # state documents per device since the start
         # Each device's points in the document's order with their intervals, made once.
@@ -153,7 +156,8 @@ class Topics:
         """One device's poll cycle as messages, in the order they go out.
 
         Its values and status bits, its state document, then (at its first cycle, when
-        enabled) its Home Assistant discovery.
+        enabled, and again at a cycle with a point the announcement lacks) its Home
+        Assistant discovery.
         """
         if not samples:
             return []
@@ -162,13 +166,28 @@ class Topics:
             self._value_messages(sample, messages)
         first = samples[0]
         messages.append(self._state_document(first.bus, first.device, first.time))
-        if self.settings.discovery.enabled and (first.bus, first.device) not in self._discovered:
-            announced = self._discovered[first.bus, first.device] = self._discovery(
-                first.bus, first.device
-            )
-            messages.extend(announced)
+        if self.settings.discovery.enabled:
+            self._announce(first.bus, first.device, samples, messages)
         self._care(first.bus, first.device, messages)
         return messages
+
+    def _announce(
+        self, bus: str, device: str, samples: Sequence[Sample], messages: list[Message]
+    ) -> None:
+        """The device's discovery at its first cycle; a point's when it is first read later.
+
+        A later point adds the configs of its own entities only: those sent are kept as they
+        were sent, and are what a restart of Home Assistant gets again.
+        """
+        covered = self._discovered_points.get((bus, device))
+        if covered is not None and all(sample.point in covered for sample in samples):
+            return
+        sent = self._discovered.setdefault((bus, device), [])
+        topics = {message.topic for message in sent}
+        added = [m for m in self._discovery(bus, device) if m.topic not in topics]
+        self._discovered_points[bus, device] = frozenset(self.state.device_samples(bus, device))
+        sent.extend(added)
+        messages.extend(added)
 
     def _care(self, bus: str, device: str, messages: list[Message]) -> None:
         """The device's care document (retained), when its content changed since the last.
@@ -258,6 +277,9 @@ class Topics:
         self._discovered = {
             known: sent for known, sent in self._discovered.items() if known[1] != device
         }
+        self._discovered_points = {
+            known: points for known, points in self._discovered_points.items() if known[1] != device
+        }
         self._layouts.pop(device, None)
         for topic in clear:
             self._last.pop(topic, None)
@@ -306,6 +328,7 @@ class Topics:
             )
             clear += [message.topic for message in announced]
         self._discovered.pop((bus, device), None)
+        self._discovered_points.pop((bus, device), None)
         self._care_sent.pop(device, None)
         self._care_announced.pop(device, None)
         self._sequence.pop(device, None)
