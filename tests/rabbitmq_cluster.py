@@ -52,9 +52,10 @@ What RabbitMQ 3.10's MQTT plugin keeps where (its documentation, "MQTT Plugin"):
   filter without wildcards; a node killed while retained messages keep coming (a value
   every poll) comes back without those written since its last quiet moment;
 - a client's subscriptions are one queue per QoS, named after its client id, on the node
-  it is connected to. A clean session's QoS 1 queue is a classic queue, durable and
-  auto-delete: when its node dies, its record stays until the node is back, and the same
-  client id is refused a QoS 1 subscription on every other node meanwhile. A persistent
+  it is connected to. A clean session's QoS 1 queue is a classic queue: when its node
+  dies, the others have dropped it with the node (the client id subscribes again elsewhere
+  at once), or its record stayed until the node was back, the same client id refused a
+  QoS 1 subscription on every other node meanwhile; both have been seen. A persistent
   session's (``clean_session=False``) QoS 1 queue is durable, of the type
   ``mqtt.durable_queue_type`` says: a classic queue (the default) lives on that one node;
   a quorum queue has a replica on each of three nodes and a leader elected again when one

@@ -13,7 +13,8 @@ started does on its own (``gateway run`` opening its port) is that process's: th
 started the simulator or the broker it talks to, and that is what the guard sees.
 
 One more marker is not a need but an order: ``timing`` marks the tests that hold a line, a
-sensor or the gateway's CPU to times, which ``scripts/test`` runs after the others, alone.
+sensor or the gateway's CPU to times, and those whose brokers take the machine's cores (a
+three-node cluster), which ``scripts/test`` runs after the others, alone.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ MARKERS: Final[dict[str, str]] = {
     "browser": "headless chromium, driven by playwright",
     "podman": "the container image built or run with podman, or the unit under a real systemd",
     "root": "mounts, loop devices, network namespaces, packet filters",
-    "timing": "holds a line, a sensor or the gateway's CPU to times: runs after the others,"
-    " alone (an order, not a need)",
+    "timing": "holds a line, a sensor or the gateway's CPU to times, or takes the machine's"
+    " cores (a broker cluster): runs after the others, alone (an order, not a need)",
 }
 NEEDS: Final = ("line", "broker", "browser", "podman", "root")  # what the quick tier leaves out
 # Where to note every test's needs as JSON lines (nodeid, used), for a survey of the suite.

@@ -10,27 +10,29 @@ holds the persistent test subscriber's queue; it is started again on its directo
 Two set-ups, one case each:
 
 - ``classic-clean``: RabbitMQ's defaults and the gateways' (clean sessions). A clean
-  session's QoS 1 subscriptions are a classic queue, durable and auto-delete, on the node
-  the client is connected to; when that node dies its record stays, and a client with the
-  same client id that subscribes at QoS 1 on another node is refused ("home node ... of
-  durable queue ... is down or inaccessible"): the node closes the connection. So the
-  gateways on the killed node cannot publish anywhere until it is back; they keep their
-  documents on disk meanwhile.
+  session's QoS 1 subscriptions are a classic queue on the node the client is connected
+  to. Both outcomes have been seen for the gateways on the killed node: the surviving
+  nodes dropped its queues with it, and the gateways moved to another node in under a
+  second (every run since the gateway's subscribe fails at once on a closed connection);
+  or the record stayed, and a QoS 1 subscription on another node was refused ("home node
+  ... of durable queue ... is down or inaccessible", the node closing the connection)
+  until the node was back, the gateways keeping their documents on disk meanwhile (the
+  runs before). A persistent session's classic queue is refused so, always.
 - ``quorum-persistent``: ``mqtt.durable_queue_type = quorum`` and the gateways with
   ``mqtt.clean_session: false``: each gateway's subscriptions are a quorum queue with a
   replica on every node, which survives a node's loss; the gateways move on.
 
-Held, as RabbitMQ guarantees it (and as the classic case's refusal makes it deterministic):
+Held, as RabbitMQ guarantees it:
 
 - no state document is lost: every ``seq`` of every device reaches the union of one clean
   subscriber per node (QoS 1; what a gateway could not send waits in its queue on disk);
 - retained messages are kept per node: a node gives a new subscriber no retained topic of
   a cabinet whose gateway never connected to it, and, before the kill, every one of the
   cabinets connected to it;
-- ``classic-clean``: no document of the gateways on the killed node arrives while it is
-  down, and every one of them publishes again within :data:`WAIT_S` of its return;
-  ``quorum-persistent``: each of them is connected to another node within
-  :data:`RECONNECT_BOUND_S`;
+- ``classic-clean``: each gateway on the killed node is connected to another node within
+  :data:`RECONNECT_BOUND_S`, or else publishes nothing while the node is down and again
+  within :data:`WAIT_S` of its return; ``quorum-persistent``: each of them is connected
+  to another node within :data:`RECONNECT_BOUND_S`;
 - a persistent session (``clean_session=False``, started on the killed node) is kept: a
   client connecting with its client id once the node is back gets documents again without
   subscribing. With a classic queue it got none while its node was down and lost what was
@@ -108,8 +110,8 @@ CASES: Final = {
 # node (:func:`watch_moves`), quorum-persistent case, three runs: 0.3 to 0.6 s. The bound
 # leaves room for a busy machine and a slow election of the sessions' queue leaders.
 RECONNECT_BOUND_S: Final = 30.0
-# How long the classic case watches the gateways of the killed node fail on the others:
-# three of their 15 s subscription timeouts, so each tries both surviving nodes.
+# How long the classic case watches the gateways of the killed node, refused, try the others
+# before it waits for the node's return (three rounds of the reconnect backoff at least).
 OUTAGE_WATCH_S: Final = 45.0
 STAYED_S: Final = 1.0  # connected to a node this long: a reconnection, not a refusal
 CONFIRM_WITHIN_S: Final = 15.0  # for the node to list a client the gateway says is on it
@@ -291,12 +293,13 @@ def assert_outage(case: Case, measured: dict[str, Any]) -> None:
     """What each set-up makes of the kill, from the measured figures."""
     moved, reconnect_s = measured["on_it"], measured["reconnect_s"]
     if case.queue_type == "classic":
-        # The gateways of the dead node could not subscribe elsewhere, so sent nothing,
-        # until it was back: then they did.
-        assert not reconnect_s, measured
-        assert measured["refused_subscriptions"] > 0, measured
-        assert measured["documents_from_them_while_down"] == 0, measured
-        assert len(measured["back_after_restart_s"]) == len(moved), measured
+        # Each gateway of the dead node moved at once, or was refused elsewhere until the
+        # node was back and then published again (both seen: module docstring).
+        back = measured["back_after_restart_s"]
+        assert sorted([*reconnect_s, *back]) == sorted(moved), measured
+        assert max(reconnect_s.values(), default=0.0) <= RECONNECT_BOUND_S, measured
+        if not reconnect_s:
+            assert measured["documents_from_them_while_down"] == 0, measured
         assert measured["persistent_while_down"] == 0, measured  # its queue was down
         assert measured["persistent_lost"], measured  # what was published meanwhile: gone
     else:
@@ -340,6 +343,7 @@ def cluster(tmp_path: Path, case: Case) -> Iterator[RabbitCluster]:
 
 @pytest.mark.line
 @pytest.mark.broker
+@pytest.mark.timing  # three Erlang VMs take both cores: beside them, others' timings fail
 @pytest.mark.timeout(420)
 async def test_a_rabbitmq_node_killed_and_back(  # noqa: PLR0915 - one scenario, told in order
     tmp_path: Path, case: Case, cluster: RabbitCluster, record_property: Any

@@ -85,6 +85,7 @@ async def test_the_answer_keeps_the_transaction_id_and_unit() -> None:
     assert answer.pdu == bytes.fromhex("03 04 00 00 41 a2")  # 20.25, CDAB
 
 
+@pytest.mark.timing  # an answer's time held to 0.3 s
 async def test_0b_comes_after_the_converters_timeout() -> None:
     request = frames.read_request(9, 0x0000, 1)
     async with converter(DEVICES, timeout_s=0.2, pace=True) as (_, port):
@@ -128,6 +129,7 @@ async def test_two_masters_are_served_one_at_a_time_with_the_gap() -> None:
         assert after.start - before.answer_at >= gap
 
 
+@pytest.mark.timing  # the read must reach the line within the 250 ms of the write's answer
 async def test_a_request_inside_the_post_write_wait_is_ignored_and_answered_0b() -> None:
     """The converter does not know the H10's 250 ms: the master must; the referee says so."""
     write = frames.write_request(3, 0x2013, (0x0000, 0x41A8))  # compensation temperature 21

@@ -30,7 +30,9 @@ pytestmark = [pytest.mark.line, pytest.mark.timing]
 
 ROOT = paths.ROOT
 POLL_S = 0.5
-SLACK_S = 0.25  # a poll may wait out the transaction and the other master's turn before it
+# A poll that comes due while the other sensor's transaction holds the line waits it out
+# (the H10 answers some reads in 0.24 s), then the loop's turn, under the flood, on 2 cores.
+TURN_S = 0.1
 
 
 async def flood(port: int, unit: int, seconds: float, pdu: str = "0300000002") -> dict[str, Any]:
@@ -69,6 +71,17 @@ def largest_gaps(p: Plant, since: float, until: float) -> dict[int, float]:
     return gaps
 
 
+def allowed_gap(p: Plant, since: float, until: float) -> float:
+    """The longest wait between two polls of a sensor that leaves its rate kept: the poll
+    interval, the longest transaction the line carried meanwhile, and the loop's turn."""
+    held = [
+        f.answer_at - f.start
+        for f in p.simulator.bus.frame_log
+        if since <= f.start <= until and f.answer_at is not None
+    ]
+    return POLL_S + max(held, default=0.0) + TURN_S
+
+
 def bus_time(p: Plant) -> float:
     """Now, on the simulator's clock (seconds since its bus started)."""
     return asyncio.get_running_loop().time() - p.simulator.bus.started
@@ -87,12 +100,13 @@ async def test_a_client_pipelining_unknown_unit_ids_does_not_stop_the_polling(
         missed_before, since = missed(p), bus_time(p)
         result = await flood(p.tcp_port, 99, 4.0)
         until = bus_time(p)
-        gaps = largest_gaps(p, since, until)
+        gaps, allowed = largest_gaps(p, since, until), allowed_gap(p, since, until)
         missed_after = missed(p)
         other = p.state.shared_bus.clients["other"]
+    print(f"largest gaps between polls (s): {gaps}, allowed {allowed:.3f}")  # noqa: T201
     assert result["answers"]
     assert set(result["answers"]) == {"830a"}
-    assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
+    assert all(gap <= allowed for gap in gaps.values()), (gaps, allowed)
     assert missed_after == missed_before
     # Every answer the client read was counted; the gateway may have answered a few more
     # that were on their way when the client stopped reading (a second's worth at most).
@@ -110,11 +124,12 @@ async def test_a_client_pipelining_unknown_unit_ids_is_answered_in_turn_with_the
         await asyncio.sleep(1.0)
         missed_before, since = missed(p), bus_time(p)
         result = await flood(p.tcp_port, 99, 4.0)
-        gaps = largest_gaps(p, since, bus_time(p))
+        until = bus_time(p)
+        gaps, allowed = largest_gaps(p, since, until), allowed_gap(p, since, until)
         missed_after = missed(p)
     assert result["answers"]["830a"] > 2_000  # far more than the default limit lets through
     assert set(result["answers"]) == {"830a"}
-    assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
+    assert all(gap <= allowed for gap in gaps.values()), (gaps, allowed)
     assert missed_after == missed_before
 
 
@@ -131,7 +146,7 @@ async def test_a_client_pipelining_cache_hits_does_not_stop_the_polling(tmp_path
         on_the_line = len(p.frames_to(TECLINE))
         result = await flood(p.tcp_port, TECLINE, 4.0, pdu="0300000006")
         until = bus_time(p)
-        gaps = largest_gaps(p, since, until)
+        gaps, allowed = largest_gaps(p, since, until), allowed_gap(p, since, until)
         polls = len(p.frames_to(TECLINE)) - on_the_line
         missed_after = missed(p)
         scada = p.state.shared_bus.clients["scada"]
@@ -141,7 +156,7 @@ async def test_a_client_pipelining_cache_hits_does_not_stop_the_polling(tmp_path
     assert 50 + 50 * 4.0 - 5 <= answered <= 50 + 50 * 4.0 + 5
     assert answered <= scada.cache_answers <= answered + int(DEFAULT_RATE_LIMIT)  # as above
     assert scada.throttled_s > 3.0  # the rest of the time it waited, reading nothing
-    assert all(gap <= POLL_S + SLACK_S for gap in gaps.values()), gaps
+    assert all(gap <= allowed for gap in gaps.values()), (gaps, allowed)
     assert missed_after == missed_before
     # The line carried the gateway's own polls only (a few reads per poll), not the flood.
     assert polls <= 4 * (until - since) / POLL_S
