@@ -114,6 +114,49 @@ async def test_a_timed_out_attempt_is_closed() -> None:
         assert errors == []
 
 
+async def test_entering_again_meanwhile_is_refused_and_leaves_the_attempt_be() -> None:
+    async with slow_broker() as (broker, port):
+        client = BrokerClient("127.0.0.1", port, timeout=WAIT_S)
+        attempt = asyncio.create_task(client.__aenter__())
+        await asyncio.wait_for(broker.connect_read.wait(), WAIT_S)
+        with pytest.raises(aiomqtt.MqttReentrantError):
+            await client.__aenter__()
+        # The attempt under way is not closed: a close would reach the broker at once.
+        await asyncio.sleep(0.2)
+        assert not broker.client_closed.is_set()
+        attempt.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await attempt
+        await asyncio.wait_for(broker.client_closed.wait(), WAIT_S)
+
+
+async def _closes_after_connack(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    """Accepts the connection and closes it at once (a broker stopping as it accepts)."""
+    await reader.read(1024)  # CONNECT
+    writer.write(CONNACK_ACCEPTED)
+    writer.close()
+    with contextlib.suppress(ConnectionError):
+        await writer.wait_closed()
+
+
+async def test_a_connection_closed_as_it_is_made_is_not_forgotten() -> None:
+    """The CONNACK and the close may come in one turn of the loop, before aiomqtt's connect
+    returns; aiomqtt then forgot the drop, and the client waited on a dead socket."""
+    server = await asyncio.start_server(_closes_after_connack, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        with loop_errors() as errors:
+            for _ in range(10):  # either ordering of the loop's callbacks, whichever comes
+                client = BrokerClient("127.0.0.1", port, timeout=WAIT_S)
+                with pytest.raises(aiomqtt.MqttError):
+                    async with client:
+                        await asyncio.wait_for(anext(aiter(client.messages)), WAIT_S)
+            del client
+            gc.collect()  # a future whose exception nobody read says so when it is freed
+            await asyncio.sleep(0)
+        assert errors == []
+
+
 def syn_sent_to(port: int) -> bool:
     """Whether a TCP connect to ``port`` on this machine waits for its SYN's answer."""
     for line in Path("/proc/net/tcp").read_text(encoding="ascii").splitlines()[1:]:

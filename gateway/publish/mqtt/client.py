@@ -12,7 +12,10 @@ beside the one it made on the next server.
 A broker that closes the connection while a SUBSCRIBE waits for its SUBACK (a RabbitMQ
 cluster refuses a QoS 1 subscription whose queue's node is down) left the gateway waiting
 the whole subscribe timeout, 15 s per attempt, and the client's "unexpected disconnection"
-was logged as an error nobody retrieved ("Future exception was never retrieved").
+was logged as an error nobody retrieved ("Future exception was never retrieved"). A
+broker that closed the connection right after its CONNACK, before aiomqtt's connect had
+returned, was forgotten: aiomqtt replaces the future that said so, and the client waited
+on a dead socket.
 
 paho's connect runs in an executor thread, and a cancellation that came while it ran
 (a stop, a reload, a Sparkplug session moving to its next server as the gateway stopped)
@@ -77,6 +80,8 @@ class BrokerClient(aiomqtt.Client):
         """Make aiomqtt's client (in the running loop), with a record of its connect call."""
         super().__init__(*args, **kwargs)
         self._connect_call = ConnectCall()
+        self._entering = False
+        self._dropped_entering: BaseException | None = None
 
     async def __aenter__(self) -> Self:
         """Connect; on any failure, close the attempt's socket before raising.
@@ -84,25 +89,45 @@ class BrokerClient(aiomqtt.Client):
         If paho's connect is still running in its thread (a cancellation came meanwhile),
         the socket it is making is closed once it returns.
         """
-        try:
+        if self._lock.locked():  # aiomqtt refuses to enter again: leave the one under way be
             return await super().__aenter__()
+        call = self._connect_call = ConnectCall()  # this attempt's
+        self._entering, self._dropped_entering = True, None
+        try:
+            entered = await super().__aenter__()
+            self._raise_if_dropped_entering()
         except BaseException:
             try:
-                if self._connect_call.abandon():
-                    await self._connect_call.ended.wait()
+                if call.abandon():
+                    await call.ended.wait()
             finally:
                 self._close_attempt()
             raise
+        finally:
+            self._entering = False
+        return entered
+
+    def _raise_if_dropped_entering(self) -> None:
+        """The broker closed the connection before aiomqtt's connect returned: say so.
+
+        aiomqtt has forgotten it (it replaced the future that said so).
+        """
+        if self._dropped_entering is None:
+            return
+        self._lock.release()  # held by aiomqtt for the connection, which is gone
+        msg = "Disconnected as the connection was made"
+        raise aiomqtt.MqttError(msg) from self._dropped_entering
 
     def _client_connect(self) -> None:
         """Run paho's connect, in the executor's thread; the loop is told when it returns."""
-        if not self._connect_call.begin():
+        call = self._connect_call
+        if not call.begin():
             msg = "connection attempt given up before it began"
             raise OSError(msg)
         try:
             super()._client_connect()
         finally:
-            self._loop.call_soon_threadsafe(self._connect_call.ended.set)
+            self._loop.call_soon_threadsafe(call.ended.set)
 
     async def __aexit__(
         self,
@@ -163,6 +188,11 @@ class BrokerClient(aiomqtt.Client):
         if self._connected.cancelled():
             return
         super()._on_disconnect(client, userdata, flags, reason_code, properties)
+        dropped = self._disconnected
+        if self._entering and dropped.done() and not dropped.cancelled():
+            # Between the CONNACK and the end of __aenter__, which then replaces this
+            # future: the drop would be lost, and the client would wait on a dead socket.
+            self._dropped_entering = dropped.exception()
 
 
 __all__ = ["BrokerClient"]
