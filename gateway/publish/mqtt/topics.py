@@ -185,7 +185,8 @@ class Topics:
         sent = self._discovered.setdefault((bus, device), [])
         topics = {message.topic for message in sent}
         added = [m for m in self._discovery(bus, device) if m.topic not in topics]
-        self._discovered_points[bus, device] = frozenset(self.state.device_samples(bus, device))
+        known = self.state.device_samples(bus, device).keys()
+        self._discovered_points[bus, device] = frozenset(known).union(s.point for s in samples)
         sent.extend(added)
         messages.extend(added)
 
