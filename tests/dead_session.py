@@ -17,6 +17,7 @@ import time
 
 from gateway.config.network import TcpSettings
 from gateway.errors import GatewayError
+from gateway.line.boundary import RequestOptions
 from gateway.line.factory import build_line
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames
@@ -34,7 +35,7 @@ async def measure(scheme: str, *, busy: bool, settings: TcpSettings) -> dict[str
     failures = 0
     try:
         await line.open()
-        assert await line.transact(request, timeout_s=0.2, gap_s=0.005) is not None
+        assert await line.transact(request, RequestOptions(timeout_s=0.2, gap_s=0.005)) is not None
         drop = ["-A", "INPUT", "-p", "tcp", "--dport", str(port), "-j", "DROP"]
         iptables = await asyncio.create_subprocess_exec("iptables", *drop)
         assert await iptables.wait() == 0
@@ -42,7 +43,7 @@ async def measure(scheme: str, *, busy: bool, settings: TcpSettings) -> dict[str
         while line.is_open and time.monotonic() - dropped < 30:
             if busy:
                 try:
-                    await line.transact(request, timeout_s=0.2, gap_s=0.005)
+                    await line.transact(request, RequestOptions(timeout_s=0.2, gap_s=0.005))
                 except GatewayError:
                     failures += 1
             await asyncio.sleep(0.1)

@@ -19,14 +19,15 @@ nothing but this protocol, the counters (:mod:`gateway.line.stats`) and the time
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol
+
+from gateway.wire import frames
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from gateway.line.stats import LineStats
-    from gateway.wire import frames
     from gateway.wire.timing import LineFormat
 
 
@@ -48,6 +49,27 @@ class LateAnswer:
     after_s: float  # from sending the request to the answer's last byte
     timeout_s: float  # the response timeout
     waited_s: float  # from sending to giving up: the request's wire time and the timeout
+
+
+@dataclass(slots=True, kw_only=True)
+class RequestOptions:
+    """How one request goes out and its answer is read, on any kind of line.
+
+    ``gap_s`` is the silence the line keeps before the request (where the line has one to
+    keep), ``not_before`` the earliest time it may go out (a post-write wait, a late
+    answer's window), ``timeout_s`` how long the answer may take once the request is on the
+    wire, ``turnaround_s`` the least time the device takes to answer (a converter times its
+    serial side itself and ignores it); ``exceptions`` names the device's exception codes
+    and ``byte_count_16bit`` is a profile's quirk for string reads. Made per request (not
+    frozen: a frozen dataclass is built field by field, and every poll makes one).
+    """
+
+    timeout_s: float
+    gap_s: float
+    not_before: float = 0.0
+    exceptions: Mapping[int, str] = field(default_factory=lambda: frames.STANDARD_EXCEPTIONS)
+    byte_count_16bit: bool = False
+    turnaround_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -85,22 +107,9 @@ class Line(Protocol):
     async def close(self) -> None:
         """Close the line (idempotent); back once its resources are released."""
 
-    async def transact(
-        self,
-        request: frames.Request,
-        *,
-        timeout_s: float,
-        gap_s: float,
-        not_before: float = 0.0,
-        exceptions: Mapping[int, str] = ...,
-        byte_count_16bit: bool = False,
-        turnaround_s: float = 0.0,
-    ) -> Exchange | None:
+    async def transact(self, request: frames.Request, options: RequestOptions) -> Exchange | None:
         """Send ``request`` when the line allows and return its answer (``None``: broadcast).
 
-        ``gap_s`` is the silence the line keeps before a request (where the line has one to
-        keep), ``not_before`` the earliest time it may go out (a post-write wait, a late
-        answer's window), ``timeout_s`` how long the answer may take after the request is on
-        the wire, ``turnaround_s`` the least time the device takes to answer. Failures raise
-        the :mod:`gateway.errors` of a transaction, each counted by kind in :attr:`stats`.
+        Failures raise the :mod:`gateway.errors` of a transaction, each counted by kind in
+        :attr:`stats`.
         """

@@ -61,7 +61,7 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from gateway.config.network import TcpSettings
-    from gateway.line.boundary import LateAnswer, WaitWatch
+    from gateway.line.boundary import LateAnswer, RequestOptions, WaitWatch
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
@@ -196,23 +196,13 @@ class ModbusTcpLine:
         self._live()
         return ready
 
-    async def transact(
-        self,
-        request: frames.Request,
-        *,
-        timeout_s: float,
-        gap_s: float,
-        not_before: float = 0.0,
-        exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
-        byte_count_16bit: bool = False,
-        turnaround_s: float = 0.0,  # noqa: ARG002 - the converter times the serial side
-    ) -> Exchange | None:
+    async def transact(self, request: frames.Request, options: RequestOptions) -> Exchange | None:
         """Send ``request`` in an MBAP frame and return its answer (``None`` for broadcasts).
 
         Raises what :meth:`Line.transact` raises, and a :class:`ConverterError` for the
         converter's exceptions 0A and 0B; every failure is counted by kind for the device.
         """
-        await self.wait_gap(gap_s, not_before=not_before)
+        await self.wait_gap(options.gap_s, not_before=options.not_before)
         self.flush_input(request.device)
         self._transaction = (self._transaction + 1) & mbap.MAX_TRANSACTION_ID
         transaction = self._transaction
@@ -236,9 +226,9 @@ class ModbusTcpLine:
             response, received_at = await self._await_answer(
                 request,
                 transaction,
-                deadline=request_end + timeout_s,
-                exceptions=exceptions,
-                byte_count_16bit=byte_count_16bit,
+                deadline=request_end + options.timeout_s,
+                exceptions=options.exceptions,
+                byte_count_16bit=options.byte_count_16bit,
             )
         except ConverterError as exc:
             self.stats.errors[request.device, exc.kind] += 1

@@ -42,9 +42,7 @@ from gateway.line.timer import DeadlineTimer
 from gateway.wire import frames
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
-
-    from gateway.line.boundary import WaitWatch
+    from gateway.line.boundary import RequestOptions, WaitWatch
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
@@ -282,22 +280,13 @@ class RtuLine(ABC):
         self.stats.noisy = message
         raise LineNoiseError(message)
 
-    async def transact(
-        self,
-        request: frames.Request,
-        *,
-        timeout_s: float,
-        gap_s: float,
-        not_before: float = 0.0,
-        exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
-        byte_count_16bit: bool = False,
-        turnaround_s: float = 0.0,
-    ) -> Exchange | None:
+    async def transact(self, request: frames.Request, options: RequestOptions) -> Exchange | None:
         """Send ``request`` after the gap and return its answer (``None`` for broadcasts).
 
-        ``turnaround_s`` is the least time the device takes before it answers (a digiLine's
-        minimum response time); an answer complete sooner than the request's and its own
-        wire time plus that is not the device's (:func:`~gateway.line.echo.earliest_answer`).
+        ``options.turnaround_s`` is the least time the device takes before it answers (a
+        digiLine's minimum response time); an answer complete sooner than the request's and
+        its own wire time plus that is not the device's
+        (:func:`~gateway.line.echo.earliest_answer`).
 
         Raises :class:`BusTimeoutError` (:class:`LineNoiseError` when the line never fell
         silent), :class:`CrcError`, :class:`UnexpectedDeviceError`,
@@ -305,7 +294,10 @@ class RtuLine(ABC):
         :class:`DeviceExceptionError` or :class:`BusClosedError`; every failure is counted
         by kind for the device.
         """
-        due = await self.wait_gap(gap_s, not_before=not_before, device=request.device)
+        timeout_s = options.timeout_s
+        due = await self.wait_gap(
+            options.gap_s, not_before=options.not_before, device=request.device
+        )
         inbox = self._inbox
         assert inbox is not None  # noqa: S101 - wait_gap checked it
         if inbox.buffer:
@@ -328,12 +320,7 @@ class RtuLine(ABC):
             if self.echo.expected:
                 await self._read_echo(request, request_end)
             response, received_at = await self._receive(
-                request,
-                sent_at=sent_at,
-                deadline=request_end + timeout_s,
-                exceptions=exceptions,
-                byte_count_16bit=byte_count_16bit,
-                turnaround_s=turnaround_s,
+                request, options, sent_at=sent_at, deadline=request_end + timeout_s
             )
         except DeviceExceptionError as exc:
             self.stats.exception_codes[request.device, exc.code] += 1
@@ -425,14 +412,7 @@ class RtuLine(ABC):
         )
 
     async def _receive(
-        self,
-        request: frames.Request,
-        *,
-        sent_at: float,
-        deadline: float,
-        exceptions: Mapping[int, str],
-        byte_count_16bit: bool,
-        turnaround_s: float,
+        self, request: frames.Request, options: RequestOptions, *, sent_at: float, deadline: float
     ) -> tuple[frames.Response, float]:
         """Read until a frame answers ``request``; skip garbage, echoes and frames of others."""
         inbox = self._live_inbox()
@@ -445,14 +425,14 @@ class RtuLine(ABC):
                 request_bytes=len(request.frame),
                 answer_bytes=0,
                 character_s=character_s,
-                turnaround_s=turnaround_s,
+                turnaround_s=options.turnaround_s,
             )
         else:
             character_s, floor = 0.0, -math.inf
         scan = AnswerScan(
             request,
-            exceptions=exceptions,
-            byte_count_16bit=byte_count_16bit,
+            exceptions=options.exceptions,
+            byte_count_16bit=options.byte_count_16bit,
             echo=None if expected else request.frame,
             echo_known=policy.seen,
             answer_floor=floor,

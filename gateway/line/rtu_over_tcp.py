@@ -27,17 +27,16 @@ from gateway.line.tcp_session import (
     session_ended,
     unread_bytes,
 )
-from gateway.wire import frames
 
 if TYPE_CHECKING:
     import asyncio
     from asyncio.trsock import TransportSocket
-    from collections.abc import Mapping
 
     from gateway.config.network import TcpSettings
-    from gateway.line.boundary import Exchange
+    from gateway.line.boundary import Exchange, RequestOptions
     from gateway.line.inbox import Inbox
     from gateway.line.stats import LineStats
+    from gateway.wire import frames
     from gateway.wire.timing import LineFormat
 
 
@@ -102,29 +101,11 @@ class RtuOverTcpLine(RtuLine):
             max(gap_s, pause_s), not_before=max(not_before, self._ready_at), device=device
         )
 
-    async def transact(
-        self,
-        request: frames.Request,
-        *,
-        timeout_s: float,
-        gap_s: float,
-        not_before: float = 0.0,
-        exceptions: Mapping[int, str] = frames.STANDARD_EXCEPTIONS,
-        byte_count_16bit: bool = False,
-        turnaround_s: float = 0.0,
-    ) -> Exchange | None:
+    async def transact(self, request: frames.Request, options: RequestOptions) -> Exchange | None:
         """:meth:`RtuLine.transact`, watched: a session silent for too many requests is reopened."""
         before = self._last_byte_at()
         try:
-            exchange = await super().transact(
-                request,
-                timeout_s=timeout_s,
-                gap_s=gap_s,
-                not_before=not_before,
-                byte_count_16bit=byte_count_16bit,
-                exceptions=exceptions,
-                turnaround_s=turnaround_s,
-            )
+            exchange = await super().transact(request, options)
         except BusTimeoutError as exc:
             if self._last_byte_at() > before:
                 self.watch.heard()

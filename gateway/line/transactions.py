@@ -29,6 +29,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
+from gateway.line.boundary import RequestOptions
 from gateway.line.plan import CostModel, Planner
 from gateway.line.register_cache import RegisterCache
 from gateway.wire import codec, frames
@@ -219,14 +220,16 @@ class Transactions:
         try:
             exchange = await self.line.transact(
                 request,
-                timeout_s=self.timeout_for(
-                    state, response_bytes, min_response_s if reported is None else reported
+                RequestOptions(
+                    timeout_s=self.timeout_for(
+                        state, response_bytes, min_response_s if reported is None else reported
+                    ),
+                    gap_s=self.gap_s(state),
+                    not_before=state.not_before,
+                    exceptions=profile.exceptions,
+                    byte_count_16bit=profile.quirks.string_byte_count_16bit,
+                    turnaround_s=0.0 if reported is None else reported,
                 ),
-                gap_s=self.gap_s(state),
-                not_before=state.not_before,
-                exceptions=profile.exceptions,
-                byte_count_16bit=profile.quirks.string_byte_count_16bit,
-                turnaround_s=0.0 if reported is None else reported,
             )
         except LineNoiseError:
             raise  # nothing was sent: no answer can come late
@@ -490,7 +493,7 @@ class Transactions:
         gap = max(
             (self.gap_s(s) for s in self.devices.values()), default=self.line.format.frame_gap_s()
         )
-        await self.line.transact(request, timeout_s=0.0, gap_s=gap)
+        await self.line.transact(request, RequestOptions(timeout_s=0.0, gap_s=gap))
         sent = time.monotonic()
         for state in self.devices.values():
             wait = max(

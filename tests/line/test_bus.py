@@ -20,6 +20,7 @@ import serial
 
 from gateway.config.echo import EchoMode
 from gateway.errors import BusClosedError
+from gateway.line.boundary import RequestOptions
 from gateway.line.serial_line import SerialLine
 from gateway.line.stats import ErrorKind
 from gateway.wire import frames
@@ -83,7 +84,9 @@ async def test_a_late_answer_of_another_device_does_not_end_the_wait(tmp_path: P
 
         os.set_blocking(master, False)
         peer = asyncio.create_task(other_end())
-        exchange = await line.transact(request, timeout_s=0.2, gap_s=LINE.frame_gap_s())
+        exchange = await line.transact(
+            request, RequestOptions(timeout_s=0.2, gap_s=LINE.frame_gap_s())
+        )
         await peer
         assert exchange is not None
         assert exchange.response.registers == (0x0000, 0x41A2)
@@ -215,7 +218,9 @@ async def test_an_answer_the_kernel_holds_at_the_deadline_is_taken(tmp_path: Pat
     async with hand_wired(tmp_path) as (line, master):
         held = held_up_at_the_next_wait(line, lambda: os.write(master, answer(1, (0x0000, 0x41A2))))
         request = frames.read_request(1, 0x2620, 2)
-        exchange = await line.transact(request, timeout_s=0.05, gap_s=LINE.frame_gap_s())
+        exchange = await line.transact(
+            request, RequestOptions(timeout_s=0.05, gap_s=LINE.frame_gap_s())
+        )
         assert held, "the answer was never written: the test did not set the race up"
         assert exchange is not None
         assert exchange.response.registers == (0x0000, 0x41A2)
@@ -231,7 +236,9 @@ async def test_an_echo_the_kernel_holds_at_its_deadline_is_read(tmp_path: Path) 
         held = held_up_at_the_next_wait(
             line, lambda: os.write(master, request.frame + answer(1, (0x0000, 0x41A2)))
         )
-        exchange = await line.transact(request, timeout_s=0.05, gap_s=LINE.frame_gap_s())
+        exchange = await line.transact(
+            request, RequestOptions(timeout_s=0.05, gap_s=LINE.frame_gap_s())
+        )
         assert held, "the echo was never written: the test did not set the race up"
         assert exchange is not None
         assert exchange.response.registers == (0x0000, 0x41A2)

@@ -40,7 +40,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
-from gateway.line.boundary import Exchange
+from gateway.line.boundary import Exchange, RequestOptions
 from gateway.line.serial_line import SerialLine
 from gateway.line.stats import ErrorKind, LineStats
 from gateway.wire import frames
@@ -248,7 +248,9 @@ async def run_script(
     """
     request = script.request
     transaction = asyncio.create_task(
-        line.transact(request, timeout_s=TIMEOUT_S, gap_s=GAP_S, byte_count_16bit=script.quirk)
+        line.transact(
+            request, RequestOptions(timeout_s=TIMEOUT_S, gap_s=GAP_S, byte_count_16bit=script.quirk)
+        )
     )
     assert await device.request(len(request.frame)) == request.frame
     # A pty carries bytes at once; a line does not. Nothing the device sends can be in

@@ -22,6 +22,7 @@ import pytest
 from gateway.config.network import TcpSettings
 from gateway.control.link import DeviceLink
 from gateway.errors import BusTimeoutError, ConverterPathError
+from gateway.line.boundary import RequestOptions
 from gateway.line.factory import build_line
 from gateway.line.modbus_tcp import ModbusTcpLine
 from gateway.line.rtu_over_tcp import RtuOverTcpLine
@@ -254,10 +255,10 @@ async def test_0a_older_transactions_and_a_good_answer() -> None:
         request = frames.read_request(1, 0x2620, 2)
         try:
             with pytest.raises(ConverterPathError, match=r"exception 0A.*gateway path unavailable"):
-                await line.transact(request, timeout_s=0.2, gap_s=0.0)
+                await line.transact(request, RequestOptions(timeout_s=0.2, gap_s=0.0))
             with pytest.raises(BusTimeoutError, match="no answer"):
-                await line.transact(request, timeout_s=0.1, gap_s=0.0)
-            exchange = await line.transact(request, timeout_s=0.2, gap_s=0.0)
+                await line.transact(request, RequestOptions(timeout_s=0.1, gap_s=0.0))
+            exchange = await line.transact(request, RequestOptions(timeout_s=0.2, gap_s=0.0))
         finally:
             await line.close()
     assert exchange is not None
@@ -299,7 +300,9 @@ async def test_an_answer_the_socket_holds_at_the_deadline_is_taken() -> None:
 
     inbox.wait = wait_after_the_answer  # type: ignore[method-assign]
     try:
-        exchange = await line.transact(frames.read_request(1, 0x2620, 2), timeout_s=0.05, gap_s=0.0)
+        exchange = await line.transact(
+            frames.read_request(1, 0x2620, 2), RequestOptions(timeout_s=0.05, gap_s=0.0)
+        )
     finally:
         await line.close()
         peer.close()
@@ -342,7 +345,7 @@ async def test_keepalive_and_the_user_timeout_reach_the_socket(framing: str) -> 
         assert sock is not None
         assert _options(sock) == EXPECTED
         exchange = await line.transact(
-            frames.read_request(1, 0x2620, 2), timeout_s=0.2, gap_s=0.005
+            frames.read_request(1, 0x2620, 2), RequestOptions(timeout_s=0.2, gap_s=0.005)
         )
         assert exchange is not None  # the settings leave the line working
     finally:
@@ -362,7 +365,10 @@ async def test_the_pause_after_connecting_and_between_requests(framing: str) -> 
     try:
         await line.open()
         opened = time.monotonic()
-        exchanges = [await line.transact(request, timeout_s=0.2, gap_s=0.005) for _ in range(3)]
+        exchanges = [
+            await line.transact(request, RequestOptions(timeout_s=0.2, gap_s=0.005))
+            for _ in range(3)
+        ]
     finally:
         await line.close()
         await server.close()

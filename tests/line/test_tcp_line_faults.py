@@ -39,6 +39,7 @@ from gateway.errors import (
     MalformedFrameError,
     UnexpectedDeviceError,
 )
+from gateway.line.boundary import RequestOptions
 from gateway.line.modbus_tcp import ModbusTcpLine
 from gateway.line.rtu_over_tcp import RtuOverTcpLine
 from gateway.line.stats import ErrorKind
@@ -194,7 +195,7 @@ async def opened(line: ModbusTcpLine | RtuOverTcpLine) -> AsyncIterator[None]:
 
 
 async def read(line: ModbusTcpLine | RtuOverTcpLine) -> tuple[int, ...]:
-    exchange = await line.transact(READ, timeout_s=TIMEOUT_S, gap_s=0.005)
+    exchange = await line.transact(READ, RequestOptions(timeout_s=TIMEOUT_S, gap_s=0.005))
     assert exchange is not None
     return exchange.response.registers
 
@@ -205,7 +206,7 @@ async def fails(
     """The transaction's failure, and how long after it began."""
     started = time.monotonic()
     with pytest.raises(error) as caught:
-        await line.transact(READ, timeout_s=TIMEOUT_S, gap_s=0.005)
+        await line.transact(READ, RequestOptions(timeout_s=TIMEOUT_S, gap_s=0.005))
     return caught.value, time.monotonic() - started
 
 

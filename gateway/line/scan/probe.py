@@ -22,6 +22,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import BusTimeoutError, DeviceExceptionError, FrameError
+from gateway.line.boundary import RequestOptions
 from gateway.line.scan.formats import probe_timeout_s
 from gateway.line.scan.identify import (
     DIGILINE,
@@ -287,13 +288,11 @@ class Scanner:
     ) -> _Answer:
         request = frames.read_request(address, first, count)
         try:
-            exchange = await self.line.transact(
-                request,
-                timeout_s=timeout_s,
-                gap_s=self.gap_s,
-                exceptions=profile.exceptions if profile else frames.STANDARD_EXCEPTIONS,
-                byte_count_16bit=profile.quirks.string_byte_count_16bit if profile else False,
-            )
+            options = RequestOptions(timeout_s=timeout_s, gap_s=self.gap_s)
+            if profile is not None:
+                options.exceptions = profile.exceptions
+                options.byte_count_16bit = profile.quirks.string_byte_count_16bit
+            exchange = await self.line.transact(request, options)
         except DeviceExceptionError as exc:
             return _Answer(exception=exc.code)
         except BusTimeoutError:
