@@ -20,10 +20,7 @@ from itertools import pairwise
 from typing import TYPE_CHECKING, Any, Final
 
 from gateway.care.records import (
-    HISTORY,
-    HISTORY_SIZE,
-    LOGBOOK,
-    LOGBOOK_SIZE,
+    HISTORY_FIELDS,
     Calibration,
     LogbookEntry,
     Records,
@@ -49,7 +46,6 @@ FUTURE_TOLERANCE: Final = timedelta(minutes=10)
 SERVICE_RISE: Final = 0.10
 # Calibrations that agree to this relative difference are the same (float32 read back).
 _SAME: Final = 1e-4
-HISTORY_PARTS: Final = ("x_zero", "x_span", "stamp")
 ZERO_POINT_ENTRY: Final = "zero_point"  # 6.1.6 entry type 20
 
 
@@ -278,10 +274,6 @@ class _Calibration:
         }
 
 
-def _history_name(index: int, name: str) -> str:
-    return f"{HISTORY}_{index}_{name}"
-
-
 def _amperometric(
     records: Records,
     rules: CareRules,
@@ -292,13 +284,16 @@ def _amperometric(
     past: Sequence[Calibration],
 ) -> None:
     current = ("x_zero", "x_span", "calibration_stamp")
-    entries = [_history_name(i, f) for i in range(HISTORY_SIZE) for f in ("x_zero", "x_span")]
-    stamps = [_history_name(i, "stamp") for i in range(HISTORY_SIZE)]
+    ring = rules.ring
+    if ring is None:
+        draft.add(CareState.UNKNOWN, "its profile declares no calibration history")
+        return
+    entries, stamps = ring.points("x_zero", "x_span"), ring.points("stamp")
     if _missing(records, (*current, *entries, *stamps), draft, "The calibration records"):
         return
 
     def calibration(index: int | None) -> _Calibration:
-        names = current if index is None else [_history_name(index, f) for f in HISTORY_PARTS]
+        names = current if index is None else [ring.point(index, f) for f in HISTORY_FIELDS]
         zero, span, stamp = (
             records.number(names[0]),
             records.number(names[1]),
@@ -312,7 +307,7 @@ def _amperometric(
         )
 
     active = calibration(None)
-    history = [calibration(i) for i in range(HISTORY_SIZE)]
+    history = [calibration(i) for i in ring.numbers]
     draft.records = {
         "active": active.as_dict(),
         "history": [entry.as_dict() for entry in history],
@@ -534,14 +529,16 @@ def _optical_hygienic(
     words: _Words,
     past: Sequence[LogbookEntry],
 ) -> None:
-    logbook = [
-        f"{LOGBOOK}_{i}_{f}" for i in range(1, LOGBOOK_SIZE + 1) for f in ("entry_type", "date")
-    ]
     _cap(records, rules, draft)
     _since_calibration(records, rules, draft)
+    ring = rules.ring
+    if ring is None:
+        draft.add(CareState.UNKNOWN, "its profile declares no calibration logbook")
+        return
+    logbook = ring.points("entry_type", "date")
     if _missing(records, (*logbook, "operating_seconds"), draft, "The calibration logbook"):
         return
-    entries = logbook_entries(records)
+    entries = logbook_entries(records, ring)
     draft.records["logbook"] = [entry.as_dict() for entry in entries]
     if not entries:
         draft.add(CareState.DUE, "never calibrated: the calibration logbook is empty")

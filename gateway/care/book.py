@@ -214,7 +214,7 @@ class CareBook:
         checks = self._checks.get(tracked.name, _Checks())
         past: Sequence[SensorEntry] = ()
         if self._history is not None and tracked.rules.kind is not CareKind.OPTICAL:
-            past = self._history(tracked.name, ring_entries(records, tracked.rules.kind))
+            past = self._history(tracked.name, ring_entries(records, tracked.rules.ring))
         report = assess(
             records,
             tracked.rules,

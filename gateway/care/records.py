@@ -12,20 +12,18 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import TYPE_CHECKING, Final, Protocol, TypeAlias
 
-from gateway.care.rules import CareKind
+from gateway.care.rules import HISTORY, CareKind, care_ring
 from gateway.wire.codec import BitfieldValue, EnumValue
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Mapping, Sequence
 
-    from gateway.profiles import Profile
+    from gateway.profiles import Profile, Ring
     from gateway.wire import codec
 
-HISTORY: Final = "history"  # tecLine annex 7.2 / Reiss 5.1: entries 0 (newest) to 4
-LOGBOOK: Final = "logbook"  # H10/H20 6.1.6: entries 1 to 10
-HISTORY_SIZE: Final = 5  # tecLine annex 7.2
+# The fields of each entry that care judges (the logbook has more); how many entries a ring
+# has, how the sensor numbers them and their fields are the profile's (``Profile.ring``).
 HISTORY_FIELDS: Final = ("x_zero", "x_span", "stamp")
-LOGBOOK_SIZE: Final = 10  # H10/H20 manual 6.1.6
 LOGBOOK_FIELDS: Final = (
     "entry_type",
     "manual_change",
@@ -64,16 +62,11 @@ OPTIONAL: Final = frozenset({"cap_serial_number", "cap_part_number", "commission
 
 def care_points(profile: Profile, kind: CareKind) -> tuple[str, ...]:
     """The points of ``profile`` that care reads, those the verdict needs first."""
-    repeat, wanted = (
-        (HISTORY, HISTORY_FIELDS) if kind is CareKind.AMPEROMETRIC else (LOGBOOK, LOGBOOK_FIELDS)
-    )
     names = [name for name in _CURRENT[kind] if profile.has_point(name)]
-    if kind is not CareKind.OPTICAL:
-        names += [
-            point.name
-            for point in profile.points
-            if point.repeat == repeat and point.name.endswith(tuple(f"_{f}" for f in wanted))
-        ]
+    ring = care_ring(profile, kind)
+    if ring is not None:
+        judged = HISTORY_FIELDS if ring.name == HISTORY else LOGBOOK_FIELDS
+        names += ring.points(*(f for f in ring.fields if f in judged))
     names += [name for name in sorted(OPTIONAL) if profile.has_point(name) and name not in names]
     return tuple(names)
 
@@ -200,19 +193,18 @@ class PastEntries(Protocol):
         ...
 
 
-def history_entries(records: Records) -> tuple[Calibration, ...]:
+def history_entries(records: Records, ring: Ring) -> tuple[Calibration, ...]:
     """The filled entries of the tecLine/Reiss history, newest first.
 
     An entry is filled when its stamp is set (a sensor keeps 0 in the ones never used) and
     both its values are numbers; one the bus could not read is left out, not guessed.
     """
     entries = []
-    for number in range(HISTORY_SIZE):
-        names = [f"{HISTORY}_{number}_{part}" for part in HISTORY_FIELDS]
+    for number in ring.numbers:
         zero, span, stamp = (
-            records.number(names[0]),
-            records.number(names[1]),
-            records.date(names[2]),
+            records.number(ring.point(number, "x_zero")),
+            records.number(ring.point(number, "x_span")),
+            records.date(ring.point(number, "stamp")),
         )
         if zero is None or span is None or stamp is None:
             continue
@@ -220,11 +212,11 @@ def history_entries(records: Records) -> tuple[Calibration, ...]:
     return tuple(entries)
 
 
-def logbook_entries(records: Records) -> tuple[LogbookEntry, ...]:
+def logbook_entries(records: Records, ring: Ring) -> tuple[LogbookEntry, ...]:
     """The filled H10/H20 logbook entries, in the device's own order (1 newest)."""
     entries = []
-    for number in range(1, LOGBOOK_SIZE + 1):
-        prefix = f"{LOGBOOK}_{number}_"
+    for number in ring.numbers:
+        prefix = ring.point(number, "")
         kind = records.label(f"{prefix}entry_type")
         if kind is None or kind == "none" or kind.startswith("code_"):
             continue  # 6.1.6 "kein Eintrag", or erased flash
@@ -243,10 +235,10 @@ def logbook_entries(records: Records) -> tuple[LogbookEntry, ...]:
     return tuple(entries)
 
 
-def ring_entries(records: Records, kind: CareKind) -> tuple[SensorEntry, ...]:
-    """The entries of the ring a family keeps (none for the S10), as the sensor orders them."""
-    if kind is CareKind.AMPEROMETRIC:
-        return history_entries(records)
-    if kind is CareKind.OPTICAL_HYGIENIC:
-        return logbook_entries(records)
-    return ()
+def ring_entries(records: Records, ring: Ring | None) -> tuple[SensorEntry, ...]:
+    """The entries of the ring a sensor keeps (none for the S10), as the sensor orders them."""
+    if ring is None:
+        return ()
+    if ring.name == HISTORY:
+        return history_entries(records, ring)
+    return logbook_entries(records, ring)

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
     from gateway.config import DeviceConfig, GatewayConfig
     from gateway.config.care import CareSettings
-    from gateway.profiles import Profile
+    from gateway.profiles import Profile, Ring
 
 
 class CareKind(StrEnum):
@@ -27,11 +27,13 @@ class CareKind(StrEnum):
     OPTICAL = "optical"  # O-DO S10: operating time and cap status bits only
 
 
-KIND_OF_FAMILY: Final[Mapping[str, CareKind]] = {
-    "jumo-tecline": CareKind.AMPEROMETRIC,
-    "reiss-m0c-m3c": CareKind.AMPEROMETRIC,
-    "jumo-digiline-odo-h10-h20": CareKind.OPTICAL_HYGIENIC,
-    "jumo-digiline-odo-s10": CareKind.OPTICAL,
+# The ring each kind of records includes; its entries and fields are the profile's
+# (``Profile.ring``, from its ``repeats``), as is the kind (``care:`` in its data).
+HISTORY: Final = "history"  # tecLine annex 7.2 / Reiss 5.1
+LOGBOOK: Final = "logbook"  # H10/H20 6.1.6
+RING_OF: Final[Mapping[CareKind, str]] = {
+    CareKind.AMPEROMETRIC: HISTORY,
+    CareKind.OPTICAL_HYGIENIC: LOGBOOK,
 }
 
 # tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than
@@ -78,6 +80,7 @@ class CareRules:
     cip_cycles_limit: int | None = None
     sip_cycles_limit: int | None = None
     hours_outside_temperature_limit: float | None = None
+    ring: Ring | None = None  # the sensor's ring of past calibrations, as its profile has it
 
 
 def _defaults(
@@ -137,8 +140,14 @@ assert set(_SETTABLE) <= {f.name for f in fields(CareRules)}  # noqa: S101 - a t
 
 
 def care_kind(profile: Profile) -> CareKind | None:
-    """The records a profile's family keeps; None for a family care knows nothing of."""
-    return KIND_OF_FAMILY.get(profile.family)
+    """The records a profile's family keeps, as its data says; None: none care knows of."""
+    return None if profile.care is None else CareKind(profile.care)
+
+
+def care_ring(profile: Profile, kind: CareKind) -> Ring | None:
+    """The ring of ``profile`` that care reads for ``kind`` (None: the S10 keeps none)."""
+    name = RING_OF.get(kind)
+    return None if name is None else profile.ring(name)
 
 
 def resolve(
@@ -153,7 +162,7 @@ def resolve(
     kind = care_kind(profile)
     if kind is None:
         return None
-    rules = DEFAULTS[kind]
+    rules = replace(DEFAULTS[kind], ring=care_ring(profile, kind))
     enabled = True
     for name, settings in layers:
         if settings is None:

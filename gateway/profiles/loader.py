@@ -150,6 +150,7 @@ class _RawProfile(_Strict):
     enums: dict[str, dict[int, str | _RawEnumEntry]] = {}
     identify: dict[str, int] = {}
     unit_availability: dict[str, list[str]] = {}
+    care: Literal["amperometric", "optical_hygienic", "optical"] | None = None
 
 
 def _describe(exc: ValidationError) -> str:
@@ -543,6 +544,7 @@ def _build_profile(merged: dict[str, Any], source: str) -> Profile:
         serial=SerialSettings(**raw.serial.model_dump()) if raw.serial else None,
         identify=dict(raw.identify),
         unit_availability={mode: tuple(labels) for mode, labels in raw.unit_availability.items()},
+        care=raw.care,
     )
 
 

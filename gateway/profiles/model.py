@@ -174,9 +174,54 @@ class FloatOrderRegister:
     orders: Mapping[int, WordOrder]
 
 
+@dataclass(frozen=True, slots=True)
+class Ring:
+    """A record kept as numbered entries of the same fields: a calibration history, a logbook.
+
+    The sensor overwrites the oldest; declared once, in the profile's ``repeats``.
+    ``numbers`` as the sensor numbers its entries, the newest first (the tecLine's history
+    0 to 4, annex 7.2; the H10/H20's logbook 1 to 10, 6.1.6); ``fields`` each entry's.
+    """
+
+    name: str
+    numbers: tuple[int, ...]
+    fields: tuple[str, ...]
+
+    def point(self, number: int, field: str) -> str:
+        """The name of one entry's field (``history_0_x_zero``)."""
+        return f"{self.name}_{number}_{field}"
+
+    def points(self, *fields: str) -> tuple[str, ...]:
+        """Every entry's points of ``fields`` (all its fields when none), entry by entry."""
+        wanted = fields or self.fields
+        return tuple(self.point(number, field) for number in self.numbers for field in wanted)
+
+
+def _rings(points: tuple[Point, ...]) -> dict[str, Ring]:
+    """The rings of a map, from its points that ``repeats`` expanded (name and index kept)."""
+    numbers: dict[str, list[int]] = {}
+    fields: dict[str, list[str]] = {}
+    for point in points:
+        if point.repeat is None or point.index is None:
+            continue
+        if point.index not in numbers.setdefault(point.repeat, []):
+            numbers[point.repeat].append(point.index)
+        field = point.name.removeprefix(f"{point.repeat}_{point.index}_")
+        if field not in fields.setdefault(point.repeat, []):
+            fields[point.repeat].append(field)
+    return {
+        name: Ring(name=name, numbers=tuple(sorted(found)), fields=tuple(fields[name]))
+        for name, found in numbers.items()
+    }
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Profile:
-    """A complete, validated register map of one sensor variant."""
+    """A complete, validated register map of one sensor variant.
+
+    ``care`` names the records the family keeps, so the rules sensor care judges it by
+    (``amperometric``, ``optical_hygienic``, ``optical``; None: none care knows).
+    """
 
     id: str
     family: str
@@ -195,11 +240,18 @@ class Profile:
     serial: SerialSettings | None
     identify: Mapping[str, int]
     unit_availability: Mapping[str, tuple[str, ...]]
+    care: str | None = None
     _by_name: dict[str, Point] = field(init=False, repr=False, compare=False)
+    _rings: dict[str, Ring] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """Index points by name once."""
+        """Index points by name, and the rings they make, once."""
         object.__setattr__(self, "_by_name", {p.name: p for p in self.points})
+        object.__setattr__(self, "_rings", _rings(self.points))
+
+    def ring(self, name: str) -> Ring | None:
+        """The ring of that name (``history``, ``logbook``), if the sensor keeps one."""
+        return self._rings.get(name)
 
     def has_point(self, name: str) -> bool:
         """Whether the map defines a point of that name."""

@@ -27,6 +27,7 @@ from datetime import datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.care.records import Calibration, LogbookEntry
+from gateway.care.rules import HISTORY, LOGBOOK
 from gateway.errors import RecordError
 from gateway.profiles.serial_number import SERIAL_NUMBER_POINT
 from gateway.records.actor import Actor, Via
@@ -46,8 +47,8 @@ HISTORY_ACTOR: Final = Actor(
     user="gateway", via=Via.GATEWAY, detail="copied from the sensor's own history"
 )
 # A record's data["ring"]: which ring the entry was read from.
-HISTORY_RING: Final = "history"  # tecLine annex 7.2 / Reiss 5.1: entries 0 (newest) to 4
-LOGBOOK_RING: Final = "logbook"  # H10/H20 6.1.6: entries 1 (newest) to 10
+HISTORY_RING: Final = HISTORY  # the ring's name, as the profile and care call it
+LOGBOOK_RING: Final = LOGBOOK
 _ACTIONS: Final = {
     HISTORY_RING: "calibration history entry copied",
     LOGBOOK_RING: "calibration logbook entry copied",

@@ -197,6 +197,25 @@ def test_tecline_history_follows_the_structure_not_the_misprint() -> None:
     assert [p.dtype for p in entry3] == [DataType.FLOAT32, DataType.FLOAT32, DataType.YYMMDDHHMM]
 
 
+def test_the_rings_are_read_whole_from_the_repeats() -> None:
+    """The history and the logbook as care and the calibrations take them, from the data."""
+    history = get_profile("reiss-m3c").ring("history")  # inherited from the tecLine file
+    assert history is not None
+    assert history.numbers == (0, 1, 2, 3, 4)  # tecLine annex 7.2 / Reiss 5.1, 0 newest
+    assert history.fields == ("x_zero", "x_span", "stamp")
+    assert history.points("stamp") == tuple(f"history_{n}_stamp" for n in range(5))
+    logbook = get_profile("jumo-digiline-odo-h20").ring("logbook")
+    assert logbook is not None
+    assert logbook.numbers == tuple(range(1, 11))  # 6.1.6, 1 newest
+    assert logbook.point(10, "date") == "logbook_10_date"
+    assert {"entry_type", "rating", "date", "phase"} <= set(logbook.fields)
+    s10 = get_profile("jumo-digiline-odo-s10")
+    assert (s10.ring("history"), s10.ring("logbook")) == (None, None)
+    cares = {pid: profile.care for pid, profile in builtin_profiles().items()}
+    assert set(cares.values()) == {"amperometric", "optical_hygienic", "optical"}
+    assert cares["reiss-m0c"] == cares["jumo-tecline-cl2"] == "amperometric"
+
+
 @pytest.mark.parametrize(
     ("profile_id", "address", "wait_s"),
     [
@@ -461,3 +480,12 @@ def test_rw_points_are_the_only_ones_with_storage() -> None:
             profile.id,
             point.name,
         )
+
+
+def test_an_unknown_care_kind_is_refused_with_the_key(data_copy: Path) -> None:
+    path = data_copy / "jumo-tecline.yaml"
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    data["care"] = "chlorine"
+    path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
+    with pytest.raises(ProfileError, match=r"care: Input should be 'amperometric'"):
+        load_profiles(data_copy)

@@ -340,7 +340,7 @@ def test_six_calibrations_of_a_simulated_tecline_leave_six_records_though_it_kee
         write(master, "x_span", ratio * NOMINAL)
         write(master, "calibration_stamp", stamp)
         records = Records(values={name: read(master, name) for name in care_points_of_tecline()})
-        ring = ring_entries(records, CareKind.AMPEROMETRIC)
+        ring = ring_entries(records, TECLINE.ring("history"))
         rings.append(ring)
         keeper.copy(sensor, ring)
 

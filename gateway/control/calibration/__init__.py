@@ -49,7 +49,6 @@ from gateway.control.calibration.amperometric import (
 from gateway.control.calibration.arithmetic import (
     AMPEROMETRIC_POINTS,
     CHEMICAL_CHECK_TOLERANCE,
-    HISTORY_ENTRIES,
     OPTICAL_OXYGEN_POINTS,
     SLOPE_WARNING_FRACTION,
     HistoryEffect,
@@ -81,7 +80,6 @@ from gateway.control.calibration.steps import (
 __all__ = [
     "AMPEROMETRIC_POINTS",
     "CHEMICAL_CHECK_TOLERANCE",
-    "HISTORY_ENTRIES",
     "OPTICAL_OXYGEN_POINTS",
     "PPM_PER_UNIT",
     "SLOPE_WARNING_FRACTION",

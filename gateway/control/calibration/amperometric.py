@@ -15,7 +15,6 @@ from gateway.control.calibration.arithmetic import (
     CELL_CURRENT_READINGS,
     CELL_PROCEDURE_POINTS,
     CHEMICAL_CHECK_TOLERANCE,
-    HISTORY_ENTRIES,
     READING_INTERVAL_S,
     SLOPE_WARNING_FRACTION,
     HistoryEffect,
@@ -43,10 +42,11 @@ if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
     from gateway.control.writes import SafeWriter
+    from gateway.profiles import Ring
 
 # --- tecLine / Reiss -------------------------------------------------------------------------
 
-_HISTORY_PARTS: Final = ("x_zero", "x_span", "stamp")
+_HISTORY_PARTS: Final = ("x_zero", "x_span", "stamp")  # of each entry, as the profile names them
 _AMPEROMETRIC_SOURCE: Final = "tecLine annex 7.3.3 / Reiss 5.2.3"
 _HISTORY_SOURCE: Final = "tecLine annex 7.2 / Reiss 5.1"
 _NOT_ACTIVE: Final = (
@@ -55,14 +55,19 @@ _NOT_ACTIVE: Final = (
 )
 
 
-def _history_points() -> tuple[str, ...]:
-    return tuple(f"history_{i}_{part}" for i in range(HISTORY_ENTRIES) for part in _HISTORY_PARTS)
+def _ring(flow: Flow) -> Ring:
+    """The cell's calibration history, as its profile declares it (annex 7.2's five entries)."""
+    ring = flow.profile.ring("history")
+    if ring is None:
+        msg = f"profile {flow.profile.id} declares no calibration history"
+        raise CommandRejectedError(msg)
+    return ring
 
 
-def _history(values: Mapping[str, codec.Decoded]) -> tuple[HistoryEntry, ...]:
+def _history(ring: Ring, values: Mapping[str, codec.Decoded]) -> tuple[HistoryEntry, ...]:
     entries = []
-    for i in range(HISTORY_ENTRIES):
-        zero, span, stamp = (values[f"history_{i}_{part}"] for part in _HISTORY_PARTS)
+    for number in ring.numbers:
+        zero, span, stamp = (values[ring.point(number, part)] for part in _HISTORY_PARTS)
         entries.append(
             HistoryEntry(
                 x_zero=float(zero) if isinstance(zero, int | float) else math.nan,
@@ -102,7 +107,8 @@ async def _read_cell(flow: Flow) -> _CellState:
         x_span=flow.number(values, "x_span"),
         stamp=stamp if isinstance(stamp, datetime) else None,
     )
-    history = _history(await flow.read(*_history_points()))
+    ring = _ring(flow)
+    history = _history(ring, await flow.read(*ring.points(*_HISTORY_PARTS)))
     state = _CellState(
         unit=label,
         unit_text=unit_text,
@@ -140,7 +146,7 @@ def _announce_stamp(flow: Flow, state: _CellState, stamp: datetime) -> HistoryEf
         flow.say(
             StepKind.COMPUTE,
             f"date stamp {number}: later than history entry 0, so the history moves down one "
-            f"place and entry {HISTORY_ENTRIES - 1} ({dropped}) is dropped (annex 7.2)",
+            f"place and entry {len(state.history) - 1} ({dropped}) is dropped (annex 7.2)",
         )
     elif last == stamp:
         flow.say(
@@ -180,8 +186,9 @@ async def _activate_and_verify(
         return flow.outcome(Status.DECLINED)
     await flow.write(plans, if_interrupted=_NOT_ACTIVE)
 
-    after = await flow.read("x_zero", "x_span", "calibration_stamp", *_history_points())
-    history = _history(after)
+    ring = _ring(flow)
+    after = await flow.read("x_zero", "x_span", "calibration_stamp", *ring.points(*_HISTORY_PARTS))
+    history = _history(ring, after)
     stamp = after["calibration_stamp"]
     current = HistoryEntry(
         x_zero=flow.number(after, "x_zero"),
@@ -203,7 +210,7 @@ async def _activate_and_verify(
         source=_AMPEROMETRIC_SOURCE,
     )
     expected = expected_history(state.history, new, effect)
-    for i in range(1, HISTORY_ENTRIES):
+    for i in range(1, len(history)):
         moved = "moved down from entry " + str(i - 1) if effect is HistoryEffect.PUSH else "kept"
         flow.check(
             f"history entry {i} ({moved})",

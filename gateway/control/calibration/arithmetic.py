@@ -21,8 +21,6 @@ if TYPE_CHECKING:
 
 # tecLine annex 7.3.4's 30 % of the nominal slope: the limit sensor care judges by too.
 SLOPE_WARNING_FRACTION: Final = SLOPE_LIMIT
-# tecLine annex 7.2 / Reiss 5.1: history entries 0 (newest, copy of the current one) to 4.
-HISTORY_ENTRIES: Final = 5
 # tecLine annex 7.3.3 / Reiss 5.2.3 "chemical check": the sensor's and the analysed
 # concentration "should be broadly identical". The manuals give no number; 10 % is ours.
 CHEMICAL_CHECK_TOLERANCE: Final = 0.10
