@@ -27,7 +27,7 @@ from gateway.care.records import (
     logbook_entries,
 )
 from gateway.care.report import CareReport, CareState, Finding
-from gateway.care.rules import PPM_PER_UNIT, CareKind, CareRules
+from gateway.care.rules import CareKind, CareRules
 from gateway.care.trend import fit, project
 from gateway.care.verifications import later
 
@@ -430,20 +430,23 @@ def _slope(
     """
     if _missing(records, ("nominal_slope", "unit"), draft, "The nominal slope and unit"):
         return []
+    facts, limit = rules.slope, rules.slope_limit
+    if facts is None or limit is None:
+        draft.add(CareState.UNKNOWN, "its profile gives no slope limit or units to judge by")
+        return []
     nominal = records.number("nominal_slope")
     unit = records.label("unit") or ""
-    per_unit = PPM_PER_UNIT.get(unit)
     if nominal is None or nominal <= 0:
         draft.add(CareState.UNKNOWN, f"the nominal slope (0x030A) reads {nominal}: not usable")
         return []
-    if per_unit is None:
+    nominal_in_unit = facts.nominal_in(nominal, unit)
+    if nominal_in_unit is None:
         draft.add(
             CareState.UNKNOWN,
             f"the concentration unit {unit!r} (0x0200) has no known relation to ppm, so the "
             "slope cannot be compared with the nominal slope (nA/ppm)",
         )
         return []
-    nominal_in_unit = nominal * per_unit
     ratios = [
         (entry.stamp, entry.x_span / nominal_in_unit)
         for entry in reversed(history)
@@ -452,10 +455,10 @@ def _slope(
     ratio = ratios[-1][1]
     draft.slope_ratio = ratio
     draft.figures["nominal_slope_in_unit"] = nominal_in_unit
-    if ratio < rules.slope_limit:
+    if ratio < limit:
         draft.add(
             CareState.MAINTENANCE,
-            f"slope {ratio:.0%} of nominal, below {rules.slope_limit:.0%}: service the sensor "
+            f"slope {ratio:.0%} of nominal, below {limit:.0%}: service the sensor "
             "(membrane cap and electrolyte, as its operating manual says; tecLine annex "
             "7.3.4), then calibrate",
         )
@@ -487,13 +490,13 @@ def _slope_trend(
         )
         return
     draft.slope_trend = fitted.trend()
-    ratio = ratios[-1][1]
-    if ratio < rules.slope_limit:
+    ratio, limit = ratios[-1][1], rules.slope_limit
+    if limit is None:  # no ratios were made without one (_slope)
+        return
+    if ratio < limit:
         draft.projection_note = "no projection: the slope is already below the limit"
         return
-    projection, note = project(
-        fitted, limit=rules.slope_limit, newest=ratios[-1][0], min_r2=rules.min_fit_r2
-    )
+    projection, note = project(fitted, limit=limit, newest=ratios[-1][0], min_r2=rules.min_fit_r2)
     draft.projection, draft.projection_note = projection, note
     if projection is None:
         return
@@ -501,7 +504,7 @@ def _slope_trend(
     days = max(0, (projection.at - now).days)
     text = (
         f"slope falling {falling:.1%} of nominal a week: at this rate below "
-        f"{rules.slope_limit:.0%} about {words.day(projection.at)} (in {_about(days)}, "
+        f"{limit:.0%} about {words.day(projection.at)} (in {_about(days)}, "
         f"{projection.confidence} confidence)"
     )
     if projection.at - now <= timedelta(days=rules.projection_warn_days):

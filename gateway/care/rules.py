@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
     from gateway.config import DeviceConfig, GatewayConfig
     from gateway.config.care import CareSettings
-    from gateway.profiles import Profile, Ring
+    from gateway.profiles import Profile, Ring, Slope
 
 
 class CareKind(StrEnum):
@@ -34,24 +34,6 @@ LOGBOOK: Final = "logbook"  # H10/H20 6.1.6
 RING_OF: Final[Mapping[CareKind, str]] = {
     CareKind.AMPEROMETRIC: HISTORY,
     CareKind.OPTICAL_HYGIENIC: LOGBOOK,
-}
-
-# tecLine annex 7.3.4: "If you identify that the currently determined slope is lower than
-# 30 % of the nominal slope (value at address 0x030A), follow the maintenance instructions".
-# The Reiss manual (5.2) sends the reader to its operating manual; the cells are the same.
-SLOPE_LIMIT: Final = 0.30
-
-# X_Span is "nA per unit" of 0x0200 (tecLine annex 7.1), the nominal slope 0x030A is in nA/ppm
-# (annex 7.5.1: "22 nA/ppm"). ppm per one unit of each 0x0200 code, for a dilute aqueous
-# solution (1 l = 1 kg, so mg/l = ppm); our conversion, the manuals do not give one.
-PPM_PER_UNIT: Final[Mapping[str, float]] = {
-    "percent": 10_000.0,  # 1 % = 10 g/kg
-    "permille": 1_000.0,  # 1 ‰ = 1 g/kg
-    "g_per_l": 1_000.0,
-    "ppm": 1.0,
-    "mg_per_l": 1.0,
-    "ppb": 0.001,
-    "ug_per_l": 0.001,  # Reiss code 6, µg/l
 }
 
 # The guided calibration care asks for, by the records a family keeps (the procedure ids of
@@ -73,7 +55,7 @@ class CareRules:
     calibration_interval_days: float | None  # None: no calibration record to time it from
     interval_source: str
     due_soon_days: float
-    slope_limit: float
+    slope_limit: float | None  # the profile's (Profile.slope) unless set; None: no slope judged
     min_fit_r2: float
     projection_warn_days: float
     cap_usage_warn: float
@@ -81,6 +63,7 @@ class CareRules:
     sip_cycles_limit: int | None = None
     hours_outside_temperature_limit: float | None = None
     ring: Ring | None = None  # the sensor's ring of past calibrations, as its profile has it
+    slope: Slope | None = None  # an amperometric cell's slope facts, from its profile
 
 
 def _defaults(
@@ -92,7 +75,7 @@ def _defaults(
         calibration_interval_days=interval_days,
         interval_source=source,
         due_soon_days=due_soon_days,
-        slope_limit=SLOPE_LIMIT,
+        slope_limit=None,  # the profile's, by resolve()
         # Ours: SENCOM-style fits are trusted from about r² 0.8; below it the points
         # scatter more than they trend, and a date would be made up.
         min_fit_r2=0.8,
@@ -162,7 +145,13 @@ def resolve(
     kind = care_kind(profile)
     if kind is None:
         return None
-    rules = replace(DEFAULTS[kind], ring=care_ring(profile, kind))
+    slope = profile.slope
+    rules = replace(
+        DEFAULTS[kind],
+        ring=care_ring(profile, kind),
+        slope=slope,
+        slope_limit=None if slope is None else slope.limit,
+    )
     enabled = True
     for name, settings in layers:
         if settings is None:

@@ -14,10 +14,10 @@ import itertools
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
 from gateway.errors import ConfigError, ProfileError
 from gateway.profiles.model import (
@@ -25,13 +25,20 @@ from gateway.profiles.model import (
     FloatOrderRegister,
     Limits,
     Point,
-    PollGroup,
     Profile,
     Quirks,
     SerialSettings,
-    Storage,
+    Slope,
     Timing,
     WaitRule,
+)
+from gateway.profiles.schema import (
+    MAX_ADDRESS,
+    RawEnumEntry,
+    RawPoint,
+    RawProfile,
+    RawRepeat,
+    RawTiming,
 )
 from gateway.wire.codec import (
     BITFIELD_TYPES,
@@ -40,117 +47,16 @@ from gateway.wire.codec import (
     REGISTER_COUNT,
     DataType,
     Format,
-    WordOrder,
 )
 
 DATA_DIR = Path(__file__).parent / "data"
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _SOURCE = "_source"  # key added to raw point dicts: the file that last defined them
-_MAX_ADDRESS = 0xFFFF
 _BIT_WIDTH = {DataType.BITFIELD: 16, DataType.BITFIELD32: 32}
 
 # Keys a variant may set in addition to the family keys it may override.
 _VARIANT_ONLY = {"id", "identify", "unit_availability", "overrides", "remove"}
 _MERGED_MAPPINGS = {"timing", "limits", "quirks", "exceptions", "serial"}
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class _RawEnumEntry(_Strict):
-    label: str
-    unit: str | None = None
-
-
-class _RawPoint(_Strict):
-    name: str
-    address: Annotated[int, Field(ge=0, le=_MAX_ADDRESS)]
-    type: DataType
-    count: Annotated[int, Field(ge=1, le=125)] | None = None
-    access: Access
-    unit: str | None = None
-    unit_from: str | None = None
-    enum: str | dict[int, str | _RawEnumEntry] | None = None
-    bits: dict[int, str] | None = None
-    range: tuple[float, float] | None = None
-    storage: Storage | None = None
-    post_write_wait_s: Annotated[float, Field(ge=0)] | None = None
-    group: PollGroup
-    description: Annotated[str, Field(min_length=1)]
-    encoding: Literal["ascii", "utf-8", "iso-8859-1"] | None = None
-    tz: Literal["int8", "int16"] | None = None
-    view: bool = False
-    repeat: str | None = None
-    index: int | None = None
-
-
-class _RawRepeat(_Strict):
-    name: str
-    count: Annotated[int, Field(ge=1)]
-    first_index: int = 1
-    base: Annotated[int, Field(ge=0, le=_MAX_ADDRESS)]
-    stride: Annotated[int, Field(ge=1)]
-    group: PollGroup | None = None
-    description: str = ""
-    points: list[dict[str, Any]]
-
-
-class _RawWaitRule(_Strict):
-    first: int
-    last: int
-    wait_s: Annotated[float, Field(ge=0)]
-
-
-class _RawTiming(_Strict):
-    min_gap_s: Annotated[float, Field(ge=0)] = 0.0
-    processing_time_s: Annotated[float, Field(gt=0)] = 0.1
-    min_response_time_point: str | None = None
-    post_write_wait_s: Annotated[float, Field(ge=0)] = 0.0
-    post_write_waits: list[_RawWaitRule] = []
-
-
-class _RawSerial(_Strict):
-    address: Annotated[int, Field(ge=1, le=247)] | None = None
-    baudrate: int | None = None
-    parity: Literal["N", "E", "O"] | None = None
-    stopbits: Literal[1, 2] | None = None
-
-
-class _RawLimits(_Strict):
-    max_read: Annotated[int, Field(ge=1, le=125)] = 125
-    max_write: Annotated[int, Field(ge=1, le=123)] | Literal[125] = 123
-
-
-class _RawQuirks(_Strict):
-    string_byte_count_16bit: bool = False
-
-
-class _RawFloatOrderRegister(_Strict):
-    point: str
-    orders: dict[int, WordOrder]
-
-
-class _RawProfile(_Strict):
-    """A fully merged variant, before its points are validated one by one."""
-
-    id: str
-    family: str
-    title: str
-    spec: str
-    float_order: WordOrder = WordOrder.CDAB
-    float_order_register: _RawFloatOrderRegister | None = None
-    float_faults: bool = False
-    limits: _RawLimits = _RawLimits()
-    timing: _RawTiming = _RawTiming()
-    quirks: _RawQuirks = _RawQuirks()
-    exceptions: dict[int, str] = {}
-    serial: _RawSerial | None = None
-    readable: list[tuple[int, int]] = []
-    enums: dict[str, dict[int, str | _RawEnumEntry]] = {}
-    identify: dict[str, int] = {}
-    unit_availability: dict[str, list[str]] = {}
-    care: Literal["amperometric", "optical_hygienic", "optical"] | None = None
 
 
 def _describe(exc: ValidationError) -> str:
@@ -181,7 +87,7 @@ def _expand_repeats(layer: Mapping[str, Any], source: str) -> list[dict[str, Any
     points = [{**p, _SOURCE: source} for p in layer.get("points", []) or []]
     for raw in layer.get("repeats", []) or []:
         try:
-            repeat = _RawRepeat.model_validate(raw)
+            repeat = RawRepeat.model_validate(raw)
         except ValidationError as exc:
             name = raw.get("name", "?") if isinstance(raw, dict) else "?"
             raise ProfileError(f"repeat {name!r}: {_describe(exc)}", source=source) from exc
@@ -278,7 +184,7 @@ def _enum_table(
     labels: dict[int, str] = {}
     units: dict[int, str] = {}
     for code, entry in raw.items():
-        if isinstance(entry, _RawEnumEntry):
+        if isinstance(entry, RawEnumEntry):
             labels[code] = entry.label
             if entry.unit is not None:
                 units[code] = entry.unit
@@ -293,7 +199,7 @@ def _enum_table(
     return labels, units
 
 
-def _build_point(raw: dict[str, Any], profile: _RawProfile, timing: Timing) -> Point:
+def _build_point(raw: dict[str, Any], profile: RawProfile, timing: Timing) -> Point:
     source = str(raw.get(_SOURCE, "?"))
     name = str(raw.get("name", "?"))
     fields = {k: v for k, v in raw.items() if k != _SOURCE}
@@ -304,7 +210,7 @@ def _build_point(raw: dict[str, Any], profile: _RawProfile, timing: Timing) -> P
             f"unknown type {dtype_name!r} (known: {known})", source=source, point=name
         )
     try:
-        rp = _RawPoint.model_validate(fields)
+        rp = RawPoint.model_validate(fields)
     except ValidationError as exc:
         raise ProfileError(_describe(exc), source=source, point=name) from exc
     if not _NAME.match(rp.name):
@@ -320,7 +226,7 @@ def _build_point(raw: dict[str, Any], profile: _RawProfile, timing: Timing) -> P
             f"{dtype} takes {expected} registers, not {count}", source=source, point=name
         )
     count = count or expected or 0
-    if rp.address + count - 1 > _MAX_ADDRESS:
+    if rp.address + count - 1 > MAX_ADDRESS:
         raise ProfileError("runs past address 0xFFFF", source=source, point=name)
 
     labels: dict[int, str] = {}
@@ -366,7 +272,7 @@ def _build_point(raw: dict[str, Any], profile: _RawProfile, timing: Timing) -> P
     )
 
 
-def _bits_table(rp: _RawPoint, source: str) -> dict[int, str]:
+def _bits_table(rp: RawPoint, source: str) -> dict[int, str]:
     if rp.type not in BITFIELD_TYPES:
         if rp.bits is not None:
             raise ProfileError(
@@ -388,7 +294,7 @@ def _bits_table(rp: _RawPoint, source: str) -> dict[int, str]:
     return dict(rp.bits)
 
 
-def _check_unit_and_access(rp: _RawPoint, source: str) -> None:
+def _check_unit_and_access(rp: RawPoint, source: str) -> None:
     name = rp.name
     if rp.type in NUMERIC_TYPES and "unit" not in rp.model_fields_set and rp.unit_from is None:
         raise ProfileError(
@@ -411,7 +317,7 @@ def _check_unit_and_access(rp: _RawPoint, source: str) -> None:
         )
 
 
-def _timing(raw: _RawTiming) -> Timing:
+def _timing(raw: RawTiming) -> Timing:
     return Timing(
         min_gap_s=raw.min_gap_s,
         processing_time_s=raw.processing_time_s,
@@ -423,7 +329,7 @@ def _timing(raw: _RawTiming) -> Timing:
     )
 
 
-def _checked_runs(raw: _RawProfile, source: str) -> list[tuple[int, int]]:
+def _checked_runs(raw: RawProfile, source: str) -> list[tuple[int, int]]:
     """The readable runs as a sorted union: overlapping or adjacent runs join.
 
     Layers add runs (a variant may extend its family's), and two documented runs that
@@ -431,7 +337,7 @@ def _checked_runs(raw: _RawProfile, source: str) -> list[tuple[int, int]]:
     """
     runs: list[tuple[int, int]] = []
     for first, last in sorted(raw.readable):
-        if not 0 <= first <= last <= _MAX_ADDRESS:
+        if not 0 <= first <= last <= MAX_ADDRESS:
             raise ProfileError(
                 f"readable run [{first:#06x}, {last:#06x}] is not a range", source=source
             )
@@ -443,7 +349,7 @@ def _checked_runs(raw: _RawProfile, source: str) -> list[tuple[int, int]]:
 
 
 def _check_map(
-    points: list[Point], raw: _RawProfile, source: str, origins: Mapping[str, str]
+    points: list[Point], raw: RawProfile, source: str, origins: Mapping[str, str]
 ) -> list[tuple[int, int]]:
     """Cross-point checks: overlaps, readable runs, references; returns the joined runs."""
     runs = _checked_runs(raw, source)
@@ -483,7 +389,7 @@ def _check_map(
     return runs
 
 
-def _check_references(by_name: Mapping[str, Point], raw: _RawProfile, source: str) -> None:
+def _check_references(by_name: Mapping[str, Point], raw: RawProfile, source: str) -> None:
     references = {
         "float_order_register": raw.float_order_register.point
         if raw.float_order_register
@@ -508,11 +414,14 @@ def _check_references(by_name: Mapping[str, Point], raw: _RawProfile, source: st
 def _build_profile(merged: dict[str, Any], source: str) -> Profile:
     fields = {k: v for k, v in merged.items() if k not in {"points", "abstract", "variants"}}
     try:
-        raw = _RawProfile.model_validate(fields)
+        raw = RawProfile.model_validate(fields)
     except ValidationError as exc:
         raise ProfileError(
             f"variant {merged.get('id')!r}: {_describe(exc)}", source=source
         ) from exc
+    if raw.care == "amperometric" and raw.slope is None:
+        msg = f"variant {raw.id!r}: care 'amperometric' needs 'slope' (its limit and units)"
+        raise ProfileError(msg, source=source)
     timing = _timing(raw.timing)
     points = sorted(
         (_build_point(p, raw, timing) for p in merged.get("points", [])),
@@ -545,6 +454,11 @@ def _build_profile(merged: dict[str, Any], source: str) -> Profile:
         identify=dict(raw.identify),
         unit_availability={mode: tuple(labels) for mode, labels in raw.unit_availability.items()},
         care=raw.care,
+        slope=(
+            Slope(limit=raw.slope.limit, ppm_per_unit=dict(raw.slope.ppm_per_unit))
+            if raw.slope
+            else None
+        ),
     )
 
 
@@ -567,7 +481,7 @@ def load_profiles(directory: Path | None = None) -> dict[str, Profile]:
             unknown = (
                 set(variant)
                 - _VARIANT_ONLY
-                - set(_RawProfile.model_fields)
+                - set(RawProfile.model_fields)
                 - {"points", "repeats", "enums", "readable"}
             )
             if unknown:

@@ -167,6 +167,25 @@ class Quirks:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class Slope:
+    """An amperometric cell's slope as its manual relates it to the nominal one.
+
+    ``limit``: the fraction of the nominal slope below which the sensor needs maintenance
+    (tecLine annex 7.3.4: 30 %). ``ppm_per_unit``: ppm in one unit of each label of the
+    concentration unit (0x0200), since X_Span is in nA per that unit and the nominal slope
+    (0x030A) in nA/ppm (annex 7.1, 7.5.1).
+    """
+
+    limit: float
+    ppm_per_unit: Mapping[str, float]
+
+    def nominal_in(self, nominal_na_per_ppm: float, unit: str) -> float | None:
+        """The nominal slope in nA per ``unit`` (a label of 0x0200); None: no known relation."""
+        per_unit = self.ppm_per_unit.get(unit)
+        return None if per_unit is None else nominal_na_per_ppm * per_unit
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class FloatOrderRegister:
     """A register that selects the float word order (digiLine 0x0307)."""
 
@@ -220,7 +239,8 @@ class Profile:
     """A complete, validated register map of one sensor variant.
 
     ``care`` names the records the family keeps, so the rules sensor care judges it by
-    (``amperometric``, ``optical_hygienic``, ``optical``; None: none care knows).
+    (``amperometric``, ``optical_hygienic``, ``optical``; None: none care knows);
+    ``slope`` an amperometric cell's slope facts, which care and the calibrations use.
     """
 
     id: str
@@ -241,6 +261,7 @@ class Profile:
     identify: Mapping[str, int]
     unit_availability: Mapping[str, tuple[str, ...]]
     care: str | None = None
+    slope: Slope | None = None
     _by_name: dict[str, Point] = field(init=False, repr=False, compare=False)
     _rings: dict[str, Ring] = field(init=False, repr=False, compare=False)
 

@@ -41,6 +41,7 @@ from gateway.control.calibration import (
 from gateway.control.flash import FlashLedger, utc_today
 from gateway.control.writes import SafeWriter
 from gateway.errors import CalibrationInterruptedError, CommandRejectedError
+from gateway.profiles import Slope, get_profile
 from gateway.simulator.device import SlaveExceptionError
 from tests.rigs import LinkRig, link_rig, link_target
 
@@ -77,27 +78,37 @@ def test_a_slope_that_cannot_be_is_refused(
         slope_from(current, reference, zero_na=zero)
 
 
+def _cell_slope() -> Slope:
+    """The tecLine's slope limit and units, from its profile's data."""
+    facts = get_profile("jumo-tecline-cl2").slope
+    assert facts is not None
+    return facts
+
+
+CELL = _cell_slope()
+
+
 def test_below_30_percent_of_nominal_is_low_and_30_percent_is_not() -> None:
-    at_limit = judge_slope(6.0, 20.0, "ppm")
+    at_limit = judge_slope(6.0, 20.0, "ppm", CELL)
     assert at_limit.fraction == pytest.approx(0.30)
     assert not at_limit.low  # annex 7.3.4: "lower than 30 %"
-    assert judge_slope(5.99, 20.0, "ppm").low
-    assert judge_slope(20.9, 22.0, "ppm").fraction == pytest.approx(0.95)
+    assert judge_slope(5.99, 20.0, "ppm", CELL).low
+    assert judge_slope(20.9, 22.0, "ppm", CELL).fraction == pytest.approx(0.95)
 
 
 def test_the_nominal_slope_per_ppm_is_converted_to_the_sensor_unit() -> None:
-    assert nominal_in_unit(22.0, "ppm") == 22.0
-    assert nominal_in_unit(7.5, "mg_per_l") == 7.5
-    assert nominal_in_unit(22.0, "ppb") == pytest.approx(0.022)
-    assert nominal_in_unit(22.0, "ug_per_l") == pytest.approx(0.022)  # Reiss unit 6
-    assert nominal_in_unit(22.0, "g_per_l") == pytest.approx(22_000.0)
-    judged = judge_slope(0.0066, 22.0, "ppb")  # 6.6 nA/ppm in nA/ppb
+    assert nominal_in_unit(22.0, "ppm", CELL) == 22.0
+    assert nominal_in_unit(7.5, "mg_per_l", CELL) == 7.5
+    assert nominal_in_unit(22.0, "ppb", CELL) == pytest.approx(0.022)
+    assert nominal_in_unit(22.0, "ug_per_l", CELL) == pytest.approx(0.022)  # Reiss unit 6
+    assert nominal_in_unit(22.0, "g_per_l", CELL) == pytest.approx(22_000.0)
+    judged = judge_slope(0.0066, 22.0, "ppb", CELL)  # 6.6 nA/ppm in nA/ppb
     assert judged.nominal == pytest.approx(0.022)
     assert judged.fraction == pytest.approx(0.30)
     with pytest.raises(CommandRejectedError, match="no known relation to ppm"):
-        nominal_in_unit(22.0, "unknown_9")
+        nominal_in_unit(22.0, "unknown_9", CELL)
     with pytest.raises(CommandRejectedError, match="nominal slope 0 nA/ppm"):
-        judge_slope(6.0, 0.0, "ppm")
+        judge_slope(6.0, 0.0, "ppm", CELL)
 
 
 def test_stamp_is_yymmddhhmm_of_the_wall_clock_to_the_minute() -> None:

@@ -489,3 +489,12 @@ def test_an_unknown_care_kind_is_refused_with_the_key(data_copy: Path) -> None:
     path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
     with pytest.raises(ProfileError, match=r"care: Input should be 'amperometric'"):
         load_profiles(data_copy)
+
+
+def test_an_amperometric_profile_without_its_slope_facts_is_refused(data_copy: Path) -> None:
+    path = data_copy / "jumo-tecline.yaml"
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    del data["slope"]
+    path.write_text(yaml.safe_dump(data, allow_unicode=True), encoding="utf-8")
+    with pytest.raises(ProfileError, match=r"care 'amperometric' needs 'slope'"):
+        load_profiles(data_copy)

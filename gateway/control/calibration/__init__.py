@@ -38,7 +38,6 @@ machinery in :mod:`~gateway.control.calibration.steps`, the tecLine/Reiss proced
 module ``catalogue``).
 """
 
-from gateway.care.rules import PPM_PER_UNIT
 from gateway.control.calibration import catalogue
 from gateway.control.calibration.amperometric import (
     calibrate_slope,
@@ -50,7 +49,6 @@ from gateway.control.calibration.arithmetic import (
     AMPEROMETRIC_POINTS,
     CHEMICAL_CHECK_TOLERANCE,
     OPTICAL_OXYGEN_POINTS,
-    SLOPE_WARNING_FRACTION,
     HistoryEffect,
     HistoryEntry,
     SlopeJudgement,
@@ -81,8 +79,6 @@ __all__ = [
     "AMPEROMETRIC_POINTS",
     "CHEMICAL_CHECK_TOLERANCE",
     "OPTICAL_OXYGEN_POINTS",
-    "PPM_PER_UNIT",
-    "SLOPE_WARNING_FRACTION",
     "CalibrationOutcome",
     "Check",
     "HistoryEffect",

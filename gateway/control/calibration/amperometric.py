@@ -16,7 +16,6 @@ from gateway.control.calibration.arithmetic import (
     CELL_PROCEDURE_POINTS,
     CHEMICAL_CHECK_TOLERANCE,
     READING_INTERVAL_S,
-    SLOPE_WARNING_FRACTION,
     HistoryEffect,
     HistoryEntry,
     calibration_stamp,
@@ -42,7 +41,7 @@ if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
     from gateway.control.writes import SafeWriter
-    from gateway.profiles import Ring
+    from gateway.profiles import Ring, Slope
 
 # --- tecLine / Reiss -------------------------------------------------------------------------
 
@@ -330,7 +329,7 @@ async def restore_nominal_slope(
     flow = Flow(writer, operator, "nominal_slope")
     flow.require(CELL_PROCEDURE_POINTS, "nominal slope")
     state = await _read_cell(flow)
-    nominal = nominal_in_unit(state.nominal, state.unit)
+    nominal = nominal_in_unit(state.nominal, state.unit, _slope_facts(flow))
     if not math.isfinite(nominal) or nominal <= 0:
         raise CommandRejectedError(
             f"the nominal slope {state.nominal:g} nA/ppm (0x030A) cannot be written",
@@ -407,9 +406,18 @@ async def _cell_current(
     return await flow.sample("cell_current", samples=samples, interval_s=interval_s, unit="nA")
 
 
+def _slope_facts(flow: Flow) -> Slope:
+    """The cell's slope limit and units, as its profile gives them."""
+    facts = flow.profile.slope
+    if facts is None:
+        msg = f"profile {flow.profile.id} gives no slope limit or units"
+        raise CommandRejectedError(msg)
+    return facts
+
+
 def _judge(flow: Flow, slope: float, state: _CellState) -> None:
     """Annex 7.3.4: a slope below 30 % of nominal calls for maintenance."""
-    judgement = judge_slope(slope, state.nominal, state.unit)
+    judgement = judge_slope(slope, state.nominal, state.unit, _slope_facts(flow))
     flow.values["slope_fraction_of_nominal"] = judgement.fraction
     text = (
         f"slope {slope:.6g} nA/{state.unit_text} is {judgement.fraction:.0%} of the nominal "
@@ -417,7 +425,7 @@ def _judge(flow: Flow, slope: float, state: _CellState) -> None:
     )
     if judgement.low:
         flow.warn(
-            f"{text}: below {SLOPE_WARNING_FRACTION:.0%}, follow the maintenance instructions "
+            f"{text}: below {judgement.limit:.0%}, follow the maintenance instructions "
             "in the sensor's operating manual (annex 7.3.4)"
         )
     else:

@@ -11,16 +11,14 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import TYPE_CHECKING, Final
 
-from gateway.care.rules import PPM_PER_UNIT, SLOPE_LIMIT
 from gateway.errors import CommandRejectedError
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
     from datetime import datetime
 
+    from gateway.profiles import Slope
 
-# tecLine annex 7.3.4's 30 % of the nominal slope: the limit sensor care judges by too.
-SLOPE_WARNING_FRACTION: Final = SLOPE_LIMIT
 # tecLine annex 7.3.3 / Reiss 5.2.3 "chemical check": the sensor's and the analysed
 # concentration "should be broadly identical". The manuals give no number; 10 % is ours.
 CHEMICAL_CHECK_TOLERANCE: Final = 0.10
@@ -96,31 +94,35 @@ def slope_from(cell_current_na: float, reference: float, *, zero_na: float = 0.0
     return signal / reference
 
 
-def nominal_in_unit(nominal_na_per_ppm: float, unit: str) -> float:
-    """The nominal slope (nA/ppm) in nA per ``unit``, the unit label of 0x0200."""
-    try:
-        return nominal_na_per_ppm * PPM_PER_UNIT[unit]
-    except KeyError:
+def nominal_in_unit(nominal_na_per_ppm: float, unit: str, facts: Slope) -> float:
+    """The nominal slope (nA/ppm) in nA per ``unit``, the unit label of 0x0200.
+
+    ``facts``: the cell's slope facts, from its profile (:attr:`Profile.slope`).
+    """
+    nominal = facts.nominal_in(nominal_na_per_ppm, unit)
+    if nominal is None:
         raise CommandRejectedError(
             f"the concentration unit {unit!r} (0x0200) has no known relation to ppm, so the "
             "nominal slope (nA/ppm) cannot be compared or written",
             point="x_span",
-        ) from None
+        )
+    return nominal
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class SlopeJudgement:
-    """A slope against the nominal one: its fraction, and whether it is below 30 %."""
+    """A slope against the nominal one: its fraction, and whether it is below the limit."""
 
     slope: float  # nA per unit of 0x0200
     nominal: float  # the nominal slope in the same unit
     fraction: float  # slope / nominal
-    low: bool  # below SLOPE_WARNING_FRACTION: maintain the sensor (annex 7.3.4)
+    low: bool  # below the profile's limit (30 %): maintain the sensor (annex 7.3.4)
+    limit: float  # that limit
 
 
-def judge_slope(slope: float, nominal_na_per_ppm: float, unit: str) -> SlopeJudgement:
+def judge_slope(slope: float, nominal_na_per_ppm: float, unit: str, facts: Slope) -> SlopeJudgement:
     """Compare a slope in nA per ``unit`` with the nominal slope (annex 7.3.4)."""
-    nominal = nominal_in_unit(nominal_na_per_ppm, unit)
+    nominal = nominal_in_unit(nominal_na_per_ppm, unit, facts)
     if not math.isfinite(nominal) or nominal <= 0:
         raise CommandRejectedError(
             f"the nominal slope {nominal_na_per_ppm:g} nA/ppm (0x030A) is not usable",
@@ -128,7 +130,11 @@ def judge_slope(slope: float, nominal_na_per_ppm: float, unit: str) -> SlopeJudg
         )
     fraction = slope / nominal
     return SlopeJudgement(
-        slope=slope, nominal=nominal, fraction=fraction, low=fraction < SLOPE_WARNING_FRACTION
+        slope=slope,
+        nominal=nominal,
+        fraction=fraction,
+        low=fraction < facts.limit,
+        limit=facts.limit,
     )
 
 
