@@ -51,7 +51,6 @@ class _Burst:
         self._buffer = bytearray()
         self._start = 0.0
         self._judged = True  # False: the burst came in while the loop was held up
-        self._last_feed = 0.0
         self._timer: asyncio.TimerHandle | None = None
 
     def feed(self, data: bytes) -> None:
@@ -60,16 +59,12 @@ class _Burst:
         if not self._buffer:
             self._start = now
             self._judged = True
-        elif now - self._last_feed > self._server.silence_s:
-            # The silence that ends the burst had passed before these bytes were read: the
-            # loop was held up (a pty's reader comes before the loop's overdue timers), and
-            # whether they came after that silence or within it, nobody can tell. Judged,
-            # a next request would be taken to follow the last without a gap.
-            self._judged = False
         # Bytes read while the loop catches up may have waited in the kernel: the burst's
-        # times say nothing of the master's gaps then.
+        # times say nothing of the master's gaps then. That holds for any read of a burst,
+        # not only its first: a loop held up between two requests reads the second before
+        # it runs the overdue flush of the first (a pty's reader comes before the loop's
+        # timers), and judged as one burst the second would follow the first with no gap.
         self._judged = self._judged and not self._server.stalled(now)
-        self._last_feed = now
         self._buffer.extend(data)
         if self._timer is not None:
             self._timer.cancel()

@@ -291,9 +291,9 @@ async def test_a_request_read_before_the_late_end_of_the_last_burst_is_not_merge
     ends its burst, and the second request, sent 20 ms later (the master kept its gap), is
     read before the late flush (a pty's reader runs before the loop's overdue timers).
     Judged as one burst, the second was taken to follow the first with no gap at all and
-    blamed on the master (seen once in a scan of 247 addresses at 115200 baud). Whether
-    bytes read after the silence's time came within it or after it, a held-up loop cannot
-    tell: the burst is answered, frame by frame, and not judged.
+    blamed on the master (seen once in a scan of 247 addresses at 115200 baud). Bytes read
+    while the loop catches up cannot be timed: the burst is answered, frame by frame, and
+    not judged.
     """
     port = tmp_path / "ttySIM"
     server = FeedsCounted(build_bus(parse_settings({"devices": [DEVICES[0]]})))
