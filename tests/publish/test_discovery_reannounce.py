@@ -20,9 +20,10 @@ from typing import TYPE_CHECKING
 import aiomqtt
 import pytest
 
+from gateway.app.build import device_target
 from gateway.config import ConfigProblems, DiscoveryConfig, MqttConfig, check_config, parse_config
 from gateway.profiles import get_profile
-from gateway.publish.discovery import ReannounceGate, status_topic
+from gateway.publish.discovery import ReannounceGate, removal_messages, status_topic
 from gateway.publish.mqtt import MqttSink
 from gateway.publish.mqtt.reannounce import Reannouncer
 from gateway.publish.mqtt.topics import Topics
@@ -88,14 +89,43 @@ def by_topic(messages: Sequence[Received]) -> dict[str, str]:
     return found
 
 
-async def announced_once(seen: Recorder, nodes: Sequence[str]) -> dict[str, str]:
-    """Wait for the first announce of every node, care entities included; its configs.
+def entity_topics(config_text: str) -> set[str]:
+    """Every discovery config topic the gateway's devices get once each polled point was read.
 
-    A device's entities go at its first cycle, its care entities once care has a report
-    (a few seconds later): the care state's config is the last of a node to arrive.
+    A point the first cycle did not carry (a block's read failed on a loaded line) is
+    announced at the cycle that first carries it: waiting for the care entities alone
+    would take the configs before those arrived.
     """
-    for node in nodes:
-        await seen.wait_for(f"homeassistant/sensor/{node}/care_state/config", within_s=20)
+    config = parse_config(config_text, environ={})
+    assert config.mqtt is not None
+    assert config.mqtt.client_id is not None
+    topics: set[str] = set()
+    for device in config.devices:
+        target = device_target(device, config.bus(device.bus))
+        removal = removal_messages(
+            gateway_id=config.mqtt.client_id,
+            device=device.name,
+            profile=target.profile,
+            points=target.intervals,
+        )
+        topics.update(message.topic for message in removal)
+    return topics
+
+
+async def announced_once(seen: Recorder, gateways: Sequence[str]) -> dict[str, str]:
+    """Wait for the first announce of every gateway's nodes, care entities included; its configs.
+
+    ``gateways``: their config texts. A device's entities go at its first cycle (a point
+    read later, then), its care entities once care has a report (a few seconds later).
+    """
+    expected = set().union(*(entity_topics(text) for text in gateways))
+    await eventually(lambda: {m.topic for m in configs(seen)} >= expected, within_s=20)
+    for text in gateways:
+        config = parse_config(text, environ={})
+        assert config.mqtt is not None
+        for device in config.devices:
+            node = f"{config.mqtt.client_id}_{device.name}"
+            await seen.wait_for(f"homeassistant/sensor/{node}/care_state/config", within_s=20)
     return by_topic(configs(seen))
 
 
@@ -167,14 +197,13 @@ async def test_online_sends_every_config_again_within_the_longest_wait(
     config = gateway_yaml(
         tmp_path, broker.port, name="gw", delay_max_s=delay_max_s, devices=TWO_DEVICES
     )
-    nodes = ["plant-gw_aeration", "plant-gw_basin"]
     async with (
         simulated(tmp_path, SENSORS),
         recording(broker.port, "homeassistant/#") as seen,
         gateway(config),
         home_assistant(broker.port) as ha,
     ):
-        first = await announced_once(seen, nodes)
+        first = await announced_once(seen, [config])
         sent = await ha.say("online")
         again = await announced_again(seen, first, after=sent)
     # Every config again, byte for byte, and nothing else.
@@ -210,6 +239,7 @@ async def test_gateways_answer_one_online_at_spread_out_times(
     caplog.set_level(logging.INFO, logger=REANNOUNCER)
     names = [f"gw{index}" for index in range(GATEWAYS)]
     nodes = [f"plant-{name}_basin" for name in names]
+    texts: list[str] = []
     async with contextlib.AsyncExitStack() as stack:
         seen = await stack.enter_async_context(recording(broker.port, "homeassistant/#"))
         for name in names:
@@ -219,9 +249,10 @@ async def test_gateways_answer_one_online_at_spread_out_times(
             config = gateway_yaml(
                 line, broker.port, name=name, delay_max_s=SPREAD_DELAY_MAX_S, devices=ONE_DEVICE
             )
+            texts.append(config)
             await stack.enter_async_context(gateway(config))
         ha = await stack.enter_async_context(home_assistant(broker.port))
-        first = await announced_once(seen, nodes)
+        first = await announced_once(seen, texts)
         sent = await ha.say("online")
         await announced_again(seen, first, after=sent)
     answers = {
