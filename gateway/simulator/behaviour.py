@@ -184,6 +184,9 @@ class H10Behaviour:
     measuring_until: float | None = None
     next_measurement: float = 0.0
     aging: AgingSettings | None = None
+    # How long a triggered single measurement runs (bit 1 set): a test that polls the
+    # line meanwhile lengthens it, so that a poll before the status read cannot hide it.
+    single_measurement_s: float = SINGLE_MEASUREMENT_S
 
     def start(self, device: SimulatedDevice, now: float) -> None:
         self.common.nameplate(device, now)
@@ -289,7 +292,7 @@ class H10Behaviour:
                 isinstance(status, codec.BitfieldValue)
                 and "single_measurement_trigger" in status.active
             ):
-                self.measuring_until = now + SINGLE_MEASUREMENT_S
+                self.measuring_until = now + self.single_measurement_s
                 self._set_status_bit(device, "new_values", state=False)
             self._set_measuring(device, measuring=self.measuring_until is not None)
         if "measurement_interval" in names:

@@ -25,7 +25,7 @@ from gateway.control.operations import (
 from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError, OperationTimeoutError
 from gateway.profiles import builtin_profiles, get_profile
-from gateway.simulator.behaviour import SINGLE_MEASUREMENT_S
+from gateway.simulator.behaviour import SINGLE_MEASUREMENT_S, H10Behaviour
 from gateway.wire import codec
 from tests.rigs import PLANT, link_rig, link_target, target
 
@@ -262,9 +262,17 @@ async def test_measure_while_the_worker_polls(tmp_path: Path, ledger: FlashLedge
         link_target("cl2", "jumo-tecline-cl2", 20),
     ]
     async with link_rig(tmp_path, PLANT, polled, poll=True) as rig:
+        # The simulator's 0.3 s measurement is over 50 ms after the H10's post-write wait:
+        # a poll of the two devices in between on a loaded machine and the status read
+        # finds it done (seen in CI). Bit 1 is the point here, so the measurement runs 1 s.
+        behaviour = rig.device(2).behaviour
+        assert isinstance(behaviour, H10Behaviour)
+        behaviour.single_measurement_s = 1.0
         result = await measure(writer(rig, "h10", ledger))
         assert result.values["oxygen"] == rig.device(2).get("oxygen")
         assert result.saw_running
+        assert isinstance(result.duration_s, float)
+        assert result.duration_s >= 1.0 - 0.05
         [record] = rig.writes(2)
         assert (record.address, record.values[1] & 0b100) == (0x3001, 0b100)
         s10_reads = [f for f in rig.rig.frames() if f.device == 1]
