@@ -3,7 +3,8 @@
 A slow broker (a cluster electing a leader answers CONNECT after seconds) is a TCP server
 here that reads CONNECT and answers only when told. aiomqtt 2.5.1 alone fails these tests:
 the attempt's socket stays open, and a cancelled attempt's socket logs asyncio's "Exception
-in callback" (a ``CancelledError`` traceback) when the broker answers and closes.
+in callback" (a ``CancelledError`` traceback) when the broker answers and closes; a write
+queued as a drop is read meets a closed socket (an ``EBADF`` traceback).
 """
 
 from __future__ import annotations
@@ -11,7 +12,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import select
 import socket
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
@@ -237,3 +240,67 @@ async def test_a_connection_closed_during_a_subscribe_fails_it_at_once_and_logs_
             await asyncio.sleep(0)
         assert took_s < 1.0  # not the subscribe timeout of 15 s
         assert errors == []
+
+
+class ThreadedBroker:
+    """Accepts one connection in a thread, answers CONNACK, and closes it when told.
+
+    In a thread, not the loop: the test can then wait for the close to be readable on the
+    client's socket while the loop has not yet run its reader.
+    """
+
+    def __init__(self) -> None:
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.port: int = self._listener.getsockname()[1]
+        self.close_now = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        connection, _ = self._listener.accept()
+        with connection:
+            connection.recv(1024)  # CONNECT
+            connection.sendall(CONNACK_ACCEPTED)
+            self.close_now.wait(WAIT_S)
+
+    def stop(self) -> None:
+        self.close_now.set()
+        self._thread.join(WAIT_S)
+        self._listener.close()
+
+
+async def loop_turned() -> None:
+    """Return once every callback queued before this call ran (the loop runs them in order)."""
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[None] = loop.create_future()
+    loop.call_soon_threadsafe(done.set_result, None)
+    await done
+
+
+async def test_a_publish_queued_as_the_drop_is_read_logs_nothing() -> None:
+    """A NATS node killed while the gateway published: paho queued its write, the loop read
+    the close in the same turn, and aiomqtt's queued writer met a closed socket (asyncio's
+    "Exception in callback", ``EBADF``)."""
+    broker = ThreadedBroker()
+    try:
+        with loop_errors() as errors:
+            client = BrokerClient("127.0.0.1", broker.port, identifier="cab2-gw", timeout=WAIT_S)
+            await client.__aenter__()
+            paho = client._client  # the two steps of one turn, as paho takes them
+            sock = paho.socket()
+            assert isinstance(sock, socket.socket)
+            broker.close_now.set()
+            readable, _, _ = select.select([sock], [], [], WAIT_S)  # the loop not told yet
+            assert readable == [sock]
+            paho.publish("cab2/oxygen", b"8.1", qos=1)  # queues the writer, as aiomqtt's publish
+            paho.loop_read()  # the loop's reader next, in the same turn: reads the close
+            assert paho.socket() is None  # closed
+            await loop_turned()  # the queued writer has run
+            with contextlib.suppress(aiomqtt.MqttError):
+                await client.__aexit__(None, None, None)
+            del client, paho
+            gc.collect()
+            await asyncio.sleep(0)
+        assert errors == []
+    finally:
+        broker.stop()

@@ -24,6 +24,12 @@ gateway's client id and kept it (with its will) until the broker itself stopped,
 drop was then logged as an exception nobody retrieved. The attempt now waits for the thread
 (paho gives up connecting after 5 s) and closes what it made.
 
+aiomqtt adds the socket's writer to the loop in a callback it queues when paho has something
+to send. A drop read in the same turn of the loop (a NATS node killed while the gateway
+published to it) closed the socket first, and asyncio logged "Exception in callback" with
+an ``EBADF`` traceback; had the number been reused meanwhile, the writer would have watched
+another socket. The writer is now added only to the socket still open for the connection.
+
 All are mended here, at the one place where the gateway makes a client, so that the
 reconnect loops above it see only :class:`aiomqtt.MqttError`, at once, and a closed socket.
 """
@@ -41,7 +47,7 @@ if TYPE_CHECKING:
     from types import TracebackType
 
     import paho.mqtt.client as mqtt
-    from aiomqtt.types import SubscribeTopic
+    from aiomqtt.types import PahoSocket, SubscribeTopic
     from paho.mqtt.properties import Properties
     from paho.mqtt.reasoncodes import ReasonCode
     from paho.mqtt.subscribeoptions import SubscribeOptions
@@ -175,6 +181,30 @@ class BrokerClient(aiomqtt.Client):
         # A client is not entered again after a failed attempt: the gateway makes a new one.
         with contextlib.suppress(OSError):
             self._client._sock_close()  # noqa: SLF001 - paho has no public close without a DISCONNECT
+
+    def _on_socket_register_write(
+        self,
+        client: mqtt.Client,
+        userdata: Any,  # noqa: ANN401, ARG002 - paho's user data, as aiomqtt types it
+        sock: PahoSocket,
+    ) -> None:
+        # As aiomqtt's: paho may ask from the connect thread, so the writer is added in a
+        # callback of the loop. Unlike it: by then the socket may be closed (a drop read
+        # in between), and its number free or another socket's.
+        def write() -> None:
+            # A failed write (a broken pipe) is the connection's end: told as aiomqtt does.
+            try:
+                client.loop_write()
+            except Exception as exc:  # noqa: BLE001 - every failure ends the connection
+                if not self._disconnected.done():
+                    self._disconnected.set_exception(exc)
+
+        def add_writer() -> None:
+            current = client.socket()  # paho forgets a socket as it closes it
+            if current is not None and current is sock:
+                self._loop.add_writer(current.fileno(), write)
+
+        self._loop.call_soon_threadsafe(add_writer)
 
     def _on_disconnect(
         self,
