@@ -16,8 +16,8 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import DecodeError
-from gateway.line.devices import SLOW_GROUPS
 from gateway.line.samples import Quality, Sample, hex_registers
+from gateway.line.schedule import SLOW_GROUPS
 from gateway.wire import codec
 
 if TYPE_CHECKING:
@@ -97,7 +97,8 @@ class Decoder:
         # Only a float's decoder reads the word order, which takes some looking up.
         order = state.float_order if floats else codec.DEFAULT_FLOAT_ORDER
         values = state.values
-        pending = state.identity_pending
+        deadlines = state.deadlines
+        pending = deadlines.identity_pending
         bus, device, profile = self.bus, state.target.name, state.target.profile.id
         samples = []
         for slot in layout:
@@ -119,8 +120,7 @@ class Decoder:
             name = slot.name
             values[name] = value
             if pending and name in pending:
-                pending.discard(name)
-                state.deadline_cache.clear()
+                deadlines.identity_read(name)
             # The sample as _sample() makes it, built here with what the slot resolved.
             samples.append(
                 Sample(
@@ -143,9 +143,7 @@ class Decoder:
     def failed(self, state: DeviceState, block: ReadBlock, reason: str) -> list[Sample]:
         """A ``comms_error`` sample for every point of a block that could not be read."""
         at = (time.monotonic(), datetime.now(tz=UTC))
-        for point in block.points:
-            state.identity_pending.discard(point.name)
-        state.deadline_cache.clear()
+        state.deadlines.identity_failed(p.name for p in block.points)
         return [self._sample(state, p, fault=reason, comms_error=True, at=at) for p in block.points]
 
     def _note_undecodable(self, state: DeviceState, point: Point, value: codec.Decoded) -> None:

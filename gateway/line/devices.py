@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Final
 
-from gateway.profiles import PollGroup
+from gateway.line.health import Presence
+from gateway.line.schedule import SLOW_GROUPS, Deadlines
+from gateway.line.transactions import Holds
 from gateway.wire import codec
 
 if TYPE_CHECKING:
@@ -17,8 +18,6 @@ if TYPE_CHECKING:
     from gateway.profiles.serial_number import PinnedSerial
 
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
-# Polled in the time process values leave free (the schedule's "slow" class).
-SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,34 +117,36 @@ class DeviceTarget:
 
 @dataclass(slots=True)
 class DeviceState:
-    """What the worker knows about a device while running.
+    """What the worker knows about a device while running, each part with its one writer.
 
-    The schedule keeps the deadlines, the transactions the waits and retries, the
-    availability the failures and probes; the values are the last decoded.
+    The schedule writes the deadlines (:class:`~gateway.line.schedule.Deadlines`), the
+    availability the presence (:class:`~gateway.line.health.Presence`: online, failures,
+    probes), the transactions the holds (:class:`~gateway.line.transactions.Holds`: waits,
+    retries, splits, unreadable points), the decoder the values. Everyone else reads them,
+    or asks the owner through its methods.
     """
 
     target: DeviceTarget
-    next_due: dict[str, float] = field(default_factory=dict)
-    identity_pending: set[str] = field(default_factory=set)
-    # The earliest deadline of each class (slow: diagnostics), cleared whenever a deadline,
-    # the pending identity or the unreadable points change: asked for on every scheduling
-    # step of every device, it must not walk all points each time.
-    deadline_cache: dict[bool, float] = field(default_factory=dict)
-    values: dict[str, codec.Decoded] = field(default_factory=dict)
-    attempts: Counter[str] = field(default_factory=Counter)
-    online: bool | None = None  # None until the first answer or the first offline verdict
-    failures: int = 0
-    probe_at: float = 0.0
-    backoff_s: float = 0.0
-    not_before: float = 0.0
-    split_before: set[int] = field(default_factory=set)
-    unreadable: set[str] = field(default_factory=set)
+    deadlines: Deadlines = field(default_factory=Deadlines)
+    presence: Presence = field(default_factory=Presence)
+    holds: Holds = field(default_factory=Holds)
+    values: dict[str, codec.Decoded] = field(default_factory=dict)  # the last decoded
     undecodable: set[str] = field(default_factory=set)  # points whose registers did not decode
-    missed_deadlines: int = 0
-    fresh: set[str] = field(default_factory=set)  # periodic, not polled since (re)start: no lag yet
-    lag_s: float = 0.0
-    lag_reported: bool = False
-    late_hint_given: bool = False  # an answer after its timeout was explained in the log
+
+    def carried_over(self, target: DeviceTarget) -> DeviceState:
+        """The same sensor with other settings (a reload): new deadlines on ``target``.
+
+        What it answered, its waits and verdicts and its counters are kept (a counter that
+        went back would read as a reset).
+        """
+        return DeviceState(
+            target=target,
+            deadlines=self.deadlines.carried_over(),
+            presence=self.presence,
+            holds=self.holds,
+            values=self.values,
+            undecodable=self.undecodable,
+        )
 
     @property
     def profile(self) -> Profile:

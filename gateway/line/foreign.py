@@ -209,7 +209,7 @@ class ForeignQueue:
         if (job := self._turn(now)) is not None:
             held = self._fair.held_until(job, now)
             times.append(max(held, self._bucket.available_at(now, self._expected_s(job))))
-        freed = [self.devices[j.device].not_before for j in self._jobs]
+        freed = [self.devices[j.device].holds.not_before for j in self._jobs]
         times.extend(t for t in freed if t > now)
         return min(times)
 
@@ -244,7 +244,8 @@ class ForeignQueue:
 
     def _turn(self, now: float) -> ForeignJob | None:
         """The request whose turn it is, of those whose device is free now."""
-        return self._fair.pick([j for j in self._jobs if self.devices[j.device].not_before <= now])
+        devices = self.devices
+        return self._fair.pick([j for j in self._jobs if devices[j.device].holds.not_before <= now])
 
     def _expected_s(self, job: ForeignJob) -> float:
         """The bus time the request will take at least: both frames and the gap before it."""
@@ -267,7 +268,7 @@ class ForeignQueue:
         The device's backoff holds for every master: the gateway's probes find it again,
         and another master's requests would only wait out its timeout.
         """
-        for job in [j for j in self._jobs if self.devices[j.device].online is False]:
+        for job in [j for j in self._jobs if self.devices[j.device].presence.online is False]:
             self._jobs.remove(job)
             _settle(job, BusTimeoutError(f"device {job.device} is offline"))
 
@@ -302,7 +303,7 @@ class ForeignQueue:
                 # The device's post-write wait holds whoever wrote (H10/H20 6.1.5); what
                 # was written is read again, in case values depend on it (units, format).
                 wait = state.profile.post_write_wait(request.address, request.count)
-                state.not_before = max(state.not_before, now + wait)
+                state.holds.hold_until(now + wait)
                 self.schedule.reread(state, request.address, request.count, now)
                 for address, count in touched_by_write(
                     state.profile, request.address, request.count

@@ -42,6 +42,16 @@ class DeviceHealth:
     answered_serial: str | None = None
 
 
+@dataclass(slots=True)
+class Presence:
+    """Whether a device answers, and when to probe it: :class:`Availability` alone writes it."""
+
+    online: bool | None = None  # None until the first answer or the first offline verdict
+    failures: int = 0  # failed transactions in a row
+    probe_at: float = 0.0  # an offline device's next probe (monotonic)
+    backoff_s: float = 0.0  # the wait between its probes, doubled up to a cap
+
+
 class Announce(Protocol):
     """Tells the sinks that a device came online or went offline, and why."""
 
@@ -70,11 +80,12 @@ class Availability:
 
     async def answered(self, state: DeviceState, reason: str) -> None:
         """The device answered: online (again, polled in full if it was offline)."""
-        state.failures = 0
-        state.backoff_s = 0.0
-        if state.online is not True:
-            was_offline = state.online is False
-            state.online = True
+        presence = state.presence
+        presence.failures = 0
+        presence.backoff_s = 0.0
+        if presence.online is not True:
+            was_offline = presence.online is False
+            presence.online = True
             if was_offline:
                 _LOGGER.info("%s/%s is back online", self.bus, state.target.name)
                 self.schedule.restart_device(state, time.monotonic())
@@ -82,40 +93,51 @@ class Availability:
 
     async def failed(self, state: DeviceState, reason: str) -> None:
         """One more failed transaction in a row; enough of them take the device offline."""
-        state.failures += 1
-        if state.failures >= state.target.offline_after and state.online is not False:
-            state.online = False
-            state.backoff_s = state.target.poll_interval_s
-            state.probe_at = time.monotonic() + state.backoff_s
-            self.schedule.touch(state)  # the probe may be due before its values were
+        presence = state.presence
+        presence.failures += 1
+        if presence.failures >= state.target.offline_after and presence.online is not False:
+            self._offline(state)
             _LOGGER.warning(
                 "%s/%s (address %d) is offline after %d failed requests: %s",
                 self.bus,
                 state.target.name,
                 state.target.address,
-                state.failures,
+                presence.failures,
                 reason,
             )
             await self._announce(state, online=False, reason=reason)
 
     def probe_unanswered(self, state: DeviceState, now: float) -> None:
         """An offline device did not answer its probe: the next one later, jittered."""
-        cap = max(state.target.probe_max_s, state.target.poll_interval_s)
-        state.backoff_s = min(max(state.backoff_s, state.target.poll_interval_s) * 2, cap)
-        state.probe_at = now + state.backoff_s * self._rng.uniform(0.8, 1.2)
+        presence, target = state.presence, state.target
+        cap = max(target.probe_max_s, target.poll_interval_s)
+        presence.backoff_s = min(max(presence.backoff_s, target.poll_interval_s) * 2, cap)
+        presence.probe_at = now + presence.backoff_s * self._rng.uniform(0.8, 1.2)
 
-    async def probe_answered(self, state: DeviceState) -> None:
-        """An offline device answered its probe: online, and polled in full again."""
-        state.online = None
-        await self.answered(state, "answered a probe")
+    async def probe_answered(self, state: DeviceState, reason: str = "answered a probe") -> None:
+        """An offline (or held) device answered its probe: online, and polled in full again."""
+        state.presence.online = None
+        await self.answered(state, reason)
         self.schedule.restart_device(state, time.monotonic())
+
+    def hold(self, state: DeviceState) -> None:
+        """Offline while it is not the configured sensor: checked at the probes' pace."""
+        self._offline(state)
+
+    def _offline(self, state: DeviceState) -> None:
+        """Offline: the first probe (or identity check) a poll interval from now."""
+        presence = state.presence
+        presence.online = False
+        presence.backoff_s = state.target.poll_interval_s
+        presence.probe_at = time.monotonic() + presence.backoff_s
+        self.schedule.touch(state)  # the probe may be due before its values were
 
     async def all_offline(self, reason: str) -> None:
         """The port is gone: every device is offline, to be probed as soon as it is back."""
         for state in self.devices.values():
-            if state.online is not False:
-                state.online = False
-                state.probe_at = 0.0
+            if state.presence.online is not False:
+                state.presence.online = False
+                state.presence.probe_at = 0.0
                 self.schedule.touch(state)
                 await self._announce(state, online=False, reason=reason)
 
@@ -126,11 +148,11 @@ class Availability:
                 bus=self.bus,
                 device=name,
                 address=state.target.address,
-                online=state.online,
-                failures_in_a_row=state.failures,
-                lag_s=state.lag_s,
-                missed_deadlines=state.missed_deadlines,
-                unreadable_points=len(state.unreadable),
+                online=state.presence.online,
+                failures_in_a_row=state.presence.failures,
+                lag_s=state.deadlines.lag_s,
+                missed_deadlines=state.deadlines.missed_deadlines,
+                unreadable_points=len(state.holds.unreadable),
             )
             for name, state in self.devices.items()
         ]

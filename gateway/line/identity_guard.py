@@ -18,7 +18,6 @@ without a pin pass through untouched.
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from enum import StrEnum
@@ -178,7 +177,7 @@ class IdentityGuard:
         serial = next((s for s in samples if s.point == pin.point.name), None)
         if serial is not None:
             if serial.quality is Quality.COMMS_ERROR:
-                if state.online is not False:  # it answers the rest, not its serial
+                if state.presence.online is not False:  # it answers the rest, not its serial
                     await self._hold(state, pin, IdentityVerdict.UNREAD, serial.fault or "")
                 return ()
             value = state.values.get(pin.point.name)
@@ -236,10 +235,7 @@ class IdentityGuard:
         if not pin.held:
             pin.held = True
             pin.since = datetime.now(tz=UTC)
-        state.online = False
-        state.backoff_s = state.target.poll_interval_s
-        state.probe_at = time.monotonic() + state.backoff_s
-        self.schedule.touch(state)  # the check may be due before its values were
+        self.availability.hold(state)
         pin.deferred = None
         await self._announce(state, online=False, reason=self._reason(pin))
 
@@ -259,7 +255,7 @@ class IdentityGuard:
         if was is IdentityVerdict.CONFIRMED:
             return
         _LOGGER.debug("%s/%s: serial number %s confirmed", self.bus, state.target.name, answered)
-        if pin.deferred is not None and state.online is True:
+        if pin.deferred is not None and state.presence.online is True:
             reason, pin.deferred = pin.deferred, None
             await self._announce(state, online=True, reason=reason)
 
@@ -275,9 +271,7 @@ class IdentityGuard:
         )
         pin.verdict, pin.answered = IdentityVerdict.CONFIRMED, answered
         pin.held, pin.since, pin.deferred = False, None, None
-        state.online = None
-        await self.availability.answered(state, f"serial number {answered} confirmed")
-        self.schedule.restart_device(state, time.monotonic())
+        await self.availability.probe_answered(state, f"serial number {answered} confirmed")
 
     def _reason(self, pin: Pin) -> str:
         """The availability reason of a held device (MQTT, ``/healthz``)."""

@@ -158,9 +158,10 @@ class JobQueue:
     def wake_at(self, wake_at: float, now: float) -> float:
         """``wake_at``, or earlier if queued work may run before."""
         if self._jobs:
-            wake_at = min(wake_at, *(self.devices[j.device].not_before for j in self._jobs))
+            wake_at = min(wake_at, *(self.devices[j.device].holds.not_before for j in self._jobs))
         if self._broadcasts:
-            wake_at = min(wake_at, max((s.not_before for s in self.devices.values()), default=now))
+            holds = [s.holds.not_before for s in self.devices.values()]
+            wake_at = min(wake_at, max(holds, default=now))
         return wake_at
 
     def _enqueue(self, job: LineJob) -> None:
@@ -172,7 +173,7 @@ class JobQueue:
 
     @staticmethod
     async def _wait_for_turn(state: DeviceState) -> None:
-        delay = state.not_before - time.monotonic()
+        delay = state.holds.not_before - time.monotonic()
         if delay > 0:
             await asyncio.sleep(delay)
 
@@ -180,7 +181,7 @@ class JobQueue:
         """Run the oldest job whose device is free; a device's jobs keep their order."""
         for job in self._jobs:
             state = self.devices[job.device]
-            if state.not_before <= now:
+            if state.holds.not_before <= now:
                 self._jobs.remove(job)
                 if job.done.cancelled():
                     return True  # the caller gave up waiting: nothing to do
@@ -217,7 +218,7 @@ class JobQueue:
         job.done.set_result(response)
 
     async def _run_a_broadcast(self, now: float) -> bool:
-        if not self._broadcasts or any(s.not_before > now for s in self.devices.values()):
+        if not self._broadcasts or any(s.holds.not_before > now for s in self.devices.values()):
             return False
         request, done = self._broadcasts.pop(0)
         try:

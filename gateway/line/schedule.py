@@ -32,17 +32,64 @@ from __future__ import annotations
 
 import heapq
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
-from gateway.line.devices import SLOW_GROUPS
+from gateway.profiles import PollGroup
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Iterable, Mapping, Sequence
 
     from gateway.line.devices import DeviceState
 
 SLOW_GROUP_DELAY_S: Final = 2.0  # after a (re)start, the slow class waits for the values
+# Polled in the time process values leave free (the schedule's "slow" class).
+SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
+
+
+@dataclass(slots=True)
+class Deadlines:
+    """When a device's points fall due and how late it runs: the schedule's, and only its.
+
+    Written by :class:`Schedule` and by this class's methods alone; the decoder asks
+    through :meth:`identity_read` and :meth:`identity_failed`, the transactions through
+    :meth:`changed`, and every other reader only reads.
+    """
+
+    next_due: dict[str, float] = field(default_factory=dict)
+    identity_pending: set[str] = field(default_factory=set)
+    # The earliest deadline of each class (slow: diagnostics), cleared whenever a deadline,
+    # the pending identity or the unreadable points change: asked for on every scheduling
+    # step of every device, it must not walk all points each time.
+    cache: dict[bool, float] = field(default_factory=dict)
+    fresh: set[str] = field(default_factory=set)  # periodic, not polled since (re)start: no lag yet
+    missed_deadlines: int = 0
+    lag_s: float = 0.0
+    lag_reported: bool = False
+
+    def identity_read(self, name: str) -> None:
+        """A pending identity point was read: no longer pending."""
+        self.identity_pending.discard(name)
+        self.cache.clear()
+
+    def identity_failed(self, names: Iterable[str]) -> None:
+        """A read of these points failed: an identity point among them waits for a restart."""
+        for name in names:
+            self.identity_pending.discard(name)
+        self.cache.clear()
+
+    def changed(self) -> None:
+        """What the deadlines skip changed (a point found unreadable): computed again."""
+        self.cache.clear()
+
+    def carried_over(self) -> Deadlines:
+        """The deadlines of a re-planned device: new ones, its count of missed ones kept."""
+        return Deadlines(missed_deadlines=self.missed_deadlines)
+
+    def earliest(self, names: Iterable[str]) -> float:
+        """The earliest deadline of these points (identity, with none, comes first)."""
+        next_due = self.next_due
+        return min(next_due.get(name, 0.0) for name in names)
 
 
 def spread_phase(*, device: int, devices: int, bus: int, buses: int) -> float:
@@ -81,10 +128,10 @@ def _earliest_by_class(state: DeviceState) -> tuple[float, float]:
     through a call per point took a sixth of the gateway's CPU.
     """
     fast = slow = math.inf
-    unreadable = state.unreadable
+    unreadable = state.holds.unreadable
     slow_points = state.target.slow_points
-    pending = state.identity_pending
-    for name, deadline in state.next_due.items():
+    pending = state.deadlines.identity_pending
+    for name, deadline in state.deadlines.next_due.items():
         if name in unreadable:
             continue
         if name in slow_points and name not in pending:
@@ -154,35 +201,36 @@ class Schedule:
 
     def restart_device(self, state: DeviceState, now: float) -> None:
         """Everything due now, identity again (start, reconnection, back online)."""
-        state.next_due.clear()
-        state.identity_pending.clear()
-        state.deadline_cache.clear()
+        deadlines = state.deadlines
+        deadlines.next_due.clear()
+        deadlines.identity_pending.clear()
+        deadlines.cache.clear()
         # Only points with a deadline: :meth:`advance` empties the set as they are read, and
         # identity points, never advanced, kept it (and its table) full for good.
-        state.fresh = {n for n, i in state.target.intervals.items() if i is not None}
+        deadlines.fresh = {n for n, i in state.target.intervals.items() if i is not None}
         profile = state.profile
         # One float per distinct deadline, not one per point: a device's points share a few.
         delayed: dict[float, float] = {}
         for name, interval in state.target.intervals.items():
             if interval is None:
-                state.identity_pending.add(name)
+                deadlines.identity_pending.add(name)
             elif profile.point(name).group in SLOW_GROUPS:
                 # Process values first: slow groups follow once the first values are out.
                 deadline = now + min(interval, SLOW_GROUP_DELAY_S)
-                state.next_due[name] = delayed.setdefault(interval, deadline)
+                deadlines.next_due[name] = delayed.setdefault(interval, deadline)
             else:
-                state.next_due[name] = now
+                deadlines.next_due[name] = now
         # Registers other values depend on: units and the float format.
         for name in state.target.intervals:
             unit_from = profile.point(name).unit_from
             if unit_from is not None:
-                state.identity_pending.add(unit_from)
+                deadlines.identity_pending.add(unit_from)
         if profile.float_order_register is not None and state.target.float_order is None:
-            state.identity_pending.add(profile.float_order_register.point)
+            deadlines.identity_pending.add(profile.float_order_register.point)
         # The device's own minimum response time: its timeouts follow it once read.
         if profile.timing.min_response_time_point is not None:
-            state.identity_pending.add(profile.timing.min_response_time_point)
-        state.attempts.clear()
+            deadlines.identity_pending.add(profile.timing.min_response_time_point)
+        state.holds.restarted()
         self.touch(state)
 
     def reread(self, state: DeviceState, address: int, count: int, now: float) -> None:
@@ -193,6 +241,7 @@ class Schedule:
         the values, as at a start.
         """
         last = address + count - 1
+        deadlines = state.deadlines
         profile = state.profile
         depended_on = set(state.target.unit_tables)  # the unit registers, by name
         if profile.float_order_register is not None:
@@ -202,30 +251,33 @@ class Schedule:
                 continue
             name = point.name
             if name in depended_on or state.target.intervals.get(name, 0.0) is None:
-                state.identity_pending.add(name)
+                deadlines.identity_pending.add(name)
             elif name in state.target.intervals:
-                state.next_due[name] = now
-        state.deadline_cache.clear()
+                deadlines.next_due[name] = now
+        deadlines.cache.clear()
         self.touch(state)
 
     @staticmethod
     def is_slow(state: DeviceState, name: str) -> bool:
         """Whether a point belongs to the slow class (identity never does)."""
-        return name in state.target.slow_points and name not in state.identity_pending
+        return name in state.target.slow_points and name not in state.deadlines.identity_pending
 
     def due_points(self, state: DeviceState, now: float, *, slow: bool) -> list[str]:
         """The device's points of the class due at ``now``, pending identity included."""
-        due = [name for name, deadline in state.next_due.items() if deadline <= now]
-        due.extend(state.identity_pending - set(due))
-        return [n for n in due if n not in state.unreadable and self.is_slow(state, n) == slow]
+        due = [name for name, deadline in state.deadlines.next_due.items() if deadline <= now]
+        due.extend(state.deadlines.identity_pending - set(due))
+        unreadable = state.holds.unreadable
+        return [n for n in due if n not in unreadable and self.is_slow(state, n) == slow]
 
     def next_deadline(self, state: DeviceState, *, slow: bool) -> float:
         """When the device next has work of the class: values (fast) or diagnostics (slow)."""
-        if state.online is False:
-            return state.probe_at if not slow else math.inf
-        if not slow and any(n not in state.unreadable for n in state.identity_pending):
+        if state.presence.online is False:
+            return state.presence.probe_at if not slow else math.inf
+        deadlines = state.deadlines
+        pending = deadlines.identity_pending
+        if not slow and pending and any(n not in state.holds.unreadable for n in pending):
             return 0.0
-        cache = state.deadline_cache
+        cache = deadlines.cache
         cached = cache.get(slow)
         if cached is None:
             cache[False], cache[True] = _earliest_by_class(state)
@@ -252,7 +304,7 @@ class Schedule:
                 heapq.heappush(heap, (current, entry[1], index, state))
                 continue
             waiting.append(entry)  # stays scheduled: picking is not serving
-            if state.not_before <= now:
+            if state.holds.not_before <= now:
                 chosen = state
                 break
         for entry in waiting:
@@ -265,7 +317,7 @@ class Schedule:
             (
                 max(
                     min(self.next_deadline(s, slow=False), self.next_deadline(s, slow=True)),
-                    s.not_before,
+                    s.holds.not_before,
                 )
                 for s in self.devices.values()
             ),
@@ -278,13 +330,14 @@ class Schedule:
         Returns the first point found more than an interval late, once per device (not
         while any device of the line still reads its identity), for the caller to report.
         """
-        state.deadline_cache.clear()
+        deadlines = state.deadlines
+        deadlines.cache.clear()
         late: Late | None = None
         starting = False  # whether any device still reads its identity: found out once
         phase_s = state.target.phase_s
         slow_points = state.target.slow_points
         intervals = state.target.intervals
-        next_due = state.next_due
+        next_due = deadlines.next_due
         early: dict[float, float] = {}  # interval -> now + interval
         # The points read together mostly share their deadline, interval and phase: the
         # deadline after is computed once for a run of them, and the one float shared (one
@@ -298,11 +351,11 @@ class Schedule:
             if interval is None or name not in next_due:
                 continue
             deadline = next_due[name]
-            first = name in state.fresh
+            first = name in deadlines.fresh
             if first:  # the first cycle after a (re)start reads everything
-                state.fresh.discard(name)
-                if not state.fresh:  # an emptied set keeps its table: 8 KiB for an H10
-                    state.fresh = set()
+                deadlines.fresh.discard(name)
+                if not deadlines.fresh:  # an emptied set keeps its table: 8 KiB for an H10
+                    deadlines.fresh = set()
                 deadline = now
             offset_s = None if name in slow_points else phase_s  # None: no phase
             if deadline > now:  # read early, along with due diagnostics: take their phase
@@ -312,20 +365,20 @@ class Schedule:
             lag = now - deadline
             key = (deadline, interval, offset_s, first)
             if key != group:
-                missed = state.missed_deadlines
+                missed = deadlines.missed_deadlines
                 following = self._following(state, deadline, interval, now, offset_s, first=first)
-                group, skipped = key, state.missed_deadlines - missed
+                group, skipped = key, deadlines.missed_deadlines - missed
             else:
-                state.missed_deadlines += skipped
+                deadlines.missed_deadlines += skipped
             next_due[name] = following
-            state.lag_s = max(0.0, lag)
-            if lag <= interval or state.lag_reported:
+            deadlines.lag_s = max(0.0, lag)
+            if lag <= interval or deadlines.lag_reported:
                 continue
             # Once at most: found false, the device's lateness is reported and no point of
             # this read comes here again; found true, it is not looked for again.
-            starting = starting or any(s.identity_pending for s in self.devices.values())
+            starting = starting or any(s.deadlines.identity_pending for s in self.devices.values())
             if not starting:
-                state.lag_reported = True
+                deadlines.lag_reported = True
                 late = Late(point=name, lag_s=lag, interval_s=interval)
         self.touch(state)  # a point read early takes a new phase, which may come sooner
         return late
@@ -354,7 +407,7 @@ class Schedule:
         if nxt <= now:
             skipped = math.floor((now - nxt) / interval) + 1
             nxt += skipped * interval
-            state.missed_deadlines += skipped
+            state.deadlines.missed_deadlines += skipped
         if offset_s is not None:
             after = now + interval if first else now
             nxt = next_slot(after, interval_s=interval, offset_s=offset_s)

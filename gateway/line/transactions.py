@@ -15,6 +15,8 @@ import asyncio
 import logging
 import math
 import time
+from collections import Counter
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import (
@@ -65,6 +67,31 @@ _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     ConverterPathError: ConverterPathError.kind,  # Modbus TCP converters' 0A and 0B
     ConverterNoAnswerError: ConverterNoAnswerError.kind,
 }
+
+
+@dataclass(slots=True)
+class Holds:
+    """What the transactions keep of a device between requests, and only they write.
+
+    The wait before its next request (a post-write wait, the late-answer window, a foreign
+    master's write), its retries, the blocks it made read apart (exception 02) and the
+    points it refuses alone. Others ask: :meth:`hold_until` (the shared bus's writes),
+    :meth:`restarted` (the schedule, when the device is read in full again).
+    """
+
+    not_before: float = 0.0  # no request to the device before this monotonic time
+    attempts: Counter[str] = field(default_factory=Counter)  # retries so far, by point
+    split_before: set[int] = field(default_factory=set)  # addresses a block must not span
+    unreadable: set[str] = field(default_factory=set)  # points refused alone: not polled
+    late_hint_given: bool = False  # an answer after its timeout was explained in the log
+
+    def hold_until(self, at: float) -> None:
+        """No request to the device before ``at`` (a longer wait already set stands)."""
+        self.not_before = max(self.not_before, at)
+
+    def restarted(self) -> None:
+        """The device is read in full again (a start, back online): retries from none."""
+        self.attempts.clear()
 
 
 def default_timeout_s(
@@ -225,7 +252,7 @@ class Transactions:
                         state, response_bytes, min_response_s if reported is None else reported
                     ),
                     gap_s=self.gap_s(state),
-                    not_before=state.not_before,
+                    not_before=state.holds.not_before,
                     exceptions=profile.exceptions,
                     byte_count_16bit=profile.quirks.string_byte_count_16bit,
                     turnaround_s=0.0 if reported is None else reported,
@@ -240,7 +267,7 @@ class Transactions:
             EchoMismatchError,
         ):
             window_end = time.monotonic() + self.late_answer_window_s
-            state.not_before = max(state.not_before, window_end)
+            state.holds.hold_until(window_end)
             raise
         finally:
             if self.line.late_answer is not None:
@@ -252,9 +279,9 @@ class Transactions:
         """A device answered after its timeout: say once how late, and what to change."""
         late, self.line.late_answer = self.line.late_answer, None
         state = self._by_address.get(late.device) if late is not None else None
-        if late is None or state is None or state.late_hint_given:
+        if late is None or state is None or state.holds.late_hint_given:
             return
-        state.late_hint_given = True
+        state.holds.late_hint_given = True
         name = state.target.name
         after_ms = late.after_s * 1000
         suggestion = math.ceil(late.after_s * 1.5 * 10) / 10  # half as much again, in 0.1 s
@@ -284,13 +311,13 @@ class Transactions:
     def plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
         """The reads of the named points of the device (the schedule names what is due)."""
         planner = self._planners[state.target.name]
-        split = frozenset(state.split_before) if state.split_before else _NO_SPLITS
+        split = frozenset(state.holds.split_before) if state.holds.split_before else _NO_SPLITS
         return self._learn_first(state, planner.plan_names(names, split_before=split))
 
     def plan_points(self, state: DeviceState, points: Sequence[Point]) -> tuple[ReadBlock, ...]:
         """The reads of points of the device's profile."""
         planner = self._planners[state.target.name]
-        split = frozenset(state.split_before) if state.split_before else _NO_SPLITS
+        split = frozenset(state.holds.split_before) if state.holds.split_before else _NO_SPLITS
         return self._learn_first(state, planner.plan(points, split_before=split))
 
     @staticmethod
@@ -319,8 +346,8 @@ class Transactions:
             name
             for name in state.target.slow_points
             if intervals.get(name) in wanted
-            and name not in state.unreadable
-            and name not in state.identity_pending
+            and name not in state.holds.unreadable
+            and name not in state.deadlines.identity_pending
         ]
         due = set(names)
         return tuple(
@@ -352,7 +379,7 @@ class Transactions:
         except DeviceExceptionError as exc:
             await self.availability.answered(state, "answered")
             if exc.code == frames.ILLEGAL_ADDRESS and len(block.points) > 1:
-                state.split_before.update(p.address for p in block.points[1:])
+                state.holds.split_before.update(p.address for p in block.points[1:])
                 _LOGGER.info(
                     "%s/%s: exception 02 for %d registers at %#06x; reading its points apart",
                     self.bus,
@@ -363,8 +390,8 @@ class Transactions:
                 return None
             if exc.code == frames.ILLEGAL_ADDRESS:
                 point = block.points[0]
-                state.unreadable.add(point.name)
-                state.deadline_cache.clear()
+                state.holds.unreadable.add(point.name)
+                state.deadlines.changed()  # the schedule skips it from now on
                 _LOGGER.warning(
                     "%s/%s: the device does not answer %s (%#06x): exception 02; no longer polled",
                     self.bus,
@@ -375,14 +402,14 @@ class Transactions:
             return self.decoder.failed(state, block, f"exception_{exc.code:02d}")
         except (BusTimeoutError, FrameError) as exc:
             await self.availability.failed(state, str(exc))
-            if state.online is not False and self._retry(state, block):
+            if state.presence.online is not False and self._retry(state, block):
                 return None
             _LOGGER.debug("%s/%s: %s", self.bus, state.target.name, exc)
             return self.decoder.failed(state, block, _FAILURE_NAMES.get(type(exc), "comms_error"))
         await self.availability.answered(state, "answered")
-        if state.attempts:  # only after a failure: nearly every read has nothing to forget
+        if state.holds.attempts:  # only after a failure: nearly every read has nothing to forget
             for point in block.points:
-                state.attempts.pop(point.name, None)
+                state.holds.attempts.pop(point.name, None)
         if self.cache.enabled:
             self.cache.store(state.target.name, block.address, response.registers, time.monotonic())
         return self.decoder.decode(state, block, response.registers)
@@ -402,13 +429,13 @@ class Transactions:
 
     def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
         names = [p.name for p in block.points]
-        attempts = max(state.attempts[n] for n in names) + 1
+        attempts = max(state.holds.attempts[n] for n in names) + 1
         if attempts > state.target.retries:
             for name in names:
-                state.attempts.pop(name, None)
+                state.holds.attempts.pop(name, None)
             return False
         for name in names:
-            state.attempts[name] = attempts
+            state.holds.attempts[name] = attempts
         self.line.stats.retries[state.target.address] += 1
         return True
 
@@ -420,7 +447,7 @@ class Transactions:
         if (
             learn is not None
             and learn.name not in state.values
-            and learn.name not in state.unreadable
+            and learn.name not in state.holds.unreadable
             and learn not in todo
         ):
             # The device's own minimum response time first (once, see ``plan_points``),
@@ -430,7 +457,7 @@ class Transactions:
             blocks = self.plan_points(state, todo)
             todo = []
             for block in blocks:
-                delay = state.not_before - time.monotonic()
+                delay = state.holds.not_before - time.monotonic()
                 if delay > 0:
                     await asyncio.sleep(delay)
                 outcome = await self.read_block(state, block)
@@ -486,7 +513,7 @@ class Transactions:
         finally:
             # H10/H20 6.1.5: the wait follows every write, answered or not.
             wait = state.profile.post_write_wait(point.address, point.count)
-            state.not_before = max(state.not_before, time.monotonic() + wait)
+            state.holds.hold_until(time.monotonic() + wait)
 
     async def broadcast(self, request: frames.Request) -> None:
         """Send a broadcast; then every device waits the turnaround or its post-write wait."""
@@ -500,4 +527,4 @@ class Transactions:
                 BROADCAST_TURNAROUND_S,
                 state.profile.post_write_wait(request.address, request.count),
             )
-            state.not_before = max(state.not_before, sent + wait)
+            state.holds.hold_until(sent + wait)

@@ -51,21 +51,6 @@ if TYPE_CHECKING:
 _LOGGER = logging.getLogger(__name__)
 
 PORT_BACKOFF_FIRST_S: Final = 0.5
-# What a re-planned device keeps (:meth:`BusWorker.change_devices`): what it answered, its
-# waits and verdicts, and its counters (a counter that went back would read as a reset).
-_KEPT_BY_REPLAN: Final = (
-    "values",
-    "online",
-    "failures",
-    "probe_at",
-    "backoff_s",
-    "not_before",
-    "split_before",
-    "unreadable",
-    "undecodable",
-    "missed_deadlines",
-    "late_hint_given",
-)
 
 
 class BusWorker:
@@ -420,9 +405,8 @@ class BusWorker:
 
     def _replan_device(self, former: DeviceState, target: DeviceTarget, now: float) -> None:
         """The same sensor with other settings: new deadlines, what it is and said kept."""
-        kept = {name: getattr(former, name) for name in _KEPT_BY_REPLAN}
         pin = self._forget_device(former)
-        self._add_device(DeviceState(target=target, **kept), now, pin)
+        self._add_device(former.carried_over(target), now, pin)
 
     async def use_line(self, line: Line) -> bool:
         """Go on with ``line`` in place of the line (a reload changed the bus's settings).
@@ -521,7 +505,7 @@ class BusWorker:
             if (state := self.schedule.pick(now, slow=False)) is not None:
                 if self.identity.holds(state):
                     await self.identity.recheck(state, now)
-                elif state.online is False:
+                elif state.presence.online is False:
                     await self.transactions.probe(state, now)
                 else:
                     await self._poll(state, now, slow=False)
@@ -561,7 +545,7 @@ class BusWorker:
 
     async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
         self.lateness.mark(now)
-        held_until = state.not_before  # a wait after a write or a failure, ended by now
+        held_until = state.holds.not_before  # a wait after a write or a failure, ended by now
         names = self.schedule.due_points(state, now, slow=slow)
         samples: list[Sample] = []
         reads = self.transactions
@@ -571,7 +555,7 @@ class BusWorker:
         if len(plan) > 1:
             blocks = tuple(sorted(plan, key=lambda b: self._block_deadline(state, b)))
         for block in blocks:
-            if state.not_before > time.monotonic() or state.online is False:
+            if state.holds.not_before > time.monotonic() or state.presence.online is False:
                 break  # a failure set a quarantine or took the device offline: others first
             if samples and slow and self.schedule.pick(time.monotonic(), slow=False) is not None:
                 break  # values are due somewhere: the rest of the diagnostics waits
@@ -596,7 +580,7 @@ class BusWorker:
     @staticmethod
     def _block_deadline(state: DeviceState, block: ReadBlock) -> float:
         """The earliest deadline of a block's points (identity reads come first)."""
-        return min(state.next_due.get(p.name, 0.0) for p in block.points)
+        return state.deadlines.earliest(p.name for p in block.points)
 
     async def _event(self, state: DeviceState, *, online: bool, reason: str) -> None:
         if self.identity.announces(state, online=online, reason=reason):

@@ -115,7 +115,7 @@ async def test_a_plant_polled_over_modbus_tcp_reads_the_simulated_registers() ->
                     assert sample.value == expected, sample.point
                     compared += 1
         assert compared > 30
-        assert all(state.online for state in r.worker.devices.values())
+        assert all(state.presence.online for state in r.worker.devices.values())
     # Every request answered, but the one in flight when the worker was stopped.
     assert sum(stats.requests.values()) - sum(stats.responses.values()) <= 1, stats.errors
     assert not stats.errors
@@ -179,9 +179,9 @@ async def test_an_absent_device_is_the_converters_0b_a_failure_not_an_exception(
         await r.run_for(3.5)
         stats = r.line.stats
         ghost = r.worker.devices["ghost"]
-        assert ghost.online is False
-        assert not ghost.split_before  # a 0B never splits a read as exception 02 would
-        assert r.worker.devices["s10"].online is True
+        assert ghost.presence.online is False
+        assert not ghost.holds.split_before  # a 0B never splits a read as exception 02 would
+        assert r.worker.devices["s10"].presence.online is True
         failed = [s for s in r.sink.samples if s.device == "ghost"]
         assert failed
         assert {s.quality for s in failed} == {Quality.COMMS_ERROR}
@@ -452,7 +452,7 @@ async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_device
         # Three silent requests, each its timeout (and a device's late-answer window).
         assert peer.ended[0] - peer.accepted[0] < 3 * (0.2 + 1.0)
         assert line.watch.ended_at  # ended by its silence, not by the peer
-        await until(lambda: all(s.online is False for s in devices), 15, "still online")
+        await until(lambda: all(s.presence.online is False for s in devices), 15, "still online")
         assert len(peer.accepted) >= 2  # reopened at once, still silent
         # The silent peer goes; a converter with the devices behind it takes its port.
         silent.close()
@@ -461,7 +461,9 @@ async def test_a_silent_peer_ends_the_session_then_a_converter_brings_the_device
         await silent.wait_closed()
         try:
             await server.open_tcp("127.0.0.1", port, framing=framing)
-            await until(lambda: all(s.online for s in devices), 10, "the devices did not return")
+            await until(
+                lambda: all(s.presence.online for s in devices), 10, "the devices did not return"
+            )
         finally:
             await server.close()
     names = [(e.device, e.online) for e in sink.events]

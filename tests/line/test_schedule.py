@@ -44,14 +44,14 @@ def scan(schedule: Schedule, now: float, *, slow: bool) -> DeviceState | None:
     due = [
         (deadline, s.target.address, n, s)
         for n, s in enumerate(schedule.devices.values())
-        if s.not_before <= now and (deadline := schedule.next_deadline(s, slow=slow)) <= now
+        if s.holds.not_before <= now and (deadline := schedule.next_deadline(s, slow=slow)) <= now
     ]
     return min(due, key=lambda item: item[:3])[3] if due else None
 
 
 def identity_read(state: DeviceState) -> None:
-    state.identity_pending.clear()
-    state.deadline_cache.clear()
+    state.deadlines.identity_pending.clear()
+    state.deadlines.cache.clear()
 
 
 @pytest.mark.parametrize("phases", [False, True], ids=["from-start", "phased"])
@@ -76,18 +76,18 @@ def test_the_heap_picks_what_a_scan_picks(seed: int, *, phases: bool) -> None:
             names = schedule.due_points(chosen, now, slow=slow)
             schedule.advance(chosen, rng.sample(names, k=(len(names) + 1) // 2), now)
         elif action < 0.75:
-            chosen.not_before = now + rng.choice((0.01, 0.25, 1.0))  # a wait: set aside
+            chosen.holds.not_before = now + rng.choice((0.01, 0.25, 1.0))  # a wait: set aside
         elif action < 0.85:
-            chosen.online = False  # as Availability does, then tells the schedule
-            chosen.probe_at = now + rng.choice((0.0, 0.5))
+            chosen.presence.online = False  # as Availability does, then tells the schedule
+            chosen.presence.probe_at = now + rng.choice((0.0, 0.5))
             schedule.touch(chosen)
         elif action < 0.92:
-            chosen.online = None
+            chosen.presence.online = None
             schedule.restart_device(chosen, now)
         else:
-            names = sorted(chosen.next_due)
-            chosen.unreadable.add(rng.choice(names))
-            chosen.deadline_cache.clear()
+            names = sorted(chosen.deadlines.next_due)
+            chosen.holds.unreadable.add(rng.choice(names))  # as the transactions do
+            chosen.deadlines.changed()
 
 
 def test_a_device_inside_a_wait_is_passed_over_then_picked_when_it_ends() -> None:
@@ -97,7 +97,7 @@ def test_a_device_inside_a_wait_is_passed_over_then_picked_when_it_ends() -> Non
     schedule.restart(0.0)
     identity_read(first)
     identity_read(second)
-    first.not_before = 5.0
+    first.holds.not_before = 5.0
     assert schedule.pick(1.0, slow=False) is second
     assert schedule.pick(5.0, slow=False) is first  # ties go to the lower address
 
@@ -109,7 +109,7 @@ def test_nothing_due_is_nothing_picked() -> None:
     schedule.restart(10.0)
     for state in devices.values():
         identity_read(state)
-        schedule.advance(state, list(state.next_due), 10.0)
+        schedule.advance(state, list(state.deadlines.next_due), 10.0)
     assert schedule.pick(10.0, slow=False) is None
     assert schedule.wake_at(10.0) > 10.0
     assert not math.isinf(schedule.wake_at(10.0))
@@ -128,17 +128,19 @@ def test_what_another_master_wrote_is_read_again_the_format_before_the_values() 
     )
     schedule = Schedule({"h10": state})
     schedule.restart(0.0)
-    state.identity_pending.clear()  # read: everything is polled on its interval now
-    state.next_due.update({"oxygen": 1.0, "compensation_temperature": 60.0, "float_format": 300})
-    state.deadline_cache.clear()
+    state.deadlines.identity_pending.clear()  # read: everything is polled on its interval now
+    state.deadlines.next_due.update(
+        {"oxygen": 1.0, "compensation_temperature": 60.0, "float_format": 300}
+    )
+    state.deadlines.cache.clear()
 
     schedule.reread(state, 0x2013, 2, now=5.0)  # compensation_temperature, by another master
-    assert state.next_due["compensation_temperature"] == 5.0
-    assert state.next_due["float_format"] == 300
-    assert state.identity_pending == set()
+    assert state.deadlines.next_due["compensation_temperature"] == 5.0
+    assert state.deadlines.next_due["float_format"] == 300
+    assert state.deadlines.identity_pending == set()
 
     schedule.reread(state, 0x0300, 0x10, now=6.0)  # a block holding the float format (0x0307)
     # Read before any value, as at a start: values decoded after it follow the new format.
-    assert "float_format" in state.identity_pending
+    assert "float_format" in state.deadlines.identity_pending
     assert schedule.next_deadline(state, slow=False) == 0.0
-    assert state.next_due["oxygen"] == 1.0  # unwritten points keep their deadlines
+    assert state.deadlines.next_due["oxygen"] == 1.0  # unwritten points keep their deadlines

@@ -40,8 +40,8 @@ def schedule_of(*targets: DeviceTarget) -> Schedule:
 
 def read_due(schedule: Schedule, state: DeviceState, now: float) -> list[str]:
     """What the worker does for one device at ``now``: its due values read and advanced."""
-    state.identity_pending.clear()  # identity and unit registers read: not the point here
-    state.deadline_cache.clear()
+    state.deadlines.identity_pending.clear()  # identity and unit registers read: not the point here
+    state.deadlines.cache.clear()
     names = schedule.due_points(state, now, slow=False)
     schedule.advance(state, names, now)
     return names
@@ -49,7 +49,7 @@ def read_due(schedule: Schedule, state: DeviceState, now: float) -> list[str]:
 
 def value_due(state: DeviceState) -> float:
     """When the device's values next fall due (all of them, together)."""
-    (due,) = {state.next_due[name] for name in VALUES}
+    (due,) = {state.deadlines.next_due[name] for name in VALUES}
     return due
 
 
@@ -147,7 +147,7 @@ def test_the_first_cycle_is_read_at_once_and_the_next_at_the_devices_slot() -> N
     assert schedule.pick(1002.5, slow=False) is state
     read_due(schedule, state, 1002.53)
     assert value_due(state) == pytest.approx(1004.5)
-    assert state.missed_deadlines == 0
+    assert state.deadlines.missed_deadlines == 0
 
 
 def test_a_long_first_cycle_leaves_the_next_slot_a_whole_interval_away() -> None:
@@ -162,7 +162,7 @@ def test_a_long_first_cycle_leaves_the_next_slot_a_whole_interval_away() -> None
     read_due(schedule, cl2, START + 0.6)  # began then, ended 0.3 s later
     read_due(schedule, h10, START + 0.9)
     read_due(schedule, cl2, START + 1.13)
-    assert (h10.missed_deadlines, cl2.missed_deadlines) == (0, 0)
+    assert (h10.deadlines.missed_deadlines, cl2.deadlines.missed_deadlines) == (0, 0)
     assert value_due(h10) % 0.5 == pytest.approx(0.25)  # back on its slots
     assert value_due(cl2) % 0.5 == pytest.approx(0.0, abs=1e-9)
 
@@ -196,7 +196,7 @@ def test_points_at_a_multiple_of_the_interval_fall_due_with_the_others() -> None
     for _ in range(17):
         names = read_due(schedule, state, now)
         turns.append((round(now, 6), VALUES[0] in names))
-        now = min(state.next_due[n] for n in VALUES)
+        now = min(state.deadlines.next_due[n] for n in VALUES)
     slow_point_turns = [t for t, read in turns if read]
     assert slow_point_turns == [START, 1010.3, 1015.3]  # its first slot 5 s after START
     assert all(round(t - 0.3, 6) % 1 == 0 for t, _ in turns[1:])  # every turn on its slot
@@ -206,12 +206,12 @@ def test_diagnostics_keep_their_own_rule() -> None:
     state = DeviceState(target=target("basin", 10, phase=0.5))
     schedule = Schedule({"basin": state})
     schedule.restart(START)
-    assert {state.next_due[n] for n in DIAGNOSTICS} == {START + SLOW_GROUP_DELAY_S}
+    assert {state.deadlines.next_due[n] for n in DIAGNOSTICS} == {START + SLOW_GROUP_DELAY_S}
     later = START + SLOW_GROUP_DELAY_S + 0.1
-    state.deadline_cache.clear()
+    state.deadlines.cache.clear()
     names = schedule.due_points(state, later, slow=True)
     schedule.advance(state, names, later)
-    assert [state.next_due[n] for n in DIAGNOSTICS] == pytest.approx([later + 60.0] * 2)
+    assert [state.deadlines.next_due[n] for n in DIAGNOSTICS] == pytest.approx([later + 60.0] * 2)
 
 
 def test_missed_slots_are_counted_and_the_phase_kept() -> None:
@@ -221,7 +221,7 @@ def test_missed_slots_are_counted_and_the_phase_kept() -> None:
     read_due(schedule, state, START)
     assert value_due(state) == pytest.approx(1001.5)
     read_due(schedule, state, 1004.2)  # the line was busy: 1002.5 and 1003.5 missed
-    assert state.missed_deadlines == 2 * len(VALUES)
+    assert state.deadlines.missed_deadlines == 2 * len(VALUES)
     assert value_due(state) == pytest.approx(1004.5)
 
 
@@ -246,7 +246,7 @@ def test_a_restart_reads_at_once_then_returns_to_the_same_slots(how: str) -> Non
         restarted = list(schedule.devices.values())
         schedule.restart(again)
     for state in restarted:
-        state.identity_pending.clear()  # read first, as at any start
+        state.deadlines.identity_pending.clear()  # read first, as at any start
         assert set(schedule.due_points(state, again, slow=False)) == set(VALUES)  # at once
         read_due(schedule, state, again + 0.01)
     after = {name: value_due(s) % 1.0 for name, s in schedule.devices.items()}

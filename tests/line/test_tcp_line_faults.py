@@ -665,13 +665,17 @@ async def test_a_stopped_converter_process_then_polling_resumes(
             await until(lambda: bool(sink.good("s10", "temperature")), 10, "never polled", line)
             sim.send_signal(signal.SIGSTOP)
             stopped = time.monotonic()
-            await until(lambda: state.online is False, 10, "still online while stopped", line)
+            await until(
+                lambda: state.presence.online is False, 10, "still online while stopped", line
+            )
             await until(lambda: len(line.watch.ended_at) >= 1, 10, "the session was kept", line)
             timeouts = line.stats.errors[1, ErrorKind.TIMEOUT]
             assert timeouts >= 2
             sim.send_signal(signal.SIGCONT)
             resumed = time.monotonic()
-            back = await until(lambda: state.online is True, 10, "not back after SIGCONT", line)
+            back = await until(
+                lambda: state.presence.online is True, 10, "not back after SIGCONT", line
+            )
             await until(lambda: bool(fresh(resumed)), 5, "no value after SIGCONT", line)
         finally:
             worker.request_stop()

@@ -43,7 +43,7 @@ async def test_a_device_added_is_polled_and_an_unchanged_one_keeps_its_state(
         await asyncio.sleep(1.2)
         assert requests_to(r, 2) == []
         kept = r.worker.devices["cl2"]
-        missed = kept.missed_deadlines
+        missed = kept.deadlines.missed_deadlines
         await asyncio.wait_for(
             r.worker.change_devices([cl2, target("h10", "jumo-digiline-odo-h10", 2)]), 2
         )
@@ -51,7 +51,7 @@ async def test_a_device_added_is_polled_and_an_unchanged_one_keeps_its_state(
         r.worker.request_stop()
         await asyncio.wait_for(polling, 5)
     assert r.worker.devices["cl2"] is kept  # the same state: schedule, values, counters
-    assert kept.missed_deadlines == missed
+    assert kept.deadlines.missed_deadlines == missed
     assert len(r.sink.good("h10", "oxygen")) >= 1
     assert r.server.bus.stats()["timing_violations"] == 0
 
