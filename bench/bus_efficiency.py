@@ -47,10 +47,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from bench.bare_master import measure_bare, wake_cost
-from gateway.line.devices import DeviceTarget
-from gateway.line.plan import CostModel, plan_reads
-from gateway.line.serial_line import SerialLine
-from gateway.line.worker import BusWorker
+from gateway.line.engine.devices import DeviceTarget
+from gateway.line.engine.plan import CostModel, plan_reads
+from gateway.line.engine.worker import BusWorker
+from gateway.line.transports.serial_line import SerialLine
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 
@@ -58,7 +58,7 @@ if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
     from typing import Any
 
-    from gateway.line.plan import ReadBlock
+    from gateway.line.engine.plan import ReadBlock
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.line.stats import LineStats
     from gateway.profiles import Point

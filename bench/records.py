@@ -32,9 +32,9 @@ from gateway.config import FlashPolicy
 from gateway.control.flash import FlashLedger
 from gateway.control.link import DeviceLink
 from gateway.control.writes import SafeWriter
-from gateway.line.devices import DeviceTarget
-from gateway.line.serial_line import SerialLine
-from gateway.line.worker import BusWorker
+from gateway.line.engine.devices import DeviceTarget
+from gateway.line.engine.worker import BusWorker
+from gateway.line.transports.serial_line import SerialLine
 from gateway.profiles import get_profile
 from gateway.records import (
     Actor,

@@ -172,8 +172,9 @@ class PortUnavailableError(BusClosedError):
     """The port cannot be opened, for a reason the user can act on.
 
     ``reason`` is one of ``missing``, ``permission_denied``, ``in_use``, ``no_rs485_mode``
-    or ``driver_error`` (:class:`gateway.line.port_diagnosis.PortReason`): callers (the bus
-    worker, ``/healthz``, the command line) branch on it, never on the message's text.
+    or ``driver_error`` (:class:`gateway.line.transports.port_diagnosis.PortReason`):
+    callers (the bus worker, ``/healthz``, the command line) branch on it, never on the
+    message's text.
     """
 
     def __init__(self, message: str, *, port: str, reason: str, holder: int | None = None) -> None:

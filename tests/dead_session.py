@@ -18,7 +18,7 @@ import time
 from gateway.config.network import TcpSettings
 from gateway.errors import GatewayError
 from gateway.line.boundary import RequestOptions
-from gateway.line.factory import build_line
+from gateway.line.transports.factory import build_line
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames
 from gateway.wire.timing import LineFormat

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from gateway.config.echo import EchoMode
-from gateway.line.serial_line import SerialLine
-from gateway.line.worker import BusWorker
+from gateway.line.engine.worker import BusWorker
+from gateway.line.transports.serial_line import SerialLine
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.shim import LineShim
 from gateway.wire import frames
@@ -24,7 +24,7 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
     from pathlib import Path
 
-    from gateway.line.devices import DeviceState, DeviceTarget
+    from gateway.line.engine.devices import DeviceState, DeviceTarget
     from gateway.line.samples import Sample
     from gateway.simulator.device import SimulatedDevice
 

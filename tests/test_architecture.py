@@ -24,6 +24,8 @@ _ORDER = (
     "profiles",
     "config",
     "line",
+    "transports",
+    "engine",
     "care",
     "shared",
     "publish",
@@ -48,6 +50,9 @@ FLOOR_OF = {
     "gateway.profiles": "profiles",
     "gateway.config": "config",
     "gateway.line": "line",
+    "gateway.line.transports": "transports",
+    "gateway.line.engine": "engine",
+    "gateway.line.scan": "engine",
     "gateway.care": "care",
     "gateway.shared": "shared",
     "gateway.publish": "publish",
@@ -66,7 +71,11 @@ FLOOR_OF = {
 # driver asked for low-latency mode). The port's names and why it is not open need none.
 PORT_LIBRARIES = ("serial", "serial_asyncio_fast", "pymodbus.client")
 PORT_OWNERS = frozenset(
-    {"gateway.line.serial_line", "gateway.line.port_access", "gateway.line.usb_adapter"}
+    {
+        "gateway.line.transports.serial_line",
+        "gateway.line.transports.port_access",
+        "gateway.line.transports.usb_adapter",
+    }
 )
 
 
@@ -217,7 +226,7 @@ ARCHITECTURE = PACKAGE.parent / "docs" / "ARCHITECTURE.md"
 
 
 def _rows() -> list[list[str]]:
-    """The modules each row of the table names in its first column (``line/rtu``, ...)."""
+    """The modules each row of the table names in its first column (``line/transports/rtu``, ...)."""
     rows = []
     for line in ARCHITECTURE.read_text(encoding="utf-8").splitlines():
         if line.startswith("| `"):
@@ -246,7 +255,7 @@ def test_every_module_has_one_row_and_every_row_a_module() -> None:
 def test_the_table_reader_reads_rows_of_several_modules() -> None:
     rows = _rows()
     assert ["cli/write", "cli/calibrate", "cli/operations"] in rows
-    assert ["line/rtu"] in rows
+    assert ["line/transports/rtu"] in rows
 
 
 # --- its known debt, measured ----------------------------------------------------------------
@@ -283,3 +292,117 @@ def test_the_known_debt_is_what_is_measured() -> None:
     listed, measured = _listed_debt(), _measured_debt()
     assert sorted(measured - listed) == [], "over the bounds, not named under Known debt"
     assert sorted(listed - measured) == [], "named under Known debt, within the bounds now"
+
+
+# --- a device's running state: each part written by its owner alone ---------------------------
+
+ENGINE = PACKAGE / "line" / "engine"
+# The parts of DeviceState (line/engine/devices) and the one module that writes each; the
+# part's own methods (in devices) are how the others ask.
+PART_OWNERS = {
+    "deadlines": "schedule",
+    "presence": "health",
+    "holds": "transactions",
+}
+MUTATORS = frozenset(
+    {"add", "discard", "remove", "clear", "update", "pop", "setdefault", "difference_update"}
+)
+
+
+def _part_named(node: ast.expr, parts: dict[str, str]) -> str | None:
+    """The part an expression is (``state.holds``, or a name bound to it), else None."""
+    if isinstance(node, ast.Attribute) and node.attr in PART_OWNERS:
+        return node.attr
+    if isinstance(node, ast.Name):
+        return parts.get(node.id)
+    return None
+
+
+def _field_of(node: ast.expr, parts: dict[str, str], fields: dict[str, str]) -> str | None:
+    """The part whose field an expression is (``holds.unreadable``, ``x[k]`` of one), else None."""
+    if isinstance(node, ast.Subscript):
+        return _field_of(node.value, parts, fields)
+    if isinstance(node, ast.Attribute):
+        return _part_named(node.value, parts)
+    if isinstance(node, ast.Name):
+        return fields.get(node.id)
+    return None
+
+
+def _bindings(tree: ast.Module) -> tuple[dict[str, str], dict[str, str]]:
+    """Names bound to a part (``presence = state.presence``) and to a part's field."""
+    assigns = [
+        (node.targets[0].id, node.value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Assign)
+        and len(node.targets) == 1
+        and isinstance(node.targets[0], ast.Name)
+    ]
+    parts = {name: part for name, value in assigns if (part := _part_named(value, {}))}
+    fields = {
+        name: part
+        for name, value in assigns
+        if isinstance(value, ast.Attribute) and (part := _part_named(value.value, parts))
+    }
+    return parts, fields
+
+
+def _part_writes(source: str) -> list[tuple[int, str]]:
+    """Every write to a field of a part (assigned, or mutated in place), with its line.
+
+    A method of the part itself (``state.holds.hold_until(...)``) is asking, not writing;
+    names bound to a part or to one of its fields are followed.
+    """
+    tree = ast.parse(source)
+    parts, fields = _bindings(tree)
+    writes: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        targets: list[ast.expr] = []
+        if isinstance(node, ast.Assign):
+            targets = [t for t in node.targets if not isinstance(t, ast.Name)]  # not bindings
+        elif isinstance(node, (ast.AugAssign, ast.AnnAssign)):
+            targets = [node.target]
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            targets = [node.func.value] if node.func.attr in MUTATORS else []
+        writes.extend(
+            (node.lineno, part)
+            for target in targets
+            if isinstance(node, ast.stmt | ast.expr)
+            and (part := _field_of(target, parts, fields)) is not None
+        )
+    return sorted(writes)
+
+
+def test_each_part_of_a_devices_state_has_one_writer() -> None:
+    wrong = [
+        f"line/engine/{path.stem}:{line} writes the {part} ({PART_OWNERS[part]}'s)"
+        for path in sorted(ENGINE.glob("*.py"))
+        for line, part in _part_writes(path.read_text(encoding="utf-8"))
+        if path.stem not in {PART_OWNERS[part], "devices"}
+    ]
+    outside = [
+        f"{path.relative_to(PACKAGE)}:{line} writes the {part}"
+        for path in sorted(PACKAGE.rglob("*.py"))
+        if ENGINE not in path.parents
+        for line, part in _part_writes(path.read_text(encoding="utf-8"))
+    ]
+    assert wrong == []
+    assert outside == []
+
+
+def test_the_writer_finder_sees_each_kind_of_write() -> None:
+    source = (
+        "state.presence.online = False\n"
+        "state.holds.not_before += 1\n"
+        "state.deadlines.next_due[name] = 0.0\n"
+        "state.deadlines.identity_pending.discard(name)\n"
+        "pending = state.deadlines.identity_pending\n"
+        "pending.add(name)\n"
+        "presence = state.presence\n"
+        "presence.failures = 0\n"
+        "state.holds.hold_until(1.0)\n"  # asking: not a write
+        "deadlines = state.deadlines\n"
+        "deadlines.identity_read(name)\n"  # asking
+        "x = state.holds.not_before\n"  # reading
+    )
+    assert [line for line, _ in _part_writes(source)] == [1, 2, 3, 4, 6, 8]

@@ -154,7 +154,7 @@ def install() -> None:
     """Hook the places where a test reaches beyond Python; once per session."""
     import serial  # noqa: PLC0415 - the hooks are installed at the session's start
 
-    from gateway.line import modbus_tcp, rtu_over_tcp  # noqa: PLC0415
+    from gateway.line.transports import modbus_tcp, rtu_over_tcp  # noqa: PLC0415
     from gateway.simulator.transport import SimulatorServer  # noqa: PLC0415
 
     def popen(_self: object, args: object, *_: object, **__: object) -> None:

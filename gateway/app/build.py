@@ -21,12 +21,12 @@ from gateway.control.ports import port_options
 from gateway.control.verification import verifiable_point
 from gateway.control.writes import SafeWriter
 from gateway.errors import CommandRejectedError
-from gateway.line.devices import DeviceTarget
-from gateway.line.factory import build_line
-from gateway.line.foreign import SharePolicy
-from gateway.line.port_names import SystemRoots, port_name_advice
-from gateway.line.schedule import spread_phase
-from gateway.line.worker import BusWorker
+from gateway.line.engine.devices import DeviceTarget
+from gateway.line.engine.foreign import SharePolicy
+from gateway.line.engine.schedule import spread_phase
+from gateway.line.engine.worker import BusWorker
+from gateway.line.transports.factory import build_line
+from gateway.line.transports.port_names import SystemRoots, port_name_advice
 from gateway.profiles.serial_number import pinned_serial
 from gateway.records.actor import Actor, Via
 from gateway.shared.state import DeviceInfo, GatewayState, StateSink

@@ -4,8 +4,8 @@
 in place for a reload (:meth:`Buses.change`, then :meth:`Buses.build` and
 :meth:`Buses.start`): a bus that is gone stops; a bus that changed keeps its worker, which
 takes its new devices between two frames and a new line through a pause
-(:meth:`~gateway.line.worker.BusWorker.change_devices`,
-:meth:`~gateway.line.worker.BusWorker.use_line`), so that what runs on it, a calibration
+(:meth:`~gateway.line.engine.worker.BusWorker.change_devices`,
+:meth:`~gateway.line.engine.worker.BusWorker.use_line`), so that what runs on it, a calibration
 among it, goes on; a bus that is new is built and started. The ``workers`` and ``writers``
 dictionaries are the same objects for the whole run: the page, the commands and the feeds
 that hold them see the change.
@@ -37,8 +37,8 @@ if TYPE_CHECKING:
     from gateway.config.changes import ConfigChanges
     from gateway.control.flash import FlashLedger
     from gateway.control.writes import SafeWriter
+    from gateway.line.engine.worker import BusWorker
     from gateway.line.samples import Sink
-    from gateway.line.worker import BusWorker
     from gateway.publish.mqtt import MqttSink
     from gateway.records import FeedCounts, RecordStore
     from gateway.shared.state import GatewayState

@@ -63,8 +63,8 @@ if TYPE_CHECKING:
     from gateway.control.feeds import FeedEngine
     from gateway.control.shared_bus import SharedBusServer
     from gateway.control.writes import SafeWriter
+    from gateway.line.engine.worker import BusWorker
     from gateway.line.samples import Sink
-    from gateway.line.worker import BusWorker
     from gateway.publish.mqtt import MqttSink
     from gateway.publish.prometheus import MetricsServer
     from gateway.publish.sparkplug import SparkplugSink

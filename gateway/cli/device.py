@@ -28,8 +28,8 @@ from gateway.control.flash import LEDGER_FILE, FlashLedger
 from gateway.control.link import DeviceLink, open_link
 from gateway.control.ports import port_options
 from gateway.errors import ConfigError, GatewayError
-from gateway.line.devices import DeviceTarget
-from gateway.line.port_access import PortOptions
+from gateway.line.engine.devices import DeviceTarget
+from gateway.line.transports.port_access import PortOptions
 from gateway.profiles import get_profile
 from gateway.records import RecordStore, records_path
 from gateway.shared.host_clock import HostClock

@@ -22,9 +22,9 @@ from gateway.config import review_config
 from gateway.control.link import open_link
 from gateway.control.ports import port_advice
 from gateway.errors import ConfigError, GatewayError
-from gateway.line.devices import DeviceTarget
-from gateway.line.port_names import SystemRoots
+from gateway.line.engine.devices import DeviceTarget
 from gateway.line.samples import Quality, Sample, hex_registers, json_value
+from gateway.line.transports.port_names import SystemRoots
 from gateway.profiles import Point, PollGroup, builtin_profiles, get_profile
 from gateway.publish.console import format_sample
 from gateway.wire import codec

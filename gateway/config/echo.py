@@ -2,7 +2,7 @@
 
 A two-wire RS485 adapter without automatic direction control hears its own transmission:
 every request comes back before its answer. The setting is read once, here, into an
-:class:`EchoMode` that the line (:mod:`gateway.line.echo`) acts on.
+:class:`EchoMode` that the line (:mod:`gateway.line.transports.echo`) acts on.
 """
 
 from __future__ import annotations

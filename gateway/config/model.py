@@ -214,7 +214,7 @@ class BusConfig(_Model):
     reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0  # cap of the backoff
     # Whether the adapter hears its own transmission (no automatic direction control):
     # "on" reads every request back before its answer, "off" expects none, "auto" decides
-    # from the first reads and logs the setting that fits (gateway.line.echo).
+    # from the first reads and logs the setting that fits (gateway.line.transports.echo).
     echo: Annotated[EchoMode, BeforeValidator(echo_words)] = EchoMode.AUTO
     rs485: Rs485Config | None = None  # the kernel's RS485 mode (a UART or HAT switched by RTS)
     # socket:// and tcp:// only: keepalive, user timeout, silence, pauses (config.network).

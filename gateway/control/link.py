@@ -1,7 +1,7 @@
 """One device on a line, as commands, feeds, operations and calibrations see it.
 
 A :class:`DeviceLink` reads and writes points through the line's
-:class:`~gateway.line.worker.BusWorker`, so every timing rule (gaps, post-write waits,
+:class:`~gateway.line.engine.worker.BusWorker`, so every timing rule (gaps, post-write waits,
 late-answer windows) still holds: while the gateway polls, its reads and writes queue
 ahead of due polls; from the command line, with no poll running, they run at once.
 
@@ -24,17 +24,17 @@ from typing import TYPE_CHECKING
 from gateway.config.echo import EchoMode
 from gateway.control.commands import require_writable, validate_write
 from gateway.errors import BusError
-from gateway.line.factory import build_line
+from gateway.line.engine.worker import BusWorker
 from gateway.line.samples import Quality
-from gateway.line.worker import BusWorker
+from gateway.line.transports.factory import build_line
 from gateway.wire.codec import DataType
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
 
     from gateway.config.network import TcpSettings
-    from gateway.line.devices import DeviceTarget
-    from gateway.line.port_access import PortOptions
+    from gateway.line.engine.devices import DeviceTarget
+    from gateway.line.transports.port_access import PortOptions
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
     from gateway.wire import codec

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from gateway.line.port_access import PortOptions
-from gateway.line.port_names import port_name_advice
+from gateway.line.transports.port_access import PortOptions
+from gateway.line.transports.port_names import port_name_advice
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from gateway.config.model import BusConfig, GatewayConfig
     from gateway.config.problems import KeyPath
     from gateway.config.shared_bus import SharedBusConfig
-    from gateway.line.port_names import SystemRoots
+    from gateway.line.transports.port_names import SystemRoots
 
 
 def port_options(bus: BusConfig, shared: SharedBusConfig) -> PortOptions:

@@ -4,16 +4,16 @@ The bus worker, the transactions, the scan, the shared bus and lateness see a li
 through :class:`Line`, and a transaction's result as an :class:`Exchange`.
 
 Three kinds stand behind it, each owning only what is its own
-(:func:`gateway.line.factory.build_line` picks one from the port):
+(:func:`gateway.line.transports.factory.build_line` picks one from the port):
 
-- :class:`gateway.line.serial_line.SerialLine`: Modbus RTU on a local serial device (the
+- :class:`gateway.line.transports.serial_line.SerialLine`: Modbus RTU on a local serial device (the
   echo of a two-wire adapter, the wire-time floor, exclusive opening);
-- :class:`gateway.line.rtu_over_tcp.RtuOverTcpLine`: the same RTU frames through a serial
+- :class:`gateway.line.transports.rtu_over_tcp.RtuOverTcpLine`: the same RTU frames through a serial
   device server's transparent TCP port (``socket://``), its session watched;
-- :class:`gateway.line.modbus_tcp.ModbusTcpLine`: Modbus TCP to a converter (``tcp://``),
+- :class:`gateway.line.transports.modbus_tcp.ModbusTcpLine`: Modbus TCP to a converter (``tcp://``),
   MBAP framing and transaction ids, no gap on the socket.
 
-The first two share the RTU engine, :class:`gateway.line.rtu.RtuLine`; the third shares
+The first two share the RTU engine, :class:`gateway.line.transports.rtu.RtuLine`; the third shares
 nothing but this protocol, the counters (:mod:`gateway.line.stats`) and the timer.
 """
 
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 
 
 class WaitWatch(Protocol):
-    """Told of the line's timed waits: the event loop's watch (``line/lateness``)."""
+    """Told of the line's timed waits: the event loop's watch (``line/engine/lateness``)."""
 
     def asleep(self) -> None:
         """A timed wait begins."""

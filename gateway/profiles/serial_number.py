@@ -3,9 +3,9 @@
 USB adapters renumber after a reboot, and two lines with the same formats and addresses
 then swap their sensors without a single failed request. A device may pin the serial
 number its sensor reports (``devices[].serial_number``); the line compares every serial it
-reads with it (:mod:`gateway.line.identity_guard`). This module is the pure part both the config
-check and the line use: which point is a profile's serial number, what a pinned value may
-be for that point, and when an answer matches it.
+reads with it (:mod:`gateway.line.engine.identity_guard`). This module is the pure part
+both the config check and the line use: which point is a profile's serial number, what
+a pinned value may be for that point, and when an answer matches it.
 
 Serials come as the point's type says: a string on all four built-in families (digiLine
 0x0100 char[20], tecLine and Reiss 0x030C char[20]), a whole number where a profile reads a

@@ -24,8 +24,8 @@ if TYPE_CHECKING:
     from collections.abc import Callable, Iterator, Sequence
     from datetime import date
 
-    from gateway.line.foreign import ForeignStats
-    from gateway.line.health import DeviceHealth
+    from gateway.line.engine.foreign import ForeignStats
+    from gateway.line.engine.health import DeviceHealth
     from gateway.line.samples import DeviceEvent, Sample
     from gateway.line.stats import LineStats
 

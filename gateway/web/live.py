@@ -22,7 +22,7 @@ from gateway.wire.codec import BitfieldValue
 if TYPE_CHECKING:
     from collections.abc import Collection, Mapping
 
-    from gateway.line.health import DeviceHealth
+    from gateway.line.engine.health import DeviceHealth
     from gateway.line.samples import Sample
     from gateway.line.stats import LineStats
     from gateway.profiles import Profile

@@ -20,8 +20,8 @@ from gateway.line.scan import parse_addresses, scan
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
-    from gateway.line.port_access import PortOptions
-    from gateway.line.worker import BusWorker
+    from gateway.line.engine.worker import BusWorker
+    from gateway.line.transports.port_access import PortOptions
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)

@@ -24,7 +24,7 @@ libfaketime 0.9.10 (Debian 12) mistreats the monotonic clock where it is not fak
 two calls: ``clock_nanosleep`` on it fails with EINVAL (so a process under it must not
 call ``time.sleep``: the gateway does not, its waits are the event loop's), and
 ``timerfd_settime`` moves an absolute deadline on it by the wall clock's offset (a step
-back of a day would hold the inter-frame gap's timer, :mod:`gateway.line.timer`, for a
+back of a day would hold the inter-frame gap's timer, :mod:`gateway.line.transports.timer`, for a
 day). Neither happens under an NTP step, which leaves the monotonic clock alone; so the
 gateway under test calls the C library's own ``timerfd_settime``, as without libfaketime
 (:data:`REAL_TIMERFD`), and the kernel's timer runs on the monotonic clock as it does on
@@ -96,7 +96,7 @@ TIMEOUT_S = 0.2
 # on libc's handle finds libc's symbol, not libfaketime's, which is preloaded before it).
 REAL_TIMERFD = (
     "import ctypes\n"
-    "import gateway.line.timer as timer\n"
+    "import gateway.line.transports.timer as timer\n"
     "libc = ctypes.CDLL('libc.so.6', use_errno=True)\n"
     "libc.timerfd_create.argtypes = (ctypes.c_int, ctypes.c_int)\n"
     "libc.timerfd_settime.argtypes = (ctypes.c_int, ctypes.c_int,"

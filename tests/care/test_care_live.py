@@ -23,7 +23,7 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from gateway.app import run
 from gateway.config import parse_config
-from gateway.line.devices import DeviceTarget
+from gateway.line.engine.devices import DeviceTarget
 from gateway.profiles import PollGroup, get_profile
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import codec

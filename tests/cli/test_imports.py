@@ -79,9 +79,9 @@ NOT_IN_A_PLAIN_RUN = (
     "shellingham",
     "pymodbus",
     "gateway.control.operations",
-    "gateway.line.modbus_tcp",
-    "gateway.line.rtu_over_tcp",
-    "gateway.line.tcp_session",
+    "gateway.line.transports.modbus_tcp",
+    "gateway.line.transports.rtu_over_tcp",
+    "gateway.line.transports.tcp_session",
     "difflib",
 )
 
@@ -161,7 +161,7 @@ def test_a_plain_config_imports_no_optional_feature(
     metrics = free_port()
     modules = modules_of_run(plant(line, broker.port, metrics, tmp_path), tmp_path, metrics)
     # It ran what it should: the bus, MQTT and Prometheus.
-    assert {"gateway.app", "gateway.line.worker", "aiomqtt", "prometheus_client"} <= modules
+    assert {"gateway.app", "gateway.line.engine.worker", "aiomqtt", "prometheus_client"} <= modules
     optional = tuple(name for names in OPTIONAL.values() for name in names)
     assert loaded(modules, optional) == set()
     assert loaded(modules, OTHER_COMMANDS) == set()

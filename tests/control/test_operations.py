@@ -32,7 +32,7 @@ from tests.rigs import PLANT, link_rig, link_target, target
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.line.devices import DeviceTarget
+    from gateway.line.engine.devices import DeviceTarget
     from gateway.simulator.device import SimulatedDevice
     from tests.rigs import LinkRig
 

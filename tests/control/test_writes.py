@@ -23,7 +23,7 @@ from tests.rigs import PLANT, link_rig, link_target
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.line.devices import DeviceTarget
+    from gateway.line.engine.devices import DeviceTarget
     from tests.rigs import LinkRig
 
 pytestmark = [pytest.mark.line]

@@ -764,7 +764,7 @@ def test_unit_is_hardened() -> None:
 
 
 def test_the_udev_rule_sets_ftdi_adapters_to_a_latency_timer_below_the_warning() -> None:
-    from gateway.line.usb_adapter import FTDI_DRIVER, LATENCY_WARN_S, UDEV_RULE  # noqa: PLC0415
+    from gateway.line.transports.usb_adapter import FTDI_DRIVER, LATENCY_WARN_S, UDEV_RULE  # noqa: PLC0415
 
     rule = ROOT / UDEV_RULE  # the file the gateway's warning names
     rules = [

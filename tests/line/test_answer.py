@@ -6,7 +6,7 @@ function-06 write, whose answer is a copy of its request.
 
 from __future__ import annotations
 
-from gateway.line.answer import AnswerScan
+from gateway.line.transports.answer import AnswerScan
 from gateway.wire import frames
 
 READ = frames.read_request(1, 0x2620, 2)

@@ -21,8 +21,8 @@ import serial
 from gateway.config.echo import EchoMode
 from gateway.errors import BusClosedError
 from gateway.line.boundary import RequestOptions
-from gateway.line.serial_line import SerialLine
 from gateway.line.stats import ErrorKind
+from gateway.line.transports.serial_line import SerialLine
 from gateway.wire import frames
 from gateway.wire.timing import LineFormat
 from tests import unretrieved

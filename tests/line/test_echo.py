@@ -19,8 +19,8 @@ from gateway.app import run
 from gateway.config import parse_config
 from gateway.config.echo import EchoMode
 from gateway.errors import BusTimeoutError, EchoMismatchError
-from gateway.line.echo import AUTO_DECISION_READS
 from gateway.line.stats import ErrorKind
+from gateway.line.transports.echo import AUTO_DECISION_READS
 from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.simulator.shim import FTDI_LATENCY_S, LineShim
@@ -69,7 +69,7 @@ async def _reads_and_writes(tmp_path: Path, *, mode: EchoMode, echo: bool) -> di
 async def test_an_echoing_adapter_set_on_or_auto_reads_and_writes_right(
     tmp_path: Path, mode: EchoMode, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="gateway.line.echo")
+    caplog.set_level(logging.INFO, logger="gateway.line.transports.echo")
     errors = await _reads_and_writes(tmp_path, mode=mode, echo=True)
     assert ErrorKind.ECHO not in errors
     assert ErrorKind.ECHO_MISMATCH not in errors
@@ -96,7 +96,7 @@ async def test_an_echoing_adapter_set_off_is_read_right_and_told_what_to_set(
 async def test_a_quiet_adapter_set_off_or_auto_reads_and_writes_right(
     tmp_path: Path, mode: EchoMode, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.INFO, logger="gateway.line.echo")
+    caplog.set_level(logging.INFO, logger="gateway.line.transports.echo")
     errors = await _reads_and_writes(tmp_path, mode=mode, echo=False)
     assert ErrorKind.ECHO not in errors
     if mode is EchoMode.AUTO:

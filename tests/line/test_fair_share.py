@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from gateway.line.fair_share import ANTICIPATION_S, FairShare, Origin
+from gateway.line.engine.fair_share import ANTICIPATION_S, FairShare, Origin
 
 
 @dataclass

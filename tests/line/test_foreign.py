@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from gateway.line.foreign import BURST_S, BusTimeBucket
+from gateway.line.engine.foreign import BURST_S, BusTimeBucket
 
 
 def test_other_masters_spend_at_most_their_share_of_bus_time() -> None:

@@ -1,4 +1,4 @@
-"""Fuzzing :class:`gateway.line.serial_line.SerialLine` on a real pseudo-terminal: any answer, any timing.
+"""Fuzzing :class:`gateway.line.transports.serial_line.SerialLine` on a real pseudo-terminal: any answer, any timing.
 
 The device end of the pty plays a sensor that answers each request with a random script:
 garbage, the right answer, a mutated one, another device's answer, an exception, a late
@@ -41,8 +41,8 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.line.boundary import Exchange, RequestOptions
-from gateway.line.serial_line import SerialLine
 from gateway.line.stats import ErrorKind, LineStats
+from gateway.line.transports.serial_line import SerialLine
 from gateway.wire import frames
 from gateway.wire.timing import LineFormat
 from tests.fuzzing import fuzz, good_answers, mutations, requests

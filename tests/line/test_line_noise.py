@@ -14,9 +14,9 @@ from typing import TYPE_CHECKING
 import pytest
 
 from gateway.errors import LineNoiseError
-from gateway.line.devices import DeviceTarget
-from gateway.line.rtu import QUIET_WAIT_FRAMES, QUIET_WAIT_MIN_S
+from gateway.line.engine.devices import DeviceTarget
 from gateway.line.stats import ErrorKind
+from gateway.line.transports.rtu import QUIET_WAIT_FRAMES, QUIET_WAIT_MIN_S
 from gateway.profiles import get_profile
 from gateway.publish.prometheus import health_report
 from gateway.shared.state import GatewayState

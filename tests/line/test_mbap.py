@@ -23,13 +23,13 @@ from gateway.config.network import TcpSettings
 from gateway.control.link import DeviceLink
 from gateway.errors import BusTimeoutError, ConverterPathError
 from gateway.line.boundary import RequestOptions
-from gateway.line.factory import build_line
-from gateway.line.modbus_tcp import ModbusTcpLine
-from gateway.line.rtu_over_tcp import RtuOverTcpLine
+from gateway.line.engine.worker import BusWorker
 from gateway.line.samples import Quality
-from gateway.line.serial_line import SerialLine
 from gateway.line.stats import ErrorKind
-from gateway.line.worker import BusWorker
+from gateway.line.transports.factory import build_line
+from gateway.line.transports.modbus_tcp import ModbusTcpLine
+from gateway.line.transports.rtu_over_tcp import RtuOverTcpLine
+from gateway.line.transports.serial_line import SerialLine
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire import frames, mbap
 from gateway.wire.timing import LineFormat
@@ -38,7 +38,7 @@ from tests.rigs import PLANT, ListSink, Rig, plant_targets, target
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable
 
-    from gateway.line.devices import DeviceTarget
+    from gateway.line.engine.devices import DeviceTarget
 
 LINE: dict[str, Any] = {"baudrate": 9600, "parity": "E", "stopbits": 1}
 

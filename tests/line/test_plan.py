@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gateway.errors import ConfigError
-from gateway.line.plan import TIE_S, CostModel, Planner, ReadBlock, plan_reads
+from gateway.line.engine.plan import TIE_S, CostModel, Planner, ReadBlock, plan_reads
 from gateway.profiles import (
     Access,
     Limits,

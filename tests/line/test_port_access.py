@@ -28,12 +28,12 @@ import pytest
 
 from gateway.config import ConfigProblems, Rs485Config, parse_config
 from gateway.errors import PortUnavailableError
-from gateway.line.port_access import PortOptions, open_serial, release, rs485_settings
-from gateway.line.port_diagnosis import PortReason, lock_holders
-from gateway.line.port_names import SystemRoots, by_id_names_of, port_name_advice
-from gateway.line.serial_line import SerialLine
 from gateway.line.stats import LineStats
-from gateway.line.usb_adapter import read_latency_timer, usb_serial_of
+from gateway.line.transports.port_access import PortOptions, open_serial, release, rs485_settings
+from gateway.line.transports.port_diagnosis import PortReason, lock_holders
+from gateway.line.transports.port_names import SystemRoots, by_id_names_of, port_name_advice
+from gateway.line.transports.serial_line import SerialLine
+from gateway.line.transports.usb_adapter import read_latency_timer, usb_serial_of
 from gateway.publish.prometheus import GatewayCollector, MetricsServer
 from gateway.shared.state import GatewayState
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -231,7 +231,7 @@ def _run_as_nobody(script: str) -> str:
 OPEN_SCRIPT = """
 import asyncio, json, sys
 from gateway.errors import PortUnavailableError
-from gateway.line.serial_line import SerialLine
+from gateway.line.transports.serial_line import SerialLine
 from gateway.wire.timing import LineFormat
 
 async def main():
@@ -436,7 +436,7 @@ async def test_an_ftdi_port_exports_its_latency_timer_and_warns_once(
         port = tmp_path / "ttyUSB0"
         port.symlink_to(pty.resolve())
         line = SerialLine(port=str(port), line=FORMAT, options=PortOptions(roots=roots))
-        with caplog.at_level(logging.DEBUG, logger="gateway.line.usb_adapter"):
+        with caplog.at_level(logging.DEBUG, logger="gateway.line.transports.usb_adapter"):
             for _ in range(2):
                 await line.open()
                 await line.close()

@@ -1,6 +1,6 @@
 """A local port read and written with one system call each, with pyserial's verdicts.
 
-:mod:`gateway.line.serial_line` replaces pyserial's ``read`` and ``write`` of a local device (its
+:mod:`gateway.line.transports.serial_line` replaces pyserial's ``read`` and ``write`` of a local device (its
 ``select`` loop and timeout objects cost more than the rest of a read); the transport
 above must still see what pyserial told it: no data when nothing is there, an exception
 it turns into a lost port when the device is gone or the call fails.
@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import pytest
 import serial
 
-from gateway.line.serial_line import _direct_io
+from gateway.line.transports.serial_line import _direct_io
 
 if TYPE_CHECKING:
     from collections.abc import Iterator

@@ -28,7 +28,7 @@ from gateway.line.scan import (
     scan_formats,
     supported_formats,
 )
-from gateway.line.serial_line import SerialLine
+from gateway.line.transports.serial_line import SerialLine
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in

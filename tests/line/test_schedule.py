@@ -7,8 +7,8 @@ import random
 
 import pytest
 
-from gateway.line.devices import DeviceState, DeviceTarget
-from gateway.line.schedule import Schedule
+from gateway.line.engine.devices import DeviceState, DeviceTarget
+from gateway.line.engine.schedule import Schedule
 from gateway.profiles import PollGroup, get_profile
 
 FAMILIES = ("jumo-digiline-odo-s10", "jumo-tecline-cl2", "reiss-m0c")

@@ -9,8 +9,8 @@ import pytest
 
 from gateway.app import build_workers
 from gateway.config import parse_config
-from gateway.line.devices import DeviceState, DeviceTarget
-from gateway.line.schedule import SLOW_GROUP_DELAY_S, Schedule, next_slot, spread_phase
+from gateway.line.engine.devices import DeviceState, DeviceTarget
+from gateway.line.engine.schedule import SLOW_GROUP_DELAY_S, Schedule, next_slot, spread_phase
 from gateway.profiles import PollGroup, get_profile
 
 PROFILE = get_profile("reiss-m0c")

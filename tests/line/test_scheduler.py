@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from gateway.control.link import DeviceLink
-from gateway.line.devices import DeviceTarget
+from gateway.line.engine.devices import DeviceTarget
 from gateway.line.samples import Quality
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire import codec

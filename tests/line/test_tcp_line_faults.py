@@ -40,10 +40,10 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.line.boundary import RequestOptions
-from gateway.line.modbus_tcp import ModbusTcpLine
-from gateway.line.rtu_over_tcp import RtuOverTcpLine
+from gateway.line.engine.worker import BusWorker
 from gateway.line.stats import ErrorKind
-from gateway.line.worker import BusWorker
+from gateway.line.transports.modbus_tcp import ModbusTcpLine
+from gateway.line.transports.rtu_over_tcp import RtuOverTcpLine
 from gateway.wire import frames, mbap
 from gateway.wire.timing import LineFormat
 from tests.rigs import ListSink, target

@@ -12,8 +12,8 @@ import time
 
 import pytest
 
-from gateway.line import timer
-from gateway.line.timer import DeadlineTimer
+from gateway.line.transports import timer
+from gateway.line.transports.timer import DeadlineTimer
 
 
 async def test_a_wait_never_ends_before_its_deadline() -> None:

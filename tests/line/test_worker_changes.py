@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from gateway.errors import GatewayError
-from gateway.line.serial_line import SerialLine
+from gateway.line.transports.serial_line import SerialLine
 from gateway.wire.timing import LineFormat
 from tests.rigs import rig, target
 

@@ -30,7 +30,7 @@ from gateway.care import (
     ring_entries,
 )
 from gateway.control.link import DeviceLink
-from gateway.line.devices import DeviceTarget
+from gateway.line.engine.devices import DeviceTarget
 from gateway.line.samples import Quality, Sample
 from gateway.profiles import PollGroup, get_profile
 from gateway.records import DeviceRef, Kind, Query, RecordStore

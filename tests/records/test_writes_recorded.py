@@ -22,7 +22,7 @@ from tests.rigs import PLANT, link_rig, link_target
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from gateway.line.devices import DeviceTarget
+    from gateway.line.engine.devices import DeviceTarget
     from gateway.records import Record
     from tests.rigs import LinkRig
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import pytest
 
 from gateway.control.link import open_link
-from gateway.line.devices import DeviceTarget
+from gateway.line.engine.devices import DeviceTarget
 from gateway.profiles import get_profile
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.codec import EnumValue

@@ -2,7 +2,7 @@
 
 Each request is checked here (unit id, function, lengths, the client's write grants, the
 flash budget) and answered from the cache where the client accepts it; the rest goes to
-its bus task's queue (:class:`~gateway.line.foreign.ForeignQueue`), sent under the line's
+its bus task's queue (:class:`~gateway.line.engine.foreign.ForeignQueue`), sent under the line's
 timing rules within the bus time other masters may have. A client gets the device's
 answer or a Modbus exception, never a value made up; nothing malformed reaches the line,
 since line requests are framed anew from what was checked.
@@ -51,8 +51,8 @@ if TYPE_CHECKING:
     from gateway.control.flash import FlashLedger
     from gateway.control.shared_bus.pdu import ClientRequest
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
-    from gateway.line.fair_share import Origin
-    from gateway.line.worker import BusWorker
+    from gateway.line.engine.fair_share import Origin
+    from gateway.line.engine.worker import BusWorker
     from gateway.records.model import Record
     from gateway.records.store import RecordStore
     from gateway.shared.state import SharedBusClient

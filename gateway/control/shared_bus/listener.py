@@ -27,7 +27,7 @@ from gateway.control.shared_bus.pdu import DEVICE_BUSY, exception_pdu
 from gateway.control.shared_bus.policy import client_for, client_policies, origin_of
 from gateway.control.shared_bus.throttle import Throttle
 from gateway.errors import ConfigError
-from gateway.line.lateness import loop_watch
+from gateway.line.engine.lateness import loop_watch
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from gateway.control.flash import FlashLedger
     from gateway.control.shared_bus.framing import Framer
     from gateway.control.shared_bus.policy import ClientPolicy, Unit
-    from gateway.line.worker import BusWorker
+    from gateway.line.engine.worker import BusWorker
     from gateway.records.store import RecordStore
     from gateway.shared.host_clock import HostClock
     from gateway.shared.state import GatewayState, SharedBusClient

@@ -14,7 +14,7 @@ from gateway.control.shared_bus.pdu import (
     ILLEGAL_FUNCTION,
     RequestRefusedError,
 )
-from gateway.line.fair_share import Origin
+from gateway.line.engine.fair_share import Origin
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence

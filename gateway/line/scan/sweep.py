@@ -7,15 +7,15 @@ from typing import TYPE_CHECKING
 
 from gateway.config import MAX_RESPONSE_TIMEOUT_S
 from gateway.errors import ConfigError
-from gateway.line.factory import build_line
 from gateway.line.scan.probe import Scanner
 from gateway.line.scan.report import FoundDevice, ScanReport
+from gateway.line.transports.factory import build_line
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
 
     from gateway.line.boundary import Line
-    from gateway.line.port_access import PortOptions
+    from gateway.line.transports.port_access import PortOptions
     from gateway.wire.timing import LineFormat
 
 

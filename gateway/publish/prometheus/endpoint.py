@@ -158,8 +158,9 @@ def health_report(state: GatewayState) -> tuple[bool, dict[str, object]]:
         )
         buses[bus] = {
             "port_open": stats.port_open,
-            # Why not (line/port_diagnosis.PortReason: missing, permission_denied, in_use,
-            # no_rs485_mode, driver_error) and the message with the remedy; null while open.
+            # Why not (line/transports/port_diagnosis.PortReason: missing,
+            # permission_denied, in_use, no_rs485_mode, driver_error) and the message with
+            # the remedy; null while open.
             "port_problem": None if stats.port_open else stats.port_problem,
             "port_error": None if stats.port_open else (stats.port_error or None),
             "latency_timer_s": stats.latency_timer_s,

@@ -25,7 +25,7 @@ from gateway.publish.prometheus.naming import DEVICE_LABELS, VALUE_LABELS
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 
-    from gateway.line.health import DeviceHealth
+    from gateway.line.engine.health import DeviceHealth
     from gateway.line.stats import LineStats
     from gateway.shared.state import GatewayState
 

@@ -18,7 +18,7 @@ from gateway.publish.prometheus.naming import DEVICE_LABELS
 if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
 
-    from gateway.line.health import DeviceHealth
+    from gateway.line.engine.health import DeviceHealth
 
 MISMATCH: Final = "mismatch"
 UNPINNED: Final = "unpinned"

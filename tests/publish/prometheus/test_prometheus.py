@@ -30,7 +30,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from gateway.app import run
 from gateway.config import parse_config
 from gateway.errors import PublishError
-from gateway.line.health import DeviceHealth
+from gateway.line.engine.health import DeviceHealth
 from gateway.line.samples import Quality, Sample
 from gateway.line.stats import LineStats
 from gateway.publish.prometheus import MetricsServer, ValueNaming, value_naming

@@ -19,7 +19,7 @@ The bus's ``echo`` setting says what to expect:
 
 Whatever the setting, the line never accepts an answer that arrived before the request
 could have been answered (see :func:`earliest_answer`), so a write cannot succeed on its
-echo. This module decides; :mod:`gateway.line.rtu` reads the bytes.
+echo. This module decides; :mod:`gateway.line.transports.rtu` reads the bytes.
 """
 
 from __future__ import annotations

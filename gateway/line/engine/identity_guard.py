@@ -4,7 +4,7 @@ USB adapters renumber after a reboot; when two lines share formats and addresses
 request still gets an answer, from the other line's sensor. A device with
 ``serial_number:`` pinned is published only once the serial it reports is the pinned one,
 read at start and after every reconnection or return online (the identity points are
-re-read then, :meth:`~gateway.line.schedule.Schedule.restart_device`).
+re-read then, :meth:`~gateway.line.engine.schedule.Schedule.restart_device`).
 
 Until then its samples are held back and its coming online is not announced. On another
 serial (or none readable) the device is *held*: offline with a reason that says so, no
@@ -35,11 +35,11 @@ from gateway.profiles.serial_number import answered_text, serial_point
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
-    from gateway.line.devices import DeviceState
-    from gateway.line.health import Announce, Availability, DeviceHealth
+    from gateway.line.engine.devices import DeviceState
+    from gateway.line.engine.health import Announce, Availability, DeviceHealth
+    from gateway.line.engine.schedule import Schedule
+    from gateway.line.engine.transactions import Transactions
     from gateway.line.samples import Sample
-    from gateway.line.schedule import Schedule
-    from gateway.line.transactions import Transactions
     from gateway.profiles import Point
     from gateway.profiles.serial_number import PinnedSerial
 

@@ -1,15 +1,16 @@
 """Modbus RTU on a serial port: an RS485 adapter, a UART, a pseudo-terminal, a pyserial URL.
 
 What is the serial port's own and no other line's: the device opened exclusively and in the
-kernel's RS485 mode where configured (:mod:`gateway.line.port_access`), an FTDI adapter's
+kernel's RS485 mode where configured (:mod:`gateway.line.transports.port_access`), an FTDI adapter's
 latency timer read and warned of, the bytes read and written with one system call each,
 a pseudo-terminal told apart by its device number, and the bytes the kernel holds that the
-event loop has not handed over yet. The transactions are :class:`~gateway.line.rtu.RtuLine`'s.
+event loop has not handed over yet. The transactions are
+:class:`~gateway.line.transports.rtu.RtuLine`'s.
 
 A port given as one of pyserial's URLs (``rfc2217://``, ``loop://``, ``spy://``...) is a
 serial port too, opened by pyserial's handler for it: not locked (there is no device node),
 and its answers not judged by the wire time (the line behind it is out of sight).
-``socket://`` is not among them: :mod:`gateway.line.rtu_over_tcp` carries it.
+``socket://`` is not among them: :mod:`gateway.line.transports.rtu_over_tcp` carries it.
 """
 
 from __future__ import annotations
@@ -28,13 +29,13 @@ import serial_asyncio_fast
 
 from gateway.config.echo import EchoMode
 from gateway.errors import BusClosedError, PortUnavailableError
-from gateway.line import port_access
-from gateway.line.port_diagnosis import PortReason
-from gateway.line.rtu import RtuLine
+from gateway.line.transports import port_access
+from gateway.line.transports.port_diagnosis import PortReason
+from gateway.line.transports.rtu import RtuLine
 
 if TYPE_CHECKING:
-    from gateway.line.inbox import Inbox
     from gateway.line.stats import LineStats
+    from gateway.line.transports.inbox import Inbox
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
@@ -71,7 +72,7 @@ class SerialLine(RtuLine):
 
         A device that is missing, not permitted, in use or without the configured RS485
         mode raises :class:`PortUnavailableError` with its ``reason``
-        (:mod:`gateway.line.port_diagnosis`); its message names the remedy.
+        (:mod:`gateway.line.transports.port_diagnosis`); its message names the remedy.
         """
         # A pseudo-terminal has no physical line: some kernels refuse a parity setting on
         # it (EINVAL), so parity is left off there. Timing still follows the configured

@@ -22,15 +22,15 @@ from gateway.errors import (
     FrameError,
     GatewayError,
 )
-from gateway.line.plan import require_own
+from gateway.line.engine.plan import require_own
 from gateway.wire import frames
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
 
-    from gateway.line.devices import DeviceState
+    from gateway.line.engine.devices import DeviceState
+    from gateway.line.engine.transactions import Transactions
     from gateway.line.samples import Sample
-    from gateway.line.transactions import Transactions
     from gateway.profiles.model import Point
 
 

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Final
 
 if TYPE_CHECKING:
     from gateway.line.boundary import Line
-    from gateway.line.schedule import Late
+    from gateway.line.engine.schedule import Late
 
 TICK_S: Final = 0.05  # the watch's timer; 20 wakes a second cost ~1 ms of CPU
 STALL_MIN_S: Final = 0.002  # a timer this much late: the loop was busy, not just scheduling

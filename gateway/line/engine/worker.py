@@ -3,10 +3,10 @@
 At each step the worker serves pending writes and on-demand reads first, then broadcasts,
 then the device with the earliest due values, then diagnostics in the time left, as long as
 the device is not inside a post-write wait or a late-answer quarantine. What is due is the
-:class:`~gateway.line.schedule.Schedule`'s to say; each request and its answer are the
-:class:`~gateway.line.transactions.Transactions`'; registers become samples in
-:class:`~gateway.line.decode.Decoder`; who is online is
-:class:`~gateway.line.health.Availability`'s verdict. A port that fails is reopened on a
+:class:`~gateway.line.engine.schedule.Schedule`'s to say; each request and its answer are the
+:class:`~gateway.line.engine.transactions.Transactions`'; registers become samples in
+:class:`~gateway.line.engine.decode.Decoder`; who is online is
+:class:`~gateway.line.engine.health.Availability`'s verdict. A port that fails is reopened on a
 capped, jittered backoff.
 """
 
@@ -22,27 +22,26 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import BusClosedError, BusError, GatewayError, PortUnavailableError
-from gateway.line.decode import Decoder
-from gateway.line.devices import DeviceState
-from gateway.line.foreign import ForeignQueue
-from gateway.line.health import Availability
-from gateway.line.identity_guard import IdentityGuard
-from gateway.line.jobs import JobQueue
-from gateway.line.lateness import Lateness, loop_watch
-from gateway.line.port_diagnosis import PortReason
+from gateway.line.engine.decode import Decoder
+from gateway.line.engine.devices import DeviceState
+from gateway.line.engine.foreign import ForeignQueue
+from gateway.line.engine.health import Availability
+from gateway.line.engine.identity_guard import IdentityGuard
+from gateway.line.engine.jobs import JobQueue
+from gateway.line.engine.lateness import Lateness, loop_watch
+from gateway.line.engine.schedule import Schedule
+from gateway.line.engine.transactions import LATE_ANSWER_WINDOW_S, Transactions
 from gateway.line.samples import DeviceEvent
-from gateway.line.schedule import Schedule
-from gateway.line.transactions import LATE_ANSWER_WINDOW_S, Transactions
+from gateway.line.transports.port_diagnosis import PortReason
 from gateway.profiles.effects import touched_by_write
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Sequence
 
     from gateway.line.boundary import Line
-    from gateway.line.devices import DeviceTarget
-    from gateway.line.health import DeviceHealth
-    from gateway.line.identity_guard import Pin
-    from gateway.line.plan import ReadBlock
+    from gateway.line.engine.devices import DeviceTarget
+    from gateway.line.engine.health import DeviceHealth
+    from gateway.line.engine.identity_guard import Pin
     from gateway.line.samples import Sample, Sink
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
@@ -546,15 +545,13 @@ class BusWorker:
     async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
         self.lateness.mark(now)
         held_until = state.holds.not_before  # a wait after a write or a failure, ended by now
+        # Plan, then run: the schedule says what is due and in which order, the
+        # transactions read it, and what was read goes back to the schedule in one call.
         names = self.schedule.due_points(state, now, slow=slow)
         samples: list[Sample] = []
         reads = self.transactions
         plan = reads.plan_slow(state, names) if slow else reads.plan(state, names)
-        # Oldest deadlines first, so a read cut short by due values resumes where it left.
-        blocks = plan
-        if len(plan) > 1:
-            blocks = tuple(sorted(plan, key=lambda b: self._block_deadline(state, b)))
-        for block in blocks:
+        for block in self.schedule.in_order(state, plan):
             if state.holds.not_before > time.monotonic() or state.presence.online is False:
                 break  # a failure set a quarantine or took the device offline: others first
             if samples and slow and self.schedule.pick(time.monotonic(), slow=False) is not None:
@@ -576,11 +573,6 @@ class BusWorker:
         if published:
             for sink in self.sinks:
                 await sink.publish(published)
-
-    @staticmethod
-    def _block_deadline(state: DeviceState, block: ReadBlock) -> float:
-        """The earliest deadline of a block's points (identity reads come first)."""
-        return state.deadlines.earliest(p.name for p in block.points)
 
     async def _event(self, state: DeviceState, *, online: bool, reason: str) -> None:
         if self.identity.announces(state, online=online, reason=reason):

@@ -8,7 +8,7 @@ offline device's backoff). They take turns with due values (one after each devic
 poll) and go before diagnostics, and only while their share of bus time is not spent (a
 token bucket of bus seconds): the share keeps polling on its deadlines. Within the share,
 the next request is the one of the client that had the least bus time
-(:mod:`~gateway.line.fair_share`): one that pipelines long reads, or opens many
+(:mod:`~gateway.line.engine.fair_share`): one that pipelines long reads, or opens many
 connections, leaves the others their part. A request that waits too long, or finds the
 queue full (and cannot take the place of a client holding more), is refused with
 :class:`BusBusyError` (Modbus exception 06 to the client); nothing collides.
@@ -30,15 +30,15 @@ from gateway.errors import (
     FrameError,
     GatewayError,
 )
-from gateway.line.fair_share import FairShare, Origin
+from gateway.line.engine.fair_share import FairShare, Origin
 from gateway.profiles.effects import touched_by_write
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from gateway.line.devices import DeviceState
-    from gateway.line.schedule import Schedule
-    from gateway.line.transactions import Transactions
+    from gateway.line.engine.devices import DeviceState
+    from gateway.line.engine.schedule import Schedule
+    from gateway.line.engine.transactions import Transactions
     from gateway.wire import frames
 
 BURST_S: Final = 2.0  # the share is kept over this window: a burst may use it at once

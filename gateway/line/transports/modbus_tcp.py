@@ -4,7 +4,7 @@ The converter takes Modbus TCP frames (MBAP header, unit id = device address), p
 on its RS485 side as an RTU frame with its own inter-frame gap, waits for the device, and
 sends the answer back with the request's transaction id. So on this side there is no gap
 to keep and no CRC to check; what still holds is above the line, in
-:mod:`gateway.line.transactions`: the device's post-write waits and, after no answer of its
+:mod:`gateway.line.engine.transactions`: the device's post-write waits and, after no answer of its
 own, its late-answer window (both arrive here as ``not_before``). The response timeout
 allows for the converter: the request's RTU time on the wire, the converter's gap, then
 the timeout the transactions give (the answer's wire time, the device's t1, a margin that
@@ -45,16 +45,16 @@ from gateway.errors import (
     MalformedFrameError,
 )
 from gateway.line.boundary import Exchange
-from gateway.line.inbox import LAST_LOOK_S, LAST_LOOKS, Inbox
 from gateway.line.stats import ErrorKind, LineStats, failure_kind
-from gateway.line.tcp_session import (
+from gateway.line.transports.inbox import LAST_LOOK_S, LAST_LOOKS, Inbox
+from gateway.line.transports.tcp_session import (
     MS_PER_S,
     SilenceWatch,
     connect,
     session_ended,
     unread_bytes,
 )
-from gateway.line.timer import DeadlineTimer
+from gateway.line.transports.timer import DeadlineTimer
 from gateway.wire import frames, mbap
 
 if TYPE_CHECKING:
@@ -313,8 +313,9 @@ class ModbusTcpLine:
             now = time.monotonic()
             if now >= deadline:
                 if looks < LAST_LOOKS and unread_bytes(self.tcp_socket()):
-                    # As on an RTU line (gateway.line.rtu): the answer waits in the socket,
-                    # and the loop ran this wait's timer first. It is taken, not a timeout.
+                    # As on an RTU line (line/transports/rtu): the answer waits in the
+                    # socket, and the loop ran this wait's timer first. It is taken, not a
+                    # timeout.
                     looks += 1
                     await session.wait(LAST_LOOK_S)
                     continue

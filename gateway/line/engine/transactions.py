@@ -15,8 +15,6 @@ import asyncio
 import logging
 import math
 import time
-from collections import Counter
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import (
@@ -32,18 +30,18 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.line.boundary import RequestOptions
-from gateway.line.plan import CostModel, Planner
-from gateway.line.register_cache import RegisterCache
+from gateway.line.engine.plan import CostModel, Planner
+from gateway.line.engine.register_cache import RegisterCache
 from gateway.wire import codec, frames
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
     from gateway.line.boundary import Line
-    from gateway.line.decode import Decoder
-    from gateway.line.devices import DeviceState, DeviceTarget
-    from gateway.line.health import Availability
-    from gateway.line.plan import ReadBlock
+    from gateway.line.engine.decode import Decoder
+    from gateway.line.engine.devices import DeviceState, DeviceTarget
+    from gateway.line.engine.health import Availability
+    from gateway.line.engine.plan import ReadBlock
     from gateway.line.samples import Sample
     from gateway.profiles import Point
 
@@ -67,31 +65,6 @@ _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     ConverterPathError: ConverterPathError.kind,  # Modbus TCP converters' 0A and 0B
     ConverterNoAnswerError: ConverterNoAnswerError.kind,
 }
-
-
-@dataclass(slots=True)
-class Holds:
-    """What the transactions keep of a device between requests, and only they write.
-
-    The wait before its next request (a post-write wait, the late-answer window, a foreign
-    master's write), its retries, the blocks it made read apart (exception 02) and the
-    points it refuses alone. Others ask: :meth:`hold_until` (the shared bus's writes),
-    :meth:`restarted` (the schedule, when the device is read in full again).
-    """
-
-    not_before: float = 0.0  # no request to the device before this monotonic time
-    attempts: Counter[str] = field(default_factory=Counter)  # retries so far, by point
-    split_before: set[int] = field(default_factory=set)  # addresses a block must not span
-    unreadable: set[str] = field(default_factory=set)  # points refused alone: not polled
-    late_hint_given: bool = False  # an answer after its timeout was explained in the log
-
-    def hold_until(self, at: float) -> None:
-        """No request to the device before ``at`` (a longer wait already set stands)."""
-        self.not_before = max(self.not_before, at)
-
-    def restarted(self) -> None:
-        """The device is read in full again (a start, back online): retries from none."""
-        self.attempts.clear()
 
 
 def default_timeout_s(

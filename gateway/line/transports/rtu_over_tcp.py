@@ -1,9 +1,9 @@
 """A ``socket://`` bus: RTU frames through a serial device server's transparent TCP port.
 
 The converter passes bytes both ways and keeps its own serial side's timing; the frames,
-the gap, the echo and every check of the answer are :class:`~gateway.line.rtu.RtuLine`'s.
+the gap, the echo and every check of the answer are :class:`~gateway.line.transports.rtu.RtuLine`'s.
 What a network peer adds is this module's: the session opened with keepalive and the user
-timeout (:mod:`gateway.line.tcp_session`), a pause after connecting, the least pause
+timeout (:mod:`gateway.line.transports.tcp_session`), a pause after connecting, the least pause
 between requests, and the end of a session that stays silent. An answer's arrival is not
 judged by the bus's wire time: the format describes the converter's serial side, which
 the gateway cannot see.
@@ -19,8 +19,8 @@ from urllib.parse import urlsplit
 from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP
 from gateway.errors import BusClosedError, BusTimeoutError, DeviceExceptionError, FrameError
-from gateway.line.rtu import RtuLine
-from gateway.line.tcp_session import (
+from gateway.line.transports.rtu import RtuLine
+from gateway.line.transports.tcp_session import (
     MS_PER_S,
     SilenceWatch,
     connect,
@@ -34,8 +34,8 @@ if TYPE_CHECKING:
 
     from gateway.config.network import TcpSettings
     from gateway.line.boundary import Exchange, RequestOptions
-    from gateway.line.inbox import Inbox
     from gateway.line.stats import LineStats
+    from gateway.line.transports.inbox import Inbox
     from gateway.wire import frames
     from gateway.wire.timing import LineFormat
 

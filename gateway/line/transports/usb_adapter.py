@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Final
 if TYPE_CHECKING:
     import serial
 
-    from gateway.line.port_names import SystemRoots
+    from gateway.line.transports.port_names import SystemRoots
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -12,13 +12,13 @@ from urllib.parse import urlsplit
 
 from gateway.config.echo import EchoMode
 from gateway.config.network import DEFAULT_TCP, MBAP_URL_SCHEME, RTU_OVER_TCP_SCHEME
-from gateway.line.serial_line import SerialLine
+from gateway.line.transports.serial_line import SerialLine
 
 if TYPE_CHECKING:
     from gateway.config.network import TcpSettings
     from gateway.line.boundary import Line
-    from gateway.line.port_access import PortOptions
     from gateway.line.stats import LineStats
+    from gateway.line.transports.port_access import PortOptions
     from gateway.wire.timing import LineFormat
 
 
@@ -45,11 +45,11 @@ def build_line(
     settings = tcp if tcp is not None else DEFAULT_TCP
     # The network kinds are imported when a port names one: a serial plant keeps none of them.
     if scheme == MBAP_URL_SCHEME:
-        from gateway.line.modbus_tcp import ModbusTcpLine  # noqa: PLC0415
+        from gateway.line.transports.modbus_tcp import ModbusTcpLine  # noqa: PLC0415
 
         return ModbusTcpLine(port=port, line=line, stats=stats, tcp=settings, bus=bus)
     if scheme == RTU_OVER_TCP_SCHEME:
-        from gateway.line.rtu_over_tcp import RtuOverTcpLine  # noqa: PLC0415
+        from gateway.line.transports.rtu_over_tcp import RtuOverTcpLine  # noqa: PLC0415
 
         return RtuOverTcpLine(port=port, line=line, stats=stats, tcp=settings, bus=bus, echo=echo)
     return SerialLine(port=port, line=line, stats=stats, bus=bus, echo=echo, options=options)

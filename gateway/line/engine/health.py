@@ -17,8 +17,8 @@ if TYPE_CHECKING:
     import random
     from collections.abc import Mapping
 
-    from gateway.line.devices import DeviceState
-    from gateway.line.schedule import Schedule
+    from gateway.line.engine.devices import DeviceState
+    from gateway.line.engine.schedule import Schedule
 
 _LOGGER = logging.getLogger(__name__)
 
@@ -35,21 +35,11 @@ class DeviceHealth:
     lag_s: float
     missed_deadlines: int
     unreadable_points: int
-    # A pinned serial number's verdict (line/identity_guard: unpinned, unconfirmed,
+    # A pinned serial number's verdict (line/engine/identity_guard: unpinned, unconfirmed,
     # confirmed, mismatch, unread), the serial pinned and the one that answered last.
     identity: str = "unpinned"
     expected_serial: str | None = None
     answered_serial: str | None = None
-
-
-@dataclass(slots=True)
-class Presence:
-    """Whether a device answers, and when to probe it: :class:`Availability` alone writes it."""
-
-    online: bool | None = None  # None until the first answer or the first offline verdict
-    failures: int = 0  # failed transactions in a row
-    probe_at: float = 0.0  # an offline device's next probe (monotonic)
-    backoff_s: float = 0.0  # the wait between its probes, doubled up to a cap
 
 
 class Announce(Protocol):

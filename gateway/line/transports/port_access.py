@@ -18,8 +18,8 @@ An RS485 UART without automatic direction control needs the kernel's RS485 mode
 (``TIOCSRS485``) to switch its driver between sending and receiving; a bus with ``rs485:``
 gets it, and a driver without it is a port that cannot open. A port that cannot be opened
 raises :class:`~gateway.errors.PortUnavailableError` with its reason and remedy
-(:mod:`gateway.line.port_diagnosis`); a USB adapter, once open, is tuned
-(:mod:`gateway.line.usb_adapter`) before the device is handed to asyncio.
+(:mod:`gateway.line.transports.port_diagnosis`); a USB adapter, once open, is tuned
+(:mod:`gateway.line.transports.usb_adapter`) before the device is handed to asyncio.
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ import serial_asyncio_fast
 from serial.rs485 import RS485Settings
 
 from gateway.errors import PortUnavailableError
-from gateway.line.port_diagnosis import PortReason, port_unavailable, strerror
-from gateway.line.port_names import SystemRoots
-from gateway.line.usb_adapter import tune_usb
+from gateway.line.transports.port_diagnosis import PortReason, port_unavailable, strerror
+from gateway.line.transports.port_names import SystemRoots
+from gateway.line.transports.usb_adapter import tune_usb
 
 if TYPE_CHECKING:
     from gateway.config.rs485 import Rs485Config

@@ -3,8 +3,9 @@
 Pure: bytes and times in, a verdict out (the answer, wait for more, or nothing here yet),
 with what was passed over on the way: garbage, another device's frame, a corrupted answer
 of the device itself, the request's own echo, or a frame complete before the device could
-have answered (:func:`~gateway.line.echo.earliest_answer`). :class:`~gateway.line.rtu.RtuLine`
-feeds it as bytes arrive and reads the failure it names when the time is up.
+have answered (:func:`~gateway.line.transports.echo.earliest_answer`).
+:class:`~gateway.line.transports.rtu.RtuLine` feeds it as bytes arrive and reads the
+failure it names when the time is up.
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ class AnswerScan:
     """Looks for the answer to one request in the bytes received so far.
 
     Bytes before ``start`` are judged not to be the answer: an echo of the request, or a
-    frame complete before any answer could be (:func:`~gateway.line.echo.earliest_answer`).
+    frame complete before any answer could be
+    (:func:`~gateway.line.transports.echo.earliest_answer`).
     """
 
     __slots__ = (

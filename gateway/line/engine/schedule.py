@@ -32,64 +32,18 @@ from __future__ import annotations
 
 import heapq
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Final
 
-from gateway.profiles import PollGroup
+from gateway.line.engine.devices import SLOW_GROUPS
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable, Mapping, Sequence
+    from collections.abc import Mapping, Sequence
 
-    from gateway.line.devices import DeviceState
+    from gateway.line.engine.devices import DeviceState
+    from gateway.line.engine.plan import ReadBlock
 
 SLOW_GROUP_DELAY_S: Final = 2.0  # after a (re)start, the slow class waits for the values
-# Polled in the time process values leave free (the schedule's "slow" class).
-SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
-
-
-@dataclass(slots=True)
-class Deadlines:
-    """When a device's points fall due and how late it runs: the schedule's, and only its.
-
-    Written by :class:`Schedule` and by this class's methods alone; the decoder asks
-    through :meth:`identity_read` and :meth:`identity_failed`, the transactions through
-    :meth:`changed`, and every other reader only reads.
-    """
-
-    next_due: dict[str, float] = field(default_factory=dict)
-    identity_pending: set[str] = field(default_factory=set)
-    # The earliest deadline of each class (slow: diagnostics), cleared whenever a deadline,
-    # the pending identity or the unreadable points change: asked for on every scheduling
-    # step of every device, it must not walk all points each time.
-    cache: dict[bool, float] = field(default_factory=dict)
-    fresh: set[str] = field(default_factory=set)  # periodic, not polled since (re)start: no lag yet
-    missed_deadlines: int = 0
-    lag_s: float = 0.0
-    lag_reported: bool = False
-
-    def identity_read(self, name: str) -> None:
-        """A pending identity point was read: no longer pending."""
-        self.identity_pending.discard(name)
-        self.cache.clear()
-
-    def identity_failed(self, names: Iterable[str]) -> None:
-        """A read of these points failed: an identity point among them waits for a restart."""
-        for name in names:
-            self.identity_pending.discard(name)
-        self.cache.clear()
-
-    def changed(self) -> None:
-        """What the deadlines skip changed (a point found unreadable): computed again."""
-        self.cache.clear()
-
-    def carried_over(self) -> Deadlines:
-        """The deadlines of a re-planned device: new ones, its count of missed ones kept."""
-        return Deadlines(missed_deadlines=self.missed_deadlines)
-
-    def earliest(self, names: Iterable[str]) -> float:
-        """The earliest deadline of these points (identity, with none, comes first)."""
-        next_due = self.next_due
-        return min(next_due.get(name, 0.0) for name in names)
 
 
 def spread_phase(*, device: int, devices: int, bus: int, buses: int) -> float:
@@ -268,6 +222,17 @@ class Schedule:
         due.extend(state.deadlines.identity_pending - set(due))
         unreadable = state.holds.unreadable
         return [n for n in due if n not in unreadable and self.is_slow(state, n) == slow]
+
+    @staticmethod
+    def in_order(state: DeviceState, blocks: Sequence[ReadBlock]) -> Sequence[ReadBlock]:
+        """A device's planned reads, oldest deadline first (identity, with none, first).
+
+        So a poll cut short (values due elsewhere, a failure's wait) resumes where it left.
+        """
+        if len(blocks) <= 1:  # nearly every poll: nothing to order
+            return blocks
+        earliest = state.deadlines.earliest
+        return sorted(blocks, key=lambda block: earliest(p.name for p in block.points))
 
     def next_deadline(self, state: DeviceState, *, slow: bool) -> float:
         """When the device next has work of the class: values (fast) or diagnostics (slow)."""

@@ -4,14 +4,14 @@ Checked on pymodbus 3.16: its async serial client sends the next request as soon
 response is parsed (no inter-frame gap), reports a CRC error as a timeout after retries,
 and its RTU framer throws away a good frame that follows a garbage byte. So the gateway
 drives the wire itself and frames requests and parses answers on its own
-(:mod:`gateway.wire.frames`, :mod:`gateway.line.answer`).
+(:mod:`gateway.wire.frames`, :mod:`gateway.line.transports.answer`).
 
 :class:`RtuLine` is the engine both RTU lines share: a transaction waits for the
 inter-frame gap, flushes stale input, sends, and reads until the length the function code
 implies, resynchronising on garbage and classifying every failure; it reads the adapter's
-echo where there is one (:mod:`gateway.line.echo`). What carries the bytes is its
-subclasses': a local serial device (:class:`gateway.line.serial_line.SerialLine`) or a
-serial device server's TCP port (:class:`gateway.line.rtu_over_tcp.RtuOverTcpLine`).
+echo where there is one (:mod:`gateway.line.transports.echo`). What carries the bytes is its
+subclasses': a local serial device (:class:`gateway.line.transports.serial_line.SerialLine`) or a
+serial device server's TCP port (:class:`gateway.line.transports.rtu_over_tcp.RtuOverTcpLine`).
 """
 
 from __future__ import annotations
@@ -33,12 +33,12 @@ from gateway.errors import (
     FrameError,
     LineNoiseError,
 )
-from gateway.line.answer import AnswerScan, holds_answer
 from gateway.line.boundary import Exchange, LateAnswer
-from gateway.line.echo import ECHO_MARGIN_S, EchoPolicy, earliest_answer
-from gateway.line.inbox import LAST_LOOK_S, LAST_LOOKS, Inbox
 from gateway.line.stats import ErrorKind, LineStats, failure_kind
-from gateway.line.timer import DeadlineTimer
+from gateway.line.transports.answer import AnswerScan, holds_answer
+from gateway.line.transports.echo import ECHO_MARGIN_S, EchoPolicy, earliest_answer
+from gateway.line.transports.inbox import LAST_LOOK_S, LAST_LOOKS, Inbox
+from gateway.line.transports.timer import DeadlineTimer
 from gateway.wire import frames
 
 if TYPE_CHECKING:
@@ -245,7 +245,7 @@ class RtuLine(ABC):
                 return ready
             # Not asyncio.sleep: its timers end up to 1 ms late (epoll counts whole
             # milliseconds), which made every gap up to 1 ms long. The timer fires within
-            # tens of microseconds and costs no CPU while it waits (see line/timer).
+            # tens of microseconds and costs no CPU while it waits (see line/transports/timer).
             if give_up == math.inf:
                 bound_s = max(self._quiet_max_s, QUIET_WAIT_GAPS * gap_s)
                 give_up = max(now, not_before) + bound_s
@@ -286,7 +286,7 @@ class RtuLine(ABC):
         ``options.turnaround_s`` is the least time the device takes before it answers (a
         digiLine's minimum response time); an answer complete sooner than the request's and
         its own wire time plus that is not the device's
-        (:func:`~gateway.line.echo.earliest_answer`).
+        (:func:`~gateway.line.transports.echo.earliest_answer`).
 
         Raises :class:`BusTimeoutError` (:class:`LineNoiseError` when the line never fell
         silent), :class:`CrcError`, :class:`UnexpectedDeviceError`,

@@ -8,9 +8,9 @@ bounds of ``buses[].tcp``. A converter that stays connected but answers nothing 
 serial side hung, a session it no longer serves) is found by :class:`SilenceWatch`:
 requests in a row without a byte back end the session, which is opened again at once.
 
-Both network lines use this module: :class:`gateway.line.rtu_over_tcp.RtuOverTcpLine`
+Both network lines use this module: :class:`gateway.line.transports.rtu_over_tcp.RtuOverTcpLine`
 (``socket://``, RTU frames through the converter) and
-:class:`gateway.line.modbus_tcp.ModbusTcpLine` (``tcp://``, Modbus TCP).
+:class:`gateway.line.transports.modbus_tcp.ModbusTcpLine` (``tcp://``, Modbus TCP).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ if TYPE_CHECKING:
     from asyncio.trsock import TransportSocket
 
     from gateway.config.network import TcpSettings
-    from gateway.line.inbox import Inbox
+    from gateway.line.transports.inbox import Inbox
 
 _LOGGER = logging.getLogger(__name__)
 

@@ -1,23 +1,31 @@
-"""The devices of one line: each as configured (a target) and as its worker knows it (a state)."""
+"""The devices of one line: each as configured (a target) and as its worker knows it (a state).
+
+A device's running state is in parts, each with the one module that writes it: the
+schedule's :class:`Deadlines`, the availability's :class:`Presence`, the transactions'
+:class:`Holds`, the decoder's values. The others read a part, or ask its owner through a
+method; the part classes sit here, beside the state, so that the owners (which all read
+the whole state) need not import each other.
+"""
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Final
 
-from gateway.line.health import Presence
-from gateway.line.schedule import SLOW_GROUPS, Deadlines
-from gateway.line.transactions import Holds
+from gateway.profiles import PollGroup
 from gateway.wire import codec
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping
+    from collections.abc import Iterable, Mapping
 
     from gateway.profiles import Point, Profile
     from gateway.profiles.serial_number import PinnedSerial
 
 PROBE_MAX_S: Final = 5.0  # largest wait between probes of an offline device
+# Polled in the time process values leave free (the schedule's "slow" class).
+SLOW_GROUPS: Final = frozenset({PollGroup.DIAGNOSTICS, PollGroup.CONFIGURATION})
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,7 +81,7 @@ class DeviceTarget:
     probe_max_s: float = PROBE_MAX_S
     serial_number: PinnedSerial | None = None  # the serial it must report; None: any
     # Where in its poll interval its values fall due (0 <= phase < 1, a fraction of the
-    # interval, on the monotonic clock: see gateway.line.schedule); None: counted from each
+    # interval, on the monotonic clock: see gateway.line.engine.schedule); None: counted from each
     # (re)start, as a one-off command reads.
     phase: float | None = None
 
@@ -116,12 +124,99 @@ class DeviceTarget:
 
 
 @dataclass(slots=True)
+class Deadlines:
+    """When a device's points fall due and how late it runs: the schedule's, and only its.
+
+    Written by :class:`~gateway.line.engine.schedule.Schedule` and by this class's methods
+    alone; the decoder asks through :meth:`identity_read` and :meth:`identity_failed`, the
+    transactions through :meth:`changed`, and every other reader only reads.
+    """
+
+    next_due: dict[str, float] = field(default_factory=dict)
+    identity_pending: set[str] = field(default_factory=set)
+    # The earliest deadline of each class (slow: diagnostics), cleared whenever a deadline,
+    # the pending identity or the unreadable points change: asked for on every scheduling
+    # step of every device, it must not walk all points each time.
+    cache: dict[bool, float] = field(default_factory=dict)
+    fresh: set[str] = field(default_factory=set)  # periodic, not polled since (re)start: no lag yet
+    missed_deadlines: int = 0
+    lag_s: float = 0.0
+    lag_reported: bool = False
+
+    def identity_read(self, name: str) -> None:
+        """A pending identity point was read: no longer pending."""
+        self.identity_pending.discard(name)
+        self.cache.clear()
+
+    def identity_failed(self, names: Iterable[str]) -> None:
+        """A read of these points failed: an identity point among them waits for a restart."""
+        for name in names:
+            self.identity_pending.discard(name)
+        self.cache.clear()
+
+    def changed(self) -> None:
+        """What the deadlines skip changed (a point found unreadable): computed again."""
+        self.cache.clear()
+
+    def carried_over(self) -> Deadlines:
+        """The deadlines of a re-planned device: new ones, its count of missed ones kept."""
+        return Deadlines(missed_deadlines=self.missed_deadlines)
+
+    def earliest(self, names: Iterable[str]) -> float:
+        """The earliest deadline of these points (identity, with none, comes first)."""
+        next_due = self.next_due
+        return min(next_due.get(name, 0.0) for name in names)
+
+
+@dataclass(slots=True)
+class Presence:
+    """Whether a device answers, and when to probe it.
+
+    Written by :class:`~gateway.line.engine.health.Availability` alone; the identity guard
+    asks it to hold a device that is not the configured sensor.
+    """
+
+    online: bool | None = None  # None until the first answer or the first offline verdict
+    failures: int = 0  # failed transactions in a row
+    probe_at: float = 0.0  # an offline device's next probe (monotonic)
+    backoff_s: float = 0.0  # the wait between its probes, doubled up to a cap
+
+
+@dataclass(slots=True)
+class Holds:
+    """What the transactions keep of a device between requests: theirs, and only theirs.
+
+    Written by :class:`~gateway.line.engine.transactions.Transactions` and this class's
+    methods alone.
+
+    The wait before its next request (a post-write wait, the late-answer window, a foreign
+    master's write), its retries, the blocks it made read apart (exception 02) and the
+    points it refuses alone. Others ask: :meth:`hold_until` (the shared bus's writes),
+    :meth:`restarted` (the schedule, when the device is read in full again).
+    """
+
+    not_before: float = 0.0  # no request to the device before this monotonic time
+    attempts: Counter[str] = field(default_factory=Counter)  # retries so far, by point
+    split_before: set[int] = field(default_factory=set)  # addresses a block must not span
+    unreadable: set[str] = field(default_factory=set)  # points refused alone: not polled
+    late_hint_given: bool = False  # an answer after its timeout was explained in the log
+
+    def hold_until(self, at: float) -> None:
+        """No request to the device before ``at`` (a longer wait already set stands)."""
+        self.not_before = max(self.not_before, at)
+
+    def restarted(self) -> None:
+        """The device is read in full again (a start, back online): retries from none."""
+        self.attempts.clear()
+
+
+@dataclass(slots=True)
 class DeviceState:
     """What the worker knows about a device while running, each part with its one writer.
 
-    The schedule writes the deadlines (:class:`~gateway.line.schedule.Deadlines`), the
-    availability the presence (:class:`~gateway.line.health.Presence`: online, failures,
-    probes), the transactions the holds (:class:`~gateway.line.transactions.Holds`: waits,
+    The schedule writes the deadlines (:class:`~gateway.line.engine.schedule.Deadlines`), the
+    availability the presence (:class:`~gateway.line.engine.health.Presence`: online, failures,
+    probes), the transactions the holds (:class:`~gateway.line.engine.transactions.Holds`: waits,
     retries, splits, unreadable points), the decoder the values. Everyone else reads them,
     or asks the owner through its methods.
     """

@@ -26,12 +26,12 @@ from enum import StrEnum
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import PortUnavailableError
-from gateway.line.port_names import connected_adapters
+from gateway.line.transports.port_names import connected_adapters
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-    from gateway.line.port_names import SystemRoots
+    from gateway.line.transports.port_names import SystemRoots
 
 SERVICE_UNIT: Final = "rs485-gateway"  # deploy/systemd/rs485-gateway.service
 

@@ -16,15 +16,15 @@ from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import DecodeError
+from gateway.line.engine.devices import SLOW_GROUPS
 from gateway.line.samples import Quality, Sample, hex_registers
-from gateway.line.schedule import SLOW_GROUPS
 from gateway.wire import codec
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
 
-    from gateway.line.devices import DeviceState
-    from gateway.line.plan import ReadBlock
+    from gateway.line.engine.devices import DeviceState
+    from gateway.line.engine.plan import ReadBlock
     from gateway.profiles import Point
 
 _LOGGER = logging.getLogger(__name__)
