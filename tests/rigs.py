@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 from gateway.control.link import DeviceLink
-from gateway.line.devices import DeviceTarget
-from gateway.line.serial_line import SerialLine
-from gateway.line.worker import BusWorker
+from gateway.line.engine.devices import DeviceTarget
+from gateway.line.engine.worker import BusWorker
+from gateway.line.transports.serial_line import SerialLine
 from gateway.profiles import PollGroup, get_profile
 from gateway.shared.host_clock import TRUST_VARIABLE
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
@@ -28,7 +28,7 @@ from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
 
 if TYPE_CHECKING:
-    from collections.abc import AsyncIterator, Iterator, Sequence
+    from collections.abc import AsyncIterator, Callable, Iterator, Sequence
     from pathlib import Path
 
     from gateway.line.boundary import Line
@@ -85,6 +85,23 @@ class Rig:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+    async def run_until(self, done: Callable[[], bool], *, within_s: float, what: str) -> None:
+        """Run the worker until ``done()`` holds (looked at every 20 ms), or fail after ``within_s``."""
+        task = asyncio.create_task(self.worker.run())
+        try:
+            async with asyncio.timeout(within_s):
+                while not done():
+                    if task.done():
+                        task.result()  # the worker's failure, as it is
+                        raise AssertionError(f"the worker stopped before {what}")
+                    await asyncio.sleep(0.02)
+        except TimeoutError:
+            raise AssertionError(f"not within {within_s} s: {what}") from None
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
 
     def frames(self) -> list[Any]:
         return list(self.server.bus.frame_log)
