@@ -186,13 +186,12 @@ class Presence:
 class Holds:
     """What the transactions keep of a device between requests: theirs, and only theirs.
 
-    Written by :class:`~gateway.line.engine.transactions.Transactions` and this class's
-    methods alone.
-
     The wait before its next request (a post-write wait, the late-answer window, a foreign
     master's write), its retries, the blocks it made read apart (exception 02) and the
-    points it refuses alone. Others ask: :meth:`hold_until` (the shared bus's writes),
-    :meth:`restarted` (the schedule, when the device is read in full again).
+    points it refuses alone. Written by
+    :class:`~gateway.line.engine.transactions.Transactions` and this class's methods alone;
+    others ask through :meth:`hold_until` (the shared bus's writes) and :meth:`restarted`
+    (the schedule, when the device is read in full again).
     """
 
     not_before: float = 0.0  # no request to the device before this monotonic time
@@ -214,11 +213,10 @@ class Holds:
 class DeviceState:
     """What the worker knows about a device while running, each part with its one writer.
 
-    The schedule writes the deadlines (:class:`~gateway.line.engine.schedule.Deadlines`), the
-    availability the presence (:class:`~gateway.line.engine.health.Presence`: online, failures,
-    probes), the transactions the holds (:class:`~gateway.line.engine.transactions.Holds`: waits,
-    retries, splits, unreadable points), the decoder the values. Everyone else reads them,
-    or asks the owner through its methods.
+    The schedule writes the :class:`Deadlines`, the availability the :class:`Presence`
+    (online, failures, probes), the transactions the :class:`Holds` (waits, retries,
+    splits, unreadable points), the decoder the values. Everyone else reads them, or asks
+    the owner through the part's methods.
     """
 
     target: DeviceTarget
