@@ -26,6 +26,7 @@ from gateway.shared.host_clock import TRUST_VARIABLE
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from gateway.wire.timing import LineFormat
 from tests.unretrieved import reported_in
+from tests.waiting import eventually
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator, Sequence
@@ -86,18 +87,14 @@ class Rig:
         with contextlib.suppress(asyncio.CancelledError):
             await task
 
-    async def run_until(self, done: Callable[[], bool], *, within_s: float, what: str) -> None:
-        """Run the worker until ``done()`` holds (looked at every 20 ms), or fail after ``within_s``."""
+    async def run_until(self, done: Callable[[], bool], *, within_s: float) -> None:
+        """Run the worker until ``done()`` holds, or fail after ``within_s``."""
         task = asyncio.create_task(self.worker.run())
         try:
-            async with asyncio.timeout(within_s):
-                while not done():
-                    if task.done():
-                        task.result()  # the worker's failure, as it is
-                        raise AssertionError(f"the worker stopped before {what}")
-                    await asyncio.sleep(0.02)
-        except TimeoutError:
-            raise AssertionError(f"not within {within_s} s: {what}") from None
+            await eventually(lambda: done() or task.done(), within_s=within_s)
+            if task.done():
+                task.result()  # the worker's failure, as it is
+                raise AssertionError("the worker stopped before the condition held")
         finally:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):

@@ -392,7 +392,7 @@ async def test_a_serial_number_the_sensor_refuses_holds_the_device(
 
         # Until the serial was asked three times: a fixed two seconds of running was not
         # enough on a loaded machine, where the first read came 1.5 s after the start.
-        await r.run_until(lambda: len(serial_reads()) >= 3, within_s=15, what="3 serial reads")
+        await r.run_until(lambda: len(serial_reads()) >= 3, within_s=15)
         health = r.worker.health()[0]
     assert [s for s in r.sink.samples if s.device == "s10"] == []
     assert [(e.online, e.reason) for e in r.sink.events] == [

@@ -86,7 +86,7 @@ class Availability:
         presence = state.presence
         presence.failures += 1
         if presence.failures >= state.target.offline_after and presence.online is not False:
-            self._offline(state)
+            self.hold(state)
             _LOGGER.warning(
                 "%s/%s (address %d) is offline after %d failed requests: %s",
                 self.bus,
@@ -111,11 +111,11 @@ class Availability:
         self.schedule.restart_device(state, time.monotonic())
 
     def hold(self, state: DeviceState) -> None:
-        """Offline while it is not the configured sensor: checked at the probes' pace."""
-        self._offline(state)
+        """Offline, the first probe a poll interval from now.
 
-    def _offline(self, state: DeviceState) -> None:
-        """Offline: the first probe (or identity check) a poll interval from now."""
+        Also for a device that is not the configured sensor: the identity guard's check of
+        its serial then comes at the probes' pace.
+        """
         presence = state.presence
         presence.online = False
         presence.backoff_s = state.target.poll_interval_s
