@@ -174,7 +174,7 @@ async def _late_warnings(
     tmp_path: Path, caplog: pytest.LogCaptureFixture, hold: Callable[[float], None]
 ) -> tuple[list[str], float]:
     """The warnings of late polls around one hold of the loop, and how long it was held."""
-    caplog.set_level(logging.WARNING, logger="gateway.line.engine.worker")
+    caplog.set_level(logging.WARNING, logger="gateway.line.engine.poll")
     devices = [{"profile": "jumo-tecline-cl2", "address": 20, "animate": False}]
     targets = [target("cl2", "jumo-tecline-cl2", 20, interval=0.2)]
     sink = _HoldingSink(after=8, hold_s=1.0, hold=hold)
@@ -247,7 +247,7 @@ async def test_a_process_held_while_its_request_is_answered_is_not_a_line_that_c
     of its own) answers, and the gateway reads the answer only when it runs again. The
     transaction lasted the whole hold, so the line looks busy all along; the log must
     still blame the process and say it did not run, not "the line cannot keep up"."""
-    caplog.set_level(logging.WARNING, logger="gateway.line.engine.worker")
+    caplog.set_level(logging.WARNING, logger="gateway.line.engine.poll")
     simulated = (
         "line: {baudrate: 38400, parity: E, stopbits: 1}\n"
         "devices:\n  - {profile: jumo-tecline-cl2, address: 20, animate: false}\n"
@@ -298,7 +298,7 @@ async def test_a_poll_made_late_by_the_window_after_a_timeout_says_the_device_wa
     """After a request it did not answer, nothing goes to the device for its late answer's
     window (1 s): its next poll is late by about that, with the line idle and the loop on
     time. The log says the device was held, not that the bus task waited on something."""
-    caplog.set_level(logging.WARNING, logger="gateway.line.engine.worker")
+    caplog.set_level(logging.WARNING, logger="gateway.line.engine.poll")
     silent = {"animate": False, "faults": {"silences": [(1.0, 0.1)]}}
     devices = [{"profile": "jumo-tecline-cl2", "address": 20, **silent}]
     targets = [target("cl2", "jumo-tecline-cl2", 20, interval=0.2)]

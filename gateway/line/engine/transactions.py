@@ -35,7 +35,7 @@ from gateway.line.engine.register_cache import RegisterCache
 from gateway.wire import codec, frames
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Callable, Mapping, Sequence
 
     from gateway.line.boundary import Line
     from gateway.line.engine.decode import Decoder
@@ -337,6 +337,28 @@ class Transactions:
             request = frames.read_request(*key)
             self._read_requests[key] = request
         return request
+
+    async def read_plan(
+        self,
+        state: DeviceState,
+        blocks: Sequence[ReadBlock],
+        *,
+        yield_to_values: Callable[[], bool] | None = None,
+    ) -> list[Sample]:
+        """Read a poll's ``blocks`` in order; the samples of those read.
+
+        Stops where a failure set the device a wait or took it offline (other devices go
+        first), and, after the first block, wherever ``yield_to_values`` says values are due
+        elsewhere (diagnostics fill only the time values leave free).
+        """
+        samples: list[Sample] = []
+        for block in blocks:
+            if state.holds.not_before > time.monotonic() or state.presence.online is False:
+                break
+            if samples and yield_to_values is not None and yield_to_values():
+                break
+            samples.extend(await self.read_block(state, block) or ())
+        return samples
 
     async def read_block(self, state: DeviceState, block: ReadBlock) -> list[Sample] | None:
         """Read one block; ``None`` when it will be retried later.

@@ -3,11 +3,12 @@
 At each step the worker serves pending writes and on-demand reads first, then broadcasts,
 then the device with the earliest due values, then diagnostics in the time left, as long as
 the device is not inside a post-write wait or a late-answer quarantine. What is due is the
-:class:`~gateway.line.engine.schedule.Schedule`'s to say; each request and its answer are the
-:class:`~gateway.line.engine.transactions.Transactions`'; registers become samples in
-:class:`~gateway.line.engine.decode.Decoder`; who is online is
-:class:`~gateway.line.engine.health.Availability`'s verdict. A port that fails is reopened on a
-capped, jittered backoff.
+:class:`~gateway.line.engine.schedule.Schedule`'s to say; one device's poll (plan, run,
+report) is the :class:`~gateway.line.engine.poll.Poller`'s; each request and its answer are
+the :class:`~gateway.line.engine.transactions.Transactions`'; who is online is
+:class:`~gateway.line.engine.health.Availability`'s verdict; a reload's devices change
+through :class:`~gateway.line.engine.changes.DeviceChanges`. A port that fails is reopened
+on a capped, jittered backoff.
 """
 
 from __future__ import annotations
@@ -21,14 +22,16 @@ import time
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING, Final
 
-from gateway.errors import BusClosedError, BusError, GatewayError, PortUnavailableError
+from gateway.errors import BusClosedError, BusError, PortUnavailableError
+from gateway.line.engine.changes import DeviceChanges
 from gateway.line.engine.decode import Decoder
 from gateway.line.engine.devices import DeviceState
 from gateway.line.engine.foreign import ForeignQueue
 from gateway.line.engine.health import Availability
 from gateway.line.engine.identity_guard import IdentityGuard
 from gateway.line.engine.jobs import JobQueue
-from gateway.line.engine.lateness import Lateness, loop_watch
+from gateway.line.engine.lateness import loop_watch
+from gateway.line.engine.poll import Poller
 from gateway.line.engine.schedule import Schedule
 from gateway.line.engine.transactions import LATE_ANSWER_WINDOW_S, Transactions
 from gateway.line.samples import DeviceEvent
@@ -41,7 +44,6 @@ if TYPE_CHECKING:
     from gateway.line.boundary import Line
     from gateway.line.engine.devices import DeviceTarget
     from gateway.line.engine.health import DeviceHealth
-    from gateway.line.engine.identity_guard import Pin
     from gateway.line.samples import Sample, Sink
     from gateway.profiles import Profile
     from gateway.profiles.model import Point
@@ -111,7 +113,14 @@ class BusWorker:
             schedule=self.schedule,
             wake=self._wake,
         )
-        self.lateness = Lateness(line)  # what made a late poll late, for the log
+        self.poller = Poller(
+            bus=name,
+            line=line,
+            schedule=self.schedule,
+            transactions=self.transactions,
+            identity=self.identity,
+            sinks=self.sinks,
+        )
         self._port_failures_in_a_row = 0
         self._ever_opened = False
         # Whether a port another master holds at the start ends the run (the gateway's own
@@ -124,7 +133,15 @@ class BusWorker:
         self._released = asyncio.Event()
         self.paused_for: str | None = None  # why polling is paused, while it is
         # A reload's new set of devices, applied between transactions (:meth:`change_devices`).
-        self._changes: list[tuple[tuple[DeviceTarget, ...], asyncio.Future[None]]] = []
+        self._changes = DeviceChanges(
+            bus=name,
+            devices=self.devices,
+            schedule=self.schedule,
+            transactions=self.transactions,
+            identity=self.identity,
+            jobs=self.jobs,
+            foreign=self.foreign,
+        )
         # Whether run() waits where nothing of it walks the devices (asleep, backing off,
         # paused): a change of devices is applied at once then, not at the next step.
         self._parked = False
@@ -135,7 +152,8 @@ class BusWorker:
         """Open the port, poll, and on port failure reopen with capped jittered backoff."""
         delay = PORT_BACKOFF_FIRST_S
         self.jobs.running = True
-        watch = self.lateness.watch = loop_watch()
+        watch = loop_watch()
+        self.poller.watch_loop(watch)
         watch.attach()
         self.line.wait_watch = watch  # the gap's waits sleep and wake under the watch
         try:
@@ -152,7 +170,7 @@ class BusWorker:
 
     async def _run(self, delay: float) -> None:
         while not self._stopping:
-            self._apply_changes()
+            self._changes.apply()
             if self._resume is not None:
                 await self._hold(self._resume)
                 continue
@@ -350,62 +368,11 @@ class BusWorker:
         Applied between transactions, never inside one: at once while :meth:`run` sleeps,
         backs off or is paused (or does not run), else before its next step.
         """
-        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        self._changes.append((tuple(targets), done))
+        done = self._changes.request(targets)
         if self._parked or not self.running:
-            self._apply_changes()
-        else:
-            self._wake.set()
-        return done
-
-    def _apply_changes(self) -> None:
-        while self._changes:
-            targets, done = self._changes.pop(0)
-            self._change_devices(targets)
-            if not done.done():
-                done.set_result(None)
-
-    def _change_devices(self, targets: Sequence[DeviceTarget]) -> None:
-        wanted = {target.name: target for target in targets}
-        for name in [name for name in self.devices if name not in wanted]:
-            self._remove_device(name, f"{self.name}/{name} was removed from the config")
-        now = time.monotonic()
-        for target in targets:
-            former = self.devices.get(target.name)
-            if former is not None and former.target == target:
-                continue
-            if former is None:
-                self._add_device(DeviceState(target=target), now)
-            elif former.target.address == target.address and former.profile is target.profile:
-                self._replan_device(former, target, now)
-            else:
-                self._remove_device(target.name, f"{self.name}/{target.name} is another sensor now")
-                self._add_device(DeviceState(target=target), now)
+            self._changes.apply()
         self._wake.set()
-
-    def _remove_device(self, name: str, reason: str) -> None:
-        """A device that goes: its queued work fails with ``reason``."""
-        gone = GatewayError(reason)
-        self.jobs.fail_device(name, gone)
-        self.foreign.fail_device(name, gone)
-        self._forget_device(self.devices.pop(name))
-
-    def _forget_device(self, state: DeviceState) -> Pin | None:
-        """Out of the schedule, the plans and the pins (its queued work untouched)."""
-        self.schedule.remove(state)
-        self.transactions.remove(state)
-        return self.identity.remove(state.target.name)
-
-    def _add_device(self, state: DeviceState, now: float, pin: Pin | None = None) -> None:
-        self.devices[state.target.name] = state
-        self.transactions.add(state)
-        self.identity.add(state, keep=pin)
-        self.schedule.add(state, now)
-
-    def _replan_device(self, former: DeviceState, target: DeviceTarget, now: float) -> None:
-        """The same sensor with other settings: new deadlines, what it is and said kept."""
-        pin = self._forget_device(former)
-        self._add_device(former.carried_over(target), now, pin)
+        return done
 
     async def use_line(self, line: Line) -> bool:
         """Go on with ``line`` in place of the line (a reload changed the bus's settings).
@@ -427,7 +394,7 @@ class BusWorker:
     def _swap_line(self, line: Line) -> None:
         line.wait_watch, self.line.wait_watch = self.line.wait_watch, None
         self.line = line
-        self.lateness = Lateness(line, self.lateness.watch)
+        self.poller.use_line(line)
         self.transactions.use_line(line)
 
     # --- queued work ------------------------------------------------------------------
@@ -494,7 +461,7 @@ class BusWorker:
         foreign_turn = False
         while not self._stopping and self._resume is None:
             if self._changes:
-                self._apply_changes()
+                self._changes.apply()
             now = time.monotonic()
             if await self.jobs.run_next(now):
                 continue
@@ -507,13 +474,13 @@ class BusWorker:
                 elif state.presence.online is False:
                     await self.transactions.probe(state, now)
                 else:
-                    await self._poll(state, now, slow=False)
+                    await self.poller.poll(state, now, slow=False)
                 foreign_turn = True
                 continue
             if await self.foreign.run_next(now):
                 continue
             if (state := self.schedule.pick(now, slow=True)) is not None:
-                await self._poll(state, now, slow=True)
+                await self.poller.poll(state, now, slow=True)
                 continue
             await self._sleep_until_next(now)
 
@@ -541,38 +508,6 @@ class BusWorker:
             return  # a pause: the port is closed on purpose
         if not self.line.is_open:
             raise BusClosedError(f"{self.line.port} went away")
-
-    async def _poll(self, state: DeviceState, now: float, *, slow: bool) -> None:
-        self.lateness.mark(now)
-        held_until = state.holds.not_before  # a wait after a write or a failure, ended by now
-        # Plan, then run: the schedule says what is due and in which order, the
-        # transactions read it, and what was read goes back to the schedule in one call.
-        names = self.schedule.due_points(state, now, slow=slow)
-        samples: list[Sample] = []
-        reads = self.transactions
-        plan = reads.plan_slow(state, names) if slow else reads.plan(state, names)
-        for block in self.schedule.in_order(state, plan):
-            if state.holds.not_before > time.monotonic() or state.presence.online is False:
-                break  # a failure set a quarantine or took the device offline: others first
-            if samples and slow and self.schedule.pick(time.monotonic(), slow=False) is not None:
-                break  # values are due somewhere: the rest of the diagnostics waits
-            samples.extend(await reads.read_block(state, block) or ())
-        late = self.schedule.advance(state, [s.point for s in samples], now)
-        if late is not None:
-            # The line, or the process: what took the time decides the remedy.
-            _LOGGER.warning(
-                "%s/%s: %s",
-                self.name,
-                state.target.name,
-                self.lateness.explain(late, now, held_until=held_until),
-            )
-        # Only a pinned device's samples wait on its identity: the others go as they are.
-        published = (
-            await self.identity.screen(state, samples) if self.identity.screens(state) else samples
-        )
-        if published:
-            for sink in self.sinks:
-                await sink.publish(published)
 
     async def _event(self, state: DeviceState, *, online: bool, reason: str) -> None:
         if self.identity.announces(state, online=online, reason=reason):
