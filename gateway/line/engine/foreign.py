@@ -251,7 +251,8 @@ class ForeignQueue:
         """The bus time the request will take at least: both frames and the gap before it."""
         nbytes = len(job.request.frame) + _answer_bytes(job.request)
         state = self.devices[job.device]
-        return self.transactions.line.format.wire_s(nbytes) + self.transactions.gap_s(state)
+        transactions = self.transactions
+        return transactions.line.format.wire_s(nbytes) + transactions.requests.gap_s(state)
 
     def _expire(self, now: float) -> None:
         """Refuse the requests that waited longer than the policy allows."""
@@ -312,7 +313,7 @@ class ForeignQueue:
             # The line's busy time (request to answer or timeout; counted in the line's
             # busy time too), and for the share the silent gap before it as well.
             busy = line.stats.busy_s - busy_before
-            spent = busy + self.transactions.gap_s(state)
+            spent = busy + self.transactions.requests.gap_s(state)
             self._bucket.spend(spent, now)
             self._fair.charge(job.origin, spent, now)
             self.stats.busy_s += busy

@@ -191,8 +191,8 @@ class IdentityGuard:
         """Read the serial number of a held device, and release it if it is the pinned one."""
         pin = self._pins[state.target.name]
         reads = self.transactions
-        block = reads.plan_points(state, [pin.point])[0]
-        request = reads.read_request(state, block)
+        block = reads.plans.plan_points(state, [pin.point])[0]
+        request = reads.requests.read(state, block)
         try:
             response = await reads.transact(state, request, 5 + 2 * block.count)
         except DeviceExceptionError as exc:

@@ -199,7 +199,7 @@ class JobQueue:
     async def _write(self, state: DeviceState, job: WriteJob) -> None:
         point = job.point
         try:
-            request = self.transactions.write_request(
+            request = self.transactions.requests.write(
                 state, point, value=job.value, registers=job.registers
             )
         except EncodeError as exc:

@@ -5,9 +5,10 @@ users know (Telegraf compiles its requests once and executes them):
 
 1. **plan**: the schedule says which points are due and in which order their reads go
    (:meth:`~gateway.line.engine.schedule.Schedule.due_points`,
-   :meth:`~gateway.line.engine.schedule.Schedule.in_order`); the transactions say which
-   reads cover them (their planners' cached blocks). The result is a :class:`PollPlan`,
-   made before the first request goes out and not changed while it runs.
+   :meth:`~gateway.line.engine.schedule.Schedule.in_order`); the read plans say which
+   reads cover them (:class:`~gateway.line.engine.read_plans.ReadPlans`, cached blocks).
+   The result is a :class:`PollPlan`, made before the first request goes out and not
+   changed while it runs.
 2. **run**: the transactions read the plan's blocks in order
    (:meth:`~gateway.line.engine.transactions.Transactions.read_plan`), stopping early
    where a failure's wait or an offline verdict holds the device, or (diagnostics) where
@@ -87,8 +88,8 @@ class Poller:
     def plan(self, state: DeviceState, now: float, *, slow: bool) -> PollPlan:
         """What one poll of ``state`` reads at ``now``: the due points' reads, oldest first."""
         names = self.schedule.due_points(state, now, slow=slow)
-        reads = self.transactions
-        blocks = reads.plan_slow(state, names) if slow else reads.plan(state, names)
+        plans = self.transactions.plans
+        blocks = plans.plan_slow(state, names) if slow else plans.plan(state, names)
         return PollPlan(
             state=state,
             at=now,

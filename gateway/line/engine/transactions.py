@@ -30,16 +30,17 @@ from gateway.errors import (
     UnexpectedDeviceError,
 )
 from gateway.line.boundary import RequestOptions
-from gateway.line.engine.plan import CostModel, Planner
+from gateway.line.engine.read_plans import ReadPlans
 from gateway.line.engine.register_cache import RegisterCache
-from gateway.wire import codec, frames
+from gateway.line.engine.requests import MIN_RESPONSE_TIME_MAX_S, DeviceRequests
+from gateway.wire import frames
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Mapping, Sequence
 
     from gateway.line.boundary import Line
     from gateway.line.engine.decode import Decoder
-    from gateway.line.engine.devices import DeviceState, DeviceTarget
+    from gateway.line.engine.devices import DeviceState
     from gateway.line.engine.health import Availability
     from gateway.line.engine.plan import ReadBlock
     from gateway.line.samples import Sample
@@ -47,13 +48,8 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-RESPONSE_MARGIN_S: Final = 0.05  # USB adapters and the event loop add a few ms either way
 LATE_ANSWER_WINDOW_S: Final = 1.0  # after no answer of its own, a device's late one may come
 BROADCAST_TURNAROUND_S: Final = 0.1  # Modbus over serial line 2.4.1: 100-200 ms after broadcasts
-# digiLine 0x0305: the minimum response time is 0-500 ms (S10 and H10 manuals, interface
-# settings). Until a sensor has said its own, the gateway waits as if it were the longest.
-MIN_RESPONSE_TIME_MAX_S: Final = 0.5
-_NO_SPLITS: Final[frozenset[int]] = frozenset()
 
 _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     BusTimeoutError: "timeout",
@@ -65,37 +61,6 @@ _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
     ConverterPathError: ConverterPathError.kind,  # Modbus TCP converters' 0A and 0B
     ConverterNoAnswerError: ConverterNoAnswerError.kind,
 }
-
-
-def default_timeout_s(
-    target: DeviceTarget, response_bytes: int, wire_s: float, *, min_response_s: float | None = None
-) -> float:
-    """Response timeout: the answer's wire time plus t1 (digiLine: 25 ms + min. response time).
-
-    ``min_response_s`` is the device's minimum response time as it reported it (its
-    register), where it did; the configured one otherwise. A configured timeout wins.
-    """
-    if target.timeout_s is not None:
-        return target.timeout_s
-    if min_response_s is None:
-        min_response_s = target.min_response_time_s
-    t1 = target.profile.timing.processing_time_s + max(target.min_response_time_s, min_response_s)
-    return wire_s * response_bytes + t1 + RESPONSE_MARGIN_S
-
-
-def reported_min_response_s(state: DeviceState) -> float | None:
-    """The minimum response time the device reports in its register, once read.
-
-    ``None``: the profile has no such register, the device refuses it, or it has not
-    been read yet (the read of it waits the manual's longest, see :meth:`Transactions.read_block`).
-    """
-    point = state.target.min_response_point
-    if point is None:
-        return None
-    value = state.values.get(point.name)
-    if isinstance(value, int) and not isinstance(value, bool):
-        return min(max(value, 0) / 1000, MIN_RESPONSE_TIME_MAX_S)
-    return None
 
 
 class Transactions:
@@ -118,16 +83,8 @@ class Transactions:
         self.availability = availability
         self.decoder = decoder
         self.late_answer_window_s = late_answer_window_s
-        # One planner (and its cache of plans) for the devices of one profile and cost: a
-        # plan depends on nothing else, and a bus of sixteen sensors of four families kept
-        # sixteen caches of the same plans.
-        self._shared_planners: dict[tuple[str, CostModel], Planner] = {}
-        self._planners: dict[str, Planner] = {}
-        # Read requests by (device, address, count): the same few blocks are asked again
-        # and again, and building one through pymodbus costs more than the rest of a read.
-        self._read_requests: dict[tuple[int, int, int], frames.Request] = {}
-        self._gaps: dict[str, float] = {}
-        self._timeouts: dict[tuple[str, int, float | None], float] = {}
+        self.plans = ReadPlans(line.format)  # which reads cover which points, per device
+        self.requests = DeviceRequests(line.format)  # each device's requests and their options
         self._by_address: dict[int, DeviceState] = {}
         for state in devices.values():
             self.add(state)
@@ -136,21 +93,14 @@ class Transactions:
 
     def add(self, state: DeviceState) -> None:
         """Plan the reads of a device (at the start, or one a reload added or re-planned)."""
-        cost = CostModel.for_device(
-            state.profile, self.line.format, extra_gap_s=state.target.extra_gap_s
-        )
-        key = (state.profile.id, cost)
-        if key not in self._shared_planners:
-            self._shared_planners[key] = Planner(state.profile, cost)
-        self._planners[state.target.name] = self._shared_planners[key]
+        self.plans.add(state)
         self._by_address[state.target.address] = state
 
     def remove(self, state: DeviceState) -> None:
         """Forget a device a reload removed or re-plans: its plans, waits and registers."""
         name = state.target.name
-        self._planners.pop(name, None)
-        self._gaps.pop(name, None)
-        self._timeouts = {key: t for key, t in self._timeouts.items() if key[0] != name}
+        self.plans.remove(state)
+        self.requests.remove(state)
         if self._by_address.get(state.target.address) is state:
             del self._by_address[state.target.address]
         self.cache.drop(name)
@@ -158,42 +108,10 @@ class Transactions:
     def use_line(self, line: Line) -> None:
         """Another line, maybe of another format (a reload): every plan and wait anew."""
         self.line = line
-        self._shared_planners.clear()
-        self._read_requests.clear()
-        self._gaps.clear()
-        self._timeouts.clear()
+        self.plans.use_format(line.format)
+        self.requests.use_format(line.format)
         for state in self.devices.values():
             self.add(state)
-
-    def timeout_for(
-        self, state: DeviceState, response_bytes: int, min_response_s: float | None
-    ) -> float:
-        """How long to wait for an answer of ``response_bytes`` from the device.
-
-        ``min_response_s``: its minimum response time as reported, or what stands in for
-        it until then (``None``: the configured one).
-        """
-        key = (state.target.name, response_bytes, min_response_s)
-        timeout = self._timeouts.get(key)
-        if timeout is None:  # cleared when the target or the line changes
-            timeout = default_timeout_s(
-                state.target,
-                response_bytes,
-                self.line.format.character_s,
-                min_response_s=min_response_s,
-            )
-            self._timeouts[key] = timeout
-        return timeout
-
-    def gap_s(self, state: DeviceState) -> float:
-        """The silence the device needs before a request."""
-        gap = self._gaps.get(state.target.name)
-        if gap is None:
-            gap = self.line.format.frame_gap_s(
-                max(state.profile.timing.min_gap_s, state.target.extra_gap_s)
-            )
-            self._gaps[state.target.name] = gap
-        return gap
 
     async def transact(
         self,
@@ -212,24 +130,9 @@ class Transactions:
         the next request sent over the retry's real answer). A corrupted answer of its own
         (CRC) is the device's answer: nothing more is to come.
         """
-        # The least time the device takes to answer is what it reported, once it has: not
-        # the configured value, not the manual's longest. An answer refused as too early
-        # must never be the device's own.
-        reported = reported_min_response_s(state)
-        profile = state.target.profile
         try:
             exchange = await self.line.transact(
-                request,
-                RequestOptions(
-                    timeout_s=self.timeout_for(
-                        state, response_bytes, min_response_s if reported is None else reported
-                    ),
-                    gap_s=self.gap_s(state),
-                    not_before=state.holds.not_before,
-                    exceptions=profile.exceptions,
-                    byte_count_16bit=profile.quirks.string_byte_count_16bit,
-                    turnaround_s=0.0 if reported is None else reported,
-                ),
+                request, self.requests.options(state, response_bytes, min_response_s)
             )
         except LineNoiseError:
             raise  # nothing was sent: no answer can come late
@@ -281,63 +184,6 @@ class Transactions:
             name,
         )
 
-    def plan(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
-        """The reads of the named points of the device (the schedule names what is due)."""
-        planner = self._planners[state.target.name]
-        split = frozenset(state.holds.split_before) if state.holds.split_before else _NO_SPLITS
-        return self._learn_first(state, planner.plan_names(names, split_before=split))
-
-    def plan_points(self, state: DeviceState, points: Sequence[Point]) -> tuple[ReadBlock, ...]:
-        """The reads of points of the device's profile."""
-        planner = self._planners[state.target.name]
-        split = frozenset(state.holds.split_before) if state.holds.split_before else _NO_SPLITS
-        return self._learn_first(state, planner.plan(points, split_before=split))
-
-    @staticmethod
-    def _learn_first(state: DeviceState, blocks: tuple[ReadBlock, ...]) -> tuple[ReadBlock, ...]:
-        learn = state.target.min_response_point
-        if learn is not None and len(blocks) > 1 and learn.name not in state.values:
-            # The block with the device's minimum response time first: the reads after
-            # it in the same turn then wait as long as the device takes (``_learning``).
-            first = [b for b in blocks if learn in b.points]
-            blocks = (*first, *(b for b in blocks if b not in first))
-        return blocks
-
-    def plan_slow(self, state: DeviceState, names: Sequence[str]) -> tuple[ReadBlock, ...]:
-        """The reads of due diagnostics: the blocks of their whole interval classes.
-
-        Diagnostics are read a block at a time and cut short whenever values fall due, so
-        the set still due is a different one after every interruption. Planning each such
-        set anew missed the plan cache nearly every time (an H10 has some 260 slow points)
-        and took a third of the gateway's CPU at 480 devices. The plan of every slow point
-        sharing an interval with a due one has a stable key; its blocks that hold a due
-        point are the ones to read, and points that come along were read in the same phase.
-        """
-        intervals = state.target.intervals
-        wanted = {intervals.get(name) for name in names}
-        members = [  # in any order: the planner keys its cache by the set
-            name
-            for name in state.target.slow_points
-            if intervals.get(name) in wanted
-            and name not in state.holds.unreadable
-            and name not in state.deadlines.identity_pending
-        ]
-        due = set(names)
-        return tuple(
-            block
-            for block in self.plan(state, members)
-            if any(point.name in due for point in block.points)
-        )
-
-    def read_request(self, state: DeviceState, block: ReadBlock) -> frames.Request:
-        """The request that reads ``block`` (built once, then reused: requests are values)."""
-        key = (state.target.address, block.address, block.count)
-        request = self._read_requests.get(key)
-        if request is None:
-            request = frames.read_request(*key)
-            self._read_requests[key] = request
-        return request
-
     async def read_plan(
         self,
         state: DeviceState,
@@ -366,7 +212,7 @@ class Transactions:
         Every failed transaction counts towards taking the device offline; any answer,
         an exception included, shows it is there.
         """
-        request = self.read_request(state, block)
+        request = self.requests.read(state, block)
         try:
             response = await self.transact(
                 state, request, 5 + 2 * block.count, min_response_s=self._learning(state, block)
@@ -449,7 +295,7 @@ class Transactions:
             # so the reads that follow wait as long as it takes to answer.
             todo.append(learn)
         while todo:
-            blocks = self.plan_points(state, todo)
+            blocks = self.plans.plan_points(state, todo)
             todo = []
             for block in blocks:
                 delay = state.holds.not_before - time.monotonic()
@@ -478,8 +324,8 @@ class Transactions:
     async def probe(self, state: DeviceState, now: float) -> None:
         """One small read of an offline device; on success it is polled in full again."""
         names = list(state.target.intervals) or [state.profile.points[0].name]
-        block = self.plan(state, names[:1])[0]
-        request = self.read_request(state, block)
+        block = self.plans.plan(state, names[:1])[0]
+        request = self.requests.read(state, block)
         try:
             await self.transact(state, request, 5 + 2 * block.count)
         except DeviceExceptionError:
@@ -488,15 +334,6 @@ class Transactions:
             self.availability.probe_unanswered(state, now)
             return
         await self.availability.probe_answered(state)
-
-    @staticmethod
-    def write_request(
-        state: DeviceState, point: Point, *, value: object, registers: tuple[int, ...] | None
-    ) -> frames.Request:
-        """The request that writes ``registers``, or ``value`` encoded (an :class:`EncodeError`)."""
-        if registers is None:
-            registers = codec.encode(point.format, value, float_order=state.float_order)
-        return frames.write_request(state.target.address, point.address, registers)
 
     async def write(
         self, state: DeviceState, point: Point, request: frames.Request
@@ -513,7 +350,8 @@ class Transactions:
     async def broadcast(self, request: frames.Request) -> None:
         """Send a broadcast; then every device waits the turnaround or its post-write wait."""
         gap = max(
-            (self.gap_s(s) for s in self.devices.values()), default=self.line.format.frame_gap_s()
+            (self.requests.gap_s(s) for s in self.devices.values()),
+            default=self.line.format.frame_gap_s(),
         )
         await self.line.transact(request, RequestOptions(timeout_s=0.0, gap_s=gap))
         sent = time.monotonic()
