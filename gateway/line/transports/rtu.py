@@ -35,11 +35,12 @@ from gateway.errors import (
 )
 from gateway.line.boundary import Exchange, LateAnswer
 from gateway.line.stats import ErrorKind, LineStats, failure_kind
-from gateway.line.transports.answer import AnswerScan, holds_answer
-from gateway.line.transports.echo import ECHO_MARGIN_S, EchoPolicy, earliest_answer
-from gateway.line.transports.inbox import LAST_LOOK_S, LAST_LOOKS, Inbox
+from gateway.line.transports.echo import EchoPolicy
+from gateway.line.transports.inbox import Inbox
+from gateway.line.transports.receive import Receiver
 from gateway.line.transports.timer import DeadlineTimer
 from gateway.wire import frames
+from gateway.wire.timing import FRAME_GAP_CHARACTERS
 
 if TYPE_CHECKING:
     from gateway.line.boundary import RequestOptions, WaitWatch
@@ -47,7 +48,6 @@ if TYPE_CHECKING:
 
 _LOGGER = logging.getLogger(__name__)
 
-SILENCE_CHARACTERS: Final = 3.5  # a frame ends after 3.5 silent characters (all manuals)
 MIN_SILENCE_S: Final = 0.003  # event-loop and USB-adapter latency make shorter waits unreliable
 CLOSE_WAIT_S: Final = 1.0  # bound on waiting for the transport's end after an abort
 # The longest the line may stay busy before a request: a late answer of the longest frame
@@ -61,6 +61,7 @@ QUIET_WAIT_GAPS: Final = 5  # and never fewer than five of the gaps it waits for
 class RtuLine(ABC):
     """RTU frames on one byte stream, one strict transaction at a time.
 
+    Its :class:`~gateway.line.transports.receive.Receiver` reads each answer (and echo).
     Subclasses open the stream (:meth:`_connect`), say whether bytes wait unread in the
     kernel (:meth:`_unread_input`) and release what they hold at a close (:meth:`_release`).
     """
@@ -83,27 +84,40 @@ class RtuLine(ABC):
         network says nothing of that line's speed.
         """
         self.port = port
-        self.judges_by_wire = judges_by_wire
         self.format = line
         self.stats = stats or LineStats()
         self.echo = EchoPolicy(bus=bus, port=port, mode=echo)
-        # The last request that timed out per device (when sent, how long it waited), so
-        # that its answer coming later tells how late; the worker asks for it.
-        self._timed_out: dict[int, tuple[float, float, float]] = {}
-        self.late_answer: LateAnswer | None = None
         self._last_sent = b""
         self.last_frame_end = float("-inf")  # monotonic time the line last fell silent
         self._transport: asyncio.Transport | None = None
         self._inbox: Inbox | None = None
         self._character_s = line.character_s
-        self._silence_s = max(SILENCE_CHARACTERS * self._character_s, MIN_SILENCE_S)
         self._quiet_max_s = max(QUIET_WAIT_MIN_S, QUIET_WAIT_FRAMES * self._character_s)
+        self.receiver = Receiver(
+            port=port,
+            stats=self.stats,
+            echo=self.echo,
+            character_s=self._character_s,
+            silence_s=max(FRAME_GAP_CHARACTERS * self._character_s, MIN_SILENCE_S),
+            judges_by_wire=judges_by_wire,
+            live=self._live_inbox,
+            unread_input=self._unread_input,
+        )
         self._timer = DeadlineTimer()
         # How late each request started after its gap was due (seconds), kept only when
         # a benchmark sets a list here; nothing in the gateway reads it.
         self.gap_lateness_s: list[float] | None = None
         # Told when the gap's wait sleeps and wakes (the bus worker sets it while it runs).
         self.wait_watch: WaitWatch | None = None
+
+    @property
+    def late_answer(self) -> LateAnswer | None:
+        """A device's own answer that came after its request had timed out, until taken."""
+        return self.receiver.late_answer
+
+    @late_answer.setter
+    def late_answer(self, value: LateAnswer | None) -> None:
+        self.receiver.late_answer = value
 
     @property
     def is_open(self) -> bool:
@@ -188,34 +202,14 @@ class RtuLine(ABC):
                 # The adapter's echo of a request that waited for no answer (a broadcast),
                 # or of a read whose answer never came: the adapter's doing, not the line's.
                 # (A unicast write's late answer is a copy of it too: not remembered.)
-                self._echo_seen(device)
+                self.receiver.echo_seen(device)
                 return
             kind = ErrorKind.STALE if frames.crc_ok(stale) else ErrorKind.NOISE
             if kind == ErrorKind.STALE:
-                self._note_late(stale[0], inbox.last_byte_at)
+                self.receiver.note_late(stale[0], inbox.last_byte_at)
             self.stats.errors[device, kind] += 1
             _LOGGER.debug(
                 "%s: discarded %d %s bytes: %s", self.port, len(stale), kind, stale.hex(" ")
-            )
-
-    def _echo_seen(self, device: int) -> None:
-        """An echo where none was expected: counted once the bus has settled on no echo."""
-        if self.echo.echoes is False:
-            self.stats.errors[device, ErrorKind.ECHO] += 1
-            self.echo.unexpected()
-        else:
-            self.echo.seen = True
-
-    def _note_late(self, device: int, arrived_at: float) -> None:
-        """A stale frame of a device that timed out last: how late its answer came."""
-        timed_out = self._timed_out.pop(device, None)
-        if timed_out is not None:
-            sent_at, timeout_s, waited_s = timed_out
-            self.late_answer = LateAnswer(
-                device=device,
-                after_s=arrived_at - sent_at,
-                timeout_s=timeout_s,
-                waited_s=waited_s,
             )
 
     async def wait_gap(self, gap_s: float, *, not_before: float = 0.0, device: int = 0) -> float:
@@ -243,9 +237,8 @@ class RtuLine(ABC):
                     continue
                 self.stats.noisy = None
                 return ready
-            # Not asyncio.sleep: its timers end up to 1 ms late (epoll counts whole
-            # milliseconds), which made every gap up to 1 ms long. The timer fires within
-            # tens of microseconds and costs no CPU while it waits (see line/transports/timer).
+            # Not asyncio.sleep, up to 1 ms late (epoll counts whole milliseconds): the
+            # timer fires within tens of microseconds (line/transports/timer).
             if give_up == math.inf:
                 bound_s = max(self._quiet_max_s, QUIET_WAIT_GAPS * gap_s)
                 give_up = max(now, not_before) + bound_s
@@ -318,8 +311,8 @@ class RtuLine(ABC):
             return None
         try:
             if self.echo.expected:
-                await self._read_echo(request, request_end)
-            response, received_at = await self._receive(
+                await self.receiver.read_echo(request, request_end)
+            response, received_at = await self.receiver.receive(
                 request, options, sent_at=sent_at, deadline=request_end + timeout_s
             )
         except DeviceExceptionError as exc:
@@ -333,7 +326,7 @@ class RtuLine(ABC):
             self._finish(sent_at)
             if isinstance(exc, BusTimeoutError):
                 waited_s = request_end + timeout_s - sent_at
-                self._timed_out[request.device] = (sent_at, timeout_s, waited_s)
+                self.receiver.timed_out(request.device, sent_at, timeout_s, waited_s)
             raise
         return self._answered(request.device, response, sent_at, received_at)
 
@@ -341,8 +334,7 @@ class RtuLine(ABC):
         self, device: int, response: frames.Response, sent_at: float, received_at: float
     ) -> Exchange:
         """The device answered: the line is silent from the answer's last byte; counted."""
-        if self._timed_out:
-            self._timed_out.pop(device, None)
+        self.receiver.answered(device)
         self.last_frame_end = received_at
         self.stats.busy_s += received_at - sent_at
         self.stats.answered(device, received_at - sent_at, response.tolerated)
@@ -356,7 +348,7 @@ class RtuLine(ABC):
         self.stats.busy_s += request_end - sent_at
         if self.echo.expected:
             try:
-                await self._read_echo(request, request_end)
+                await self.receiver.read_echo(request, request_end)
             except EchoMismatchError:
                 self.stats.errors[request.device, ErrorKind.ECHO_MISMATCH] += 1
                 raise
@@ -366,184 +358,3 @@ class RtuLine(ABC):
         end = line_quiet_at if line_quiet_at is not None else time.monotonic()
         self.last_frame_end = end
         self.stats.busy_s += end - sent_at
-
-    async def _read_echo(self, request: frames.Request, request_end: float) -> None:
-        """``echo: on``: read the request back, byte for byte, before its answer.
-
-        The echo is complete once the request is on the wire; the adapter may hand it over
-        later (USB latency), so the wait has a margin. Anything else is a mismatch: the
-        bytes are dropped and the transaction fails, since an answer read after a garbled
-        echo cannot be trusted to be in step.
-        """
-        inbox = self._live_inbox()
-        frame = request.frame
-        deadline = request_end + ECHO_MARGIN_S + SILENCE_CHARACTERS * self._character_s
-        looks = 0  # at the deadline, for bytes the kernel holds that the loop has not handed over
-        while len(inbox.buffer) < len(frame):
-            now = time.monotonic()
-            if not frame.startswith(bytes(inbox.buffer)):
-                break
-            if now >= deadline:
-                # The echo in the port's buffer but not handed over yet was reported as an
-                # adapter that does not echo, with the advice to set `echo: off`.
-                if looks < LAST_LOOKS and await self._handed_over_late(inbox):
-                    looks += 1
-                    continue
-                break
-            await inbox.wait(deadline - now)
-            self._live_inbox()
-        echoed = bytes(inbox.buffer[: len(frame)])
-        if echoed == frame:
-            del inbox.buffer[: len(frame)]
-            return
-        answered = holds_answer(request, bytes(inbox.buffer))
-        inbox.buffer.clear()
-        if not echoed or answered:
-            came = "the device's answer came instead" if answered else "nothing came"
-            raise EchoMismatchError(
-                f"{self.port}: {self.echo.setting} is set to `echo: on` but the request to "
-                f"device {request.device} did not come back ({came}): this adapter does "
-                "not echo what it sends; set `echo: off` (or `auto`) for the bus"
-            )
-        raise EchoMismatchError(
-            f"{self.port}: the echo of the request to device {request.device} differs from "
-            f"what was sent (sent {frame.hex(' ')}, read back {echoed.hex(' ')}): a "
-            "collision with another master or noise on the line"
-        )
-
-    async def _receive(
-        self, request: frames.Request, options: RequestOptions, *, sent_at: float, deadline: float
-    ) -> tuple[frames.Response, float]:
-        """Read until a frame answers ``request``; skip garbage, echoes and frames of others."""
-        inbox = self._live_inbox()
-        policy = self.echo
-        expected = policy.echoes is True
-        if self.judges_by_wire:
-            character_s = self._character_s
-            floor = earliest_answer(
-                sent_at,
-                request_bytes=len(request.frame),
-                answer_bytes=0,
-                character_s=character_s,
-                turnaround_s=options.turnaround_s,
-            )
-        else:
-            character_s, floor = 0.0, -math.inf
-        scan = AnswerScan(
-            request,
-            exceptions=options.exceptions,
-            byte_count_16bit=options.byte_count_16bit,
-            echo=None if expected else request.frame,
-            echo_known=policy.seen,
-            answer_floor=floor,
-            character_s=character_s,
-        )
-        try:
-            return await self._scan_until_answer(inbox, scan, request, deadline)
-        finally:
-            if scan.echo_skipped:
-                self._echo_seen(request.device)
-            if policy.echoes is None and not request.is_write:  # ``auto``, undecided
-                policy.observed_read(echoed=scan.echo_skipped)
-
-    async def _scan_until_answer(
-        self, inbox: Inbox, scan: AnswerScan, request: frames.Request, deadline: float
-    ) -> tuple[frames.Response, float]:
-        looks = 0  # at the deadline, for bytes the kernel holds that the loop has not handed over
-        while True:
-            try:
-                result = scan.feed(inbox.buffer, inbox.last_byte_at)
-            except DeviceExceptionError:
-                # An exception answer is an answer too: consumed here, or the next
-                # transaction would flush it and count it a second time, as a stale frame.
-                self._consume(inbox, scan, request.device)
-                raise
-            if result is not None:
-                self._consume(inbox, scan, request.device)
-                return self._later_answer(inbox, scan, result), inbox.last_byte_at
-            now = time.monotonic()
-            # A corrupted answer from the device itself is final once the line falls silent.
-            # A frame of another device is not: it may be a late answer that came first,
-            # with the device's own answer still to come; leaving then would put the next
-            # request on the line while it answers.
-            settle = inbox.last_byte_at + self._silence_s if scan.crc_bad else deadline
-            wake = min(deadline, settle)
-            if now >= wake:
-                # Giving up with the answer in the port's buffer counted a timeout, and the
-                # answer, read a moment later, a stale frame; the device was held for its
-                # late-answer window and missed a cycle (bench/budget.py, 16 x 16 under a
-                # CPU quota: 7 runs of 35).
-                if looks < LAST_LOOKS and await self._handed_over_late(inbox):
-                    looks += 1
-                    continue
-                inbox.buffer.clear()
-                raise scan.failure(self.port)
-            await inbox.wait(wake - now)
-            self._live_inbox()
-
-    async def _handed_over_late(self, inbox: Inbox) -> bool:
-        """At a deadline: whether bytes waited in the kernel, now handed to ``inbox``.
-
-        The event loop woke the wait on its timer before it handed the bytes over: a
-        process held up (a CPU quota, a busy machine) came back to both at once, and the
-        timer was due in the pass it was held in. One ioctl; only at a deadline.
-        """
-        if not self._unread_input():
-            return False
-        await inbox.wait(LAST_LOOK_S)
-        self._live_inbox()
-        return True
-
-    def _later_answer(
-        self, inbox: Inbox, scan: AnswerScan, response: frames.Response
-    ) -> frames.Response:
-        """The last of the read's answers that came together: the earlier ones are stale.
-
-        A converter that held a late answer sends it with the next one in one TCP segment
-        (the same device's, the same shape: nothing in the frame tells them apart), and
-        the first one was taken for the answer to the current request. The stream keeps
-        the order of the bytes, and the device answers this request only after it came,
-        so of two complete answers in a row the later is its answer; the earlier is counted
-        as a stale frame of the device. Reads only: a write's answer is a copy of its
-        request, which an adapter's echo can be too.
-        """
-        request = scan.request
-        if request.function not in frames.READ_FUNCTIONS:
-            return response
-        while len(inbox.buffer) > 1:
-            data = bytes(inbox.buffer)
-            try:
-                need = frames.response_length(request, data, byte_count_16bit=scan.byte_count_16bit)
-                if not 0 < need <= len(data) or not frames.crc_ok(data[:need]):
-                    return response
-                later = frames.parse_response(
-                    request,
-                    data[:need],
-                    exceptions=scan.exceptions,
-                    byte_count_16bit=scan.byte_count_16bit,
-                )
-            except (FrameError, DeviceExceptionError):
-                return response  # not an answer to it: the next request's flush counts it
-            del inbox.buffer[:need]
-            self.stats.errors[request.device, ErrorKind.STALE] += 1
-            self._note_late(request.device, inbox.last_byte_at)
-            _LOGGER.debug(
-                "%s: of two answers of device %d in a row the later taken",
-                self.port,
-                request.device,
-            )
-            response = later
-        return response
-
-    def _consume(self, inbox: Inbox, scan: AnswerScan, device: int) -> None:
-        """Drop the bytes up to the answer; count what was skipped on the way.
-
-        A late answer of another device is a stale frame of that device, garbage is
-        noise on this request.
-        """
-        del inbox.buffer[: scan.consumed]
-        if scan.other_device is not None:
-            self.stats.errors[scan.other_device, ErrorKind.STALE] += 1
-            self._note_late(scan.other_device, inbox.last_byte_at)
-        if scan.garbage:
-            self.stats.errors[device, ErrorKind.NOISE] += 1
