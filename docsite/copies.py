@@ -8,6 +8,7 @@ written as the site's headings are (a run of dashes is one).
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from typing import Final
@@ -33,13 +34,13 @@ def copy(source: str) -> str:
         if target.startswith("#"):
             return f"[{label}]({re.sub('-{2,}', '-', target)})"
         path, _, anchor = target.partition("#")
-        repository = (base / path).as_posix()
-        if repository in COPIES:
-            page = COPIES[repository]
-            here = Path(COPIES[source]).parent
-            relative = Path(page).relative_to(here) if page.startswith(here.as_posix()) else None
-            target_page = relative.as_posix() if relative else f"../{page}"
-            return f"[{label}]({target_page}{'#' + anchor if anchor else ''})"
+        repository = os.path.normpath(base / path)
+        page = COPIES.get(repository) or (
+            repository.removeprefix("docs/") if repository.startswith("docs/") else None
+        )
+        if page is not None:
+            target = os.path.relpath(page, Path(COPIES[source]).parent)
+            return f"[{label}]({target}{'#' + anchor if anchor else ''})"
         return f"{label} (`{repository}`)" if label.strip("`") != repository else f"`{repository}`"
 
     lead = (
