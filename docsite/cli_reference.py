@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Final
 
-import click
 import typer
+from typer.core import TyperGroup
 from typer.testing import CliRunner
 
 from gateway.cli.root import app
@@ -21,17 +21,19 @@ PAGE: Final = "reference/cli.md"
 WIDTH: Final = 100
 
 
-def commands(group: click.Group | None = None, prefix: tuple[str, ...] = ()) -> Iterator[tuple[str, ...]]:
+def commands(
+    group: TyperGroup | None = None, prefix: tuple[str, ...] = ()
+) -> Iterator[tuple[str, ...]]:
     """Every command's words (``("profiles", "show")``), depth first, in the help's order."""
     if group is None:
         group = typer.main.get_group(app)
-    context = click.Context(group, info_name="gateway")
+    context = group.context_class(group, info_name="gateway")
     for name in group.list_commands(context):
         command = group.get_command(context, name)
         if command is None or command.hidden:
             continue
         yield (*prefix, name)
-        if isinstance(command, click.Group):
+        if isinstance(command, TyperGroup):
             yield from commands(command, (*prefix, name))
 
 

@@ -9,6 +9,7 @@ way), else its model's docstring's first line.
 from __future__ import annotations
 
 import enum
+import functools
 import inspect
 import io
 import re
@@ -16,7 +17,7 @@ import tokenize
 import types
 import typing
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final, Literal, get_args, get_origin
+from typing import TYPE_CHECKING, Final, Literal, get_args, get_origin
 
 from pydantic import BaseModel, SecretStr
 from pydantic_core import PydanticUndefined
@@ -41,14 +42,14 @@ class Key:
     description: str
 
 
-def _models(annotation: Any) -> list[type[BaseModel]]:
+def _models(annotation: object) -> list[type[BaseModel]]:
     """The models an annotation holds (in a list, a dict, an optional)."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return [annotation]
     return [model for arg in get_args(annotation) for model in _models(arg)]
 
 
-def _container(annotation: Any) -> str:
+def _container(annotation: object) -> str:
     """``[]`` for a list of models, ``.NAME`` for a dict of them, else nothing."""
     origin = get_origin(annotation)
     if origin in {typing.Union, types.UnionType, typing.Annotated}:
@@ -66,7 +67,7 @@ def _container(annotation: Any) -> str:
     return ""
 
 
-def type_name(annotation: Any) -> str:  # noqa: PLR0911 - one answer per kind of type
+def type_name(annotation: object) -> str:  # noqa: PLR0911 - one answer per kind of type
     """A reader's name for a field's type."""
     origin = get_origin(annotation)
     args = get_args(annotation)
@@ -100,64 +101,69 @@ def _default(field: FieldInfo) -> str:
             value = field.default_factory()  # type: ignore[call-arg]
         except TypeError:
             return "computed"
-    if isinstance(value, BaseModel):
-        return "(its keys' defaults)"
+    return _shown(value)
+
+
+def _shown(value: object) -> str:
+    """A default as the config file writes it."""
     if isinstance(value, enum.Enum):
         value = value.value
+    special = {BaseModel: "(its keys' defaults)", SecretStr: "(secret)"}
+    for kind, text in special.items():
+        if isinstance(value, kind):
+            return text
     if value is None:
         return "null"
-    if isinstance(value, SecretStr):
-        return "(secret)"
     if isinstance(value, bool):
         return str(value).lower()
-    if isinstance(value, (list, tuple)) and not value:
-        return "[]"
-    if isinstance(value, dict) and not value:
-        return "{}"
+    if isinstance(value, (list, tuple, dict)) and not value:
+        return "{}" if isinstance(value, dict) else "[]"
     return repr(value) if isinstance(value, str) else str(value)
 
 
+_BODY_INDENT: Final = 4  # a class body's fields, as the formatter writes them
+
+
+def _comment_text(token: tokenize.TokenInfo) -> str:
+    return re.sub(r"\s*noqa\b.*|\s*type:\s*ignore.*", "", token.string.lstrip("# "))
+
+
+@functools.cache
 def _comments(model: type[BaseModel]) -> dict[str, str]:
     """Each field's comment in the model's source: on its line, or the lines above it."""
     try:
         source = inspect.getsource(model)
     except (OSError, TypeError):
         return {}
-    found: dict[str, str] = {}
-    above: list[str] = []
-    field_line: dict[int, str] = {}
-    line_comment: dict[int, str] = {}
+    return _source_comments(source)
+
+
+def _source_comments(source: str) -> dict[str, str]:
+    """Each field's comment in a class's source text."""
+    above: dict[str, list[str]] = {}  # the comment lines just above each field
+    pending: list[str] = []
+    field_lines: dict[int, str] = {}
+    trailing: dict[int, str] = {}
     depth = 0
     tokens = list(tokenize.generate_tokens(io.StringIO(source).readline))
-    for index, token in enumerate(tokens):
+    for token, after in zip(tokens, [*tokens[1:], tokens[-1]], strict=True):
         if token.type == tokenize.OP and token.string in "([{":
             depth += 1
         elif token.type == tokenize.OP and token.string in ")]}":
             depth -= 1
         elif token.type == tokenize.COMMENT:
-            text = re.sub(r"\s*noqa\b.*|\s*type:\s*ignore.*", "", token.string.lstrip("# "))
-            line_comment[token.start[0]] = text
+            trailing[token.start[0]] = _comment_text(token)
             if token.line.strip().startswith("#") and depth == 0:
-                above.append(text)
-        elif (
-            token.type == tokenize.NAME
-            and depth == 0
-            and token.start[1] == 4  # noqa: PLR2004 - a class body's indentation
-            and index + 1 < len(tokens)
-            and tokens[index + 1].string == ":"
-        ):
-            field_line[token.start[0]] = token.string
-            if above:
-                found[token.string] = " ".join(above)
-            above = []
-        elif token.type in {tokenize.NEWLINE} or (
-            token.type == tokenize.NAME and token.start[1] == 4  # noqa: PLR2004
-        ):
-            above = []
-    for line, name in field_line.items():
-        trailing = line_comment.get(line)
-        if trailing and trailing.strip():
-            found[name] = f"{found[name]} {trailing}" if name in found else trailing
+                pending.append(_comment_text(token))
+        elif token.type == tokenize.NAME and depth == 0 and token.start[1] == _BODY_INDENT:
+            if after.string == ":":
+                field_lines[token.start[0]] = token.string
+                above[token.string] = pending
+            pending = []
+    found = {name: " ".join(lines) for name, lines in above.items() if lines}
+    for line, name in field_lines.items():
+        if trailing.get(line):
+            found[name] = f"{found[name]} {trailing[line]}" if name in found else trailing[line]
     return {name: text.strip() for name, text in found.items() if text.strip()}
 
 
@@ -207,7 +213,7 @@ def guide_meanings(text: str) -> dict[str, str]:
     return found
 
 
-def keys(model: type[BaseModel] = GatewayConfig, prefix: str = "") -> Iterator[Key]:
+def config_keys(model: type[BaseModel] = GatewayConfig, prefix: str = "") -> Iterator[Key]:
     """Every key under ``model``, depth first, in the models' order."""
     for name, field in model.model_fields.items():
         key = field.alias or name
@@ -219,7 +225,7 @@ def keys(model: type[BaseModel] = GatewayConfig, prefix: str = "") -> Iterator[K
             if inner in seen or inner is model:
                 continue
             seen.add(inner)
-            yield from keys(inner, f"{path}{_container(annotation)}.")
+            yield from config_keys(inner, f"{path}{_container(annotation)}.")
 
 
 def describe(key: Key, meanings: dict[str, str]) -> str:
@@ -246,17 +252,18 @@ def _cell(text: str) -> str:
 def page(guide: str = "") -> str:
     """The reference as a Markdown page; ``guide``: the configuration guide's text."""
     meanings = guide_meanings(guide)
+    example = f"{ENV_PREFIX}LOGGING{ENV_NESTED_DELIMITER}LEVEL=DEBUG"
     lines = [
         "# Configuration reference",
         "",
         "Every key of the config file, read from the config's own models when this site was",
         "built: its path (`[]` an entry of a list, `NAME` a key you choose), its type, its",
-        "default and what the code says of it. The [configuration guide](../configuration/index.md)",
-        "explains the keys by task; the examples in `config/` show them in use.",
+        "default and what the code says of it. The",
+        "[configuration guide](../configuration/index.md) explains the keys by task; the",
+        "examples in `config/` show them in use.",
         "",
         f"Any key can be set from the environment: `{ENV_PREFIX}` and the path in capitals",
-        f"with `{ENV_NESTED_DELIMITER}` between levels (`{ENV_PREFIX}LOGGING{ENV_NESTED_DELIMITER}"
-        "LEVEL=DEBUG`).",
+        f"with `{ENV_NESTED_DELIMITER}` between levels (`{example}`).",
         "",
         "| key | type | default | description |",
         "|---|---|---|---|",
@@ -264,6 +271,6 @@ def page(guide: str = "") -> str:
     lines.extend(
         f"| `{key.path}` | {_cell(key.type)} | `{_cell(key.default)}` | "
         f"{_cell(describe(key, meanings))} |"
-        for key in keys()
+        for key in config_keys()
     )
     return "\n".join(lines) + "\n"

@@ -43,9 +43,7 @@ def copy(source: str) -> str:
             return f"[{label}]({target}{'#' + anchor if anchor else ''})"
         return f"{label} (`{repository}`)" if label.strip("`") != repository else f"`{repository}`"
 
-    lead = (
-        f"*This page is a copy of `{source}` in the repository, made when the site was built.*"
-    )
+    lead = f"*This page is a copy of `{source}` in the repository, made when the site was built.*"
     lines = text.splitlines()
     title = next((i for i, line in enumerate(lines) if line.startswith("# ")), None)
     if title is None:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -45,7 +45,7 @@ def pages(docs_dir: Path) -> dict[str, str]:
     return found
 
 
-def on_files(files: Files, config: MkDocsConfig, **_: Any) -> Files:
+def on_files(files: Files, config: MkDocsConfig, **_: object) -> Files:
     """Add the generated pages to the site's files."""
     for path, text in pages(Path(config.docs_dir)).items():
         files.append(File.generated(config, path, content=text))

@@ -64,7 +64,7 @@ def _free_port() -> int:
 
 def _scrape(port: int) -> str | None:
     try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as reply:  # noqa: S310 - our own
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as reply:
             text: str = reply.read().decode()
             return text
     except OSError:
@@ -80,29 +80,36 @@ def demo_exposition() -> str:
         "--web-port", str(_free_port()), "--modbus-port", str(_free_port()),
     ]  # fmt: skip
     with tempfile.TemporaryDirectory() as home:
-        environ = os.environ | {"HOME": home}
-        demo = subprocess.Popen(  # noqa: S603 - this interpreter, fixed arguments
-            command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=environ, cwd=home
-        )
-        try:
-            return _steady(demo, metrics)
-        finally:
-            demo.send_signal(signal.SIGINT)
+        log = Path(home) / "demo.log"
+        with (
+            log.open("wb") as errors,
+            subprocess.Popen(  # noqa: S603 - this interpreter, fixed arguments
+                command,
+                stdout=subprocess.DEVNULL,
+                stderr=errors,
+                env=os.environ | {"HOME": home},
+                cwd=home,
+            ) as demo,
+        ):
             try:
-                demo.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                demo.kill()
-                demo.wait()
+                return _steady(demo, metrics, log)
+            finally:
+                demo.send_signal(signal.SIGINT)
+                try:
+                    demo.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    demo.kill()
+                    demo.wait()
 
 
-def _steady(demo: subprocess.Popen[bytes], port: int) -> str:
+def _steady(demo: subprocess.Popen[bytes], port: int, log: Path) -> str:
     """The exposition once care is assessed and the families stayed the same a while."""
     deadline = time.monotonic() + STARTUP_S
     seen: list[frozenset[str]] = []
     while time.monotonic() < deadline:
         if demo.poll() is not None:
-            error = demo.stderr.read().decode() if demo.stderr else ""
-            raise RuntimeError(f"gateway demo stopped with {demo.returncode}: {error[-2000:]}")
+            error = log.read_text(encoding="utf-8", errors="replace")[-2000:]
+            raise RuntimeError(f"gateway demo stopped with {demo.returncode}: {error}")
         text = _scrape(port)
         if text is not None and "gateway_care_state{" in text:
             seen.append(frozenset(parse(text)))
@@ -120,8 +127,8 @@ def value_families() -> dict[str, Family]:
             naming = point_naming(point)
             if naming is None:
                 continue
-            help_, groups = found.setdefault(naming.family, (help_text(point, naming), set()))
-            groups.add(point.group.value)
+            entry = found.setdefault(naming.family, (help_text(point, naming), set()))
+            entry[1].add(point.group.value)
     return {
         name: Family(name, "gauge", help_, ", ".join(sorted(groups)))
         for name, (help_, groups) in found.items()
@@ -152,7 +159,7 @@ def page(exposition: str) -> str:
         "Every metric family a gateway exports, made when this site was built from a running",
         "`gateway demo`'s `/metrics` (the default poll groups, process values and status) and,",
         "for the families of the other poll groups (`prometheus.groups`), from the profiles.",
-        "Counters are listed by their family's name (the samples end in `_total`).",
+        "Each family is named as its `# TYPE` line names it (a counter with its `_total`).",
         "[The metrics explained](../metrics.md) says what each one means and how to use it;",
         "the labels of each family are in its samples at `/metrics`.",
         "",

@@ -72,7 +72,7 @@ def register_map(profile: Profile) -> list[str]:
         storage = point.storage.value if point.storage else ""
         lines.append(
             f"| `0x{point.address:04X}` ({point.address}) | `{point.name}` | "
-            f"{point.dtype.value}{f' ×{point.count}' if point.count > 1 else ''} | "
+            f"{point.dtype.value}{f' x{point.count}' if point.count > 1 else ''} | "
             f"{point.access.value} | {_cell(_unit(point))} | {point.group.value} | {storage} | "
             f"{_cell(_values(point))} | {_cell(point.description)} |"
         )
@@ -81,6 +81,7 @@ def register_map(profile: Profile) -> list[str]:
 
 def _same_map(profiles: list[Profile]) -> list[list[Profile]]:
     """The profiles in runs whose register maps are alike (one table for a run)."""
+
     def shape(profile: Profile) -> tuple[tuple[str, int, str], ...]:
         return tuple((p.name, p.address, p.dtype.value) for p in profile.points)
 
@@ -93,8 +94,11 @@ def page(family: str, profiles: list[Profile]) -> str:
     lines = [
         f"# {title}",
         "",
-        f"The register map{'s' if len(profiles) > 1 else ''} of the {title}, from the profile"
-        " data the gateway polls with (`gateway/profiles/data/`), made when this site was built:",
+        (
+            f"The register map{'s' if len(profiles) > 1 else ''} of the {title}, from the"
+            " profile data the gateway polls with (`gateway/profiles/data/`), made when this"
+            " site was built:"
+        ),
         "every point with its address (0-based, as the manuals and the config write them),",
         "data type, access (`r` or `rw`), unit, poll group, the storage class of a writable",
         "register (`flash` is never written cyclically) and its meaning.",
