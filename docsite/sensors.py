@@ -3,7 +3,8 @@
 The profiles are the YAML files of ``gateway/profiles/data/``, loaded as the gateway loads
 them (:func:`gateway.profiles.builtin_profiles`): every point with its address, type,
 access, unit, poll group, storage and meaning, as ``gateway profiles show ID`` prints it.
-The family's own words (its wiring, its quirks) are the hand-written ``sensors/`` pages.
+What the families share (the codec's guarantees, the profile format) is the hand-written
+``docs/sensors/index.md``.
 """
 
 from __future__ import annotations
@@ -80,10 +81,10 @@ def register_map(profile: Profile) -> list[str]:
 
 
 def _same_map(profiles: list[Profile]) -> list[list[Profile]]:
-    """The profiles in runs whose register maps are alike (one table for a run)."""
+    """The profiles in runs whose register maps are the same, point for point (one table)."""
 
-    def shape(profile: Profile) -> tuple[tuple[str, int, str], ...]:
-        return tuple((p.name, p.address, p.dtype.value) for p in profile.points)
+    def shape(profile: Profile) -> str:
+        return repr([point.as_dict() for point in profile.points])
 
     return [list(run) for _, run in groupby(profiles, key=shape)]
 
@@ -110,11 +111,12 @@ def page(family: str, profiles: list[Profile]) -> str:
     lines.extend(
         f"| `{p.id}` | {_cell(p.title)} | `{p.spec}` | {len(p.points)} |" for p in profiles
     )
-    for run in _same_map(profiles):
+    runs = _same_map(profiles)
+    for run in runs:
         names = ", ".join(f"`{p.id}`" for p in run)
-        heading = run[0].title if len(run) == 1 else f"{names}"
+        heading = "Register map" if len(runs) == 1 else f"Register map: {run[0].title}"
         lines += ["", f"## {heading}", ""]
         if len(run) > 1:
-            lines += [f"One register map for {names}; they differ in their units and ranges.", ""]
+            lines += [f"The same register map for {names}, point for point.", ""]
         lines += register_map(run[0])
     return "\n".join(lines) + "\n"
