@@ -167,7 +167,16 @@ def _source_comments(source: str) -> dict[str, str]:
     return {name: text.strip() for name, text in found.items() if text.strip()}
 
 
+# The code's comments name the chapters by the README's sections, as before the manual.
+_README: Final = re.compile(r"(?<![/\w])README(?!\.md)")
+
+
 def _description(model: type[BaseModel], name: str, field: FieldInfo) -> str:
+    text = _README.sub("the manual", _code_description(model, name, field))
+    return text.replace(". the manual", ". The manual")
+
+
+def _code_description(model: type[BaseModel], name: str, field: FieldInfo) -> str:
     if field.description:
         return " ".join(field.description.split())
     comment = _comments(model).get(name)
