@@ -204,11 +204,11 @@ def test_the_site_builds_strict(tmp_path: Path) -> None:
     assert "WARNING" not in result.stderr, result.stderr[-4000:]
     for page in (
         "index.html",
-        "reference/configuration/index.html",
-        "sensors/jumo-tecline/index.html",
+        "reference/configuration.html",
+        "sensors/jumo-tecline.html",
     ):
         assert (site / page).is_file(), page
-    configuration = (site / "reference/configuration/index.html").read_text(encoding="utf-8")
+    configuration = (site / "reference/configuration.html").read_text(encoding="utf-8")
     assert "buses[].port" in configuration
     assert (site / "search/search_index.json").is_file()
 
