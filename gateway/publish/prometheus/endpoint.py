@@ -466,7 +466,7 @@ class MetricsServer:
             _LOGGER.warning(
                 "prometheus.legacy_names: the values are also exported under their old "
                 "names, which the next release drops; move dashboards and alerts to the new "
-                "names (README: Prometheus, migration) and remove legacy_names"
+                "names (the manual: Prometheus and Grafana, Migration) and remove legacy_names"
             )
 
     def stop(self) -> None:

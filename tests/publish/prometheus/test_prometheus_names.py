@@ -56,7 +56,7 @@ if TYPE_CHECKING:
 
 PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
 ROOT = paths.ROOT
-README = ROOT / "README.md"
+MIGRATION_NOTE = ROOT / "docs" / "prometheus" / "migration.md"  # the manual's page
 METRICS_DOC = ROOT / "docs" / "metrics.md"
 DASHBOARD = ROOT / "deploy" / "grafana" / "dashboards" / "gateway.json"
 ALERTS = ROOT / "deploy" / "prometheus" / "alerts.yml"
@@ -494,8 +494,8 @@ def expected_rows() -> set[tuple[str, str]]:
     return {(r.old, f"`{r.new}`" if r.new else r.change) for r in renames()}
 
 
-def test_the_readme_migration_note_names_every_renamed_family() -> None:
-    rows = table_rows(README.read_text(encoding="utf-8"), "### Migration: the metric names")
+def test_the_manuals_migration_note_names_every_renamed_family() -> None:
+    rows = table_rows(MIGRATION_NOTE.read_text(encoding="utf-8"), "# Migration: the metric names")
     assert rows == expected_rows()
 
 
