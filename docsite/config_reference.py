@@ -241,7 +241,7 @@ def describe(key: Key, meanings: dict[str, str]) -> str:
     """The key's description: the code's, and the guide's where the guide names it."""
     guide = meanings.get(key.path) or meanings.get(key.path.replace(".NAME", ""))
     if guide and key.description:
-        return f"{key.description}. Guide: {guide}"
+        return f"{key.description.rstrip('. ')}. Guide: {guide}"
     if guide or key.description:
         return guide or key.description
     # A key the guide explains with its section: the nearest section it names.
