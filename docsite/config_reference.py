@@ -167,7 +167,8 @@ def _source_comments(source: str) -> dict[str, str]:
     return {name: text.strip() for name, text in found.items() if text.strip()}
 
 
-# The code's comments name the chapters by the README's sections, as before the manual.
+# A comment that still names a section as the README's ("README: X") shows it as the
+# manual's: the README's sections are the manual's pages now.
 _README: Final = re.compile(r"(?<![/\w])README(?!\.md)")
 
 

@@ -3,7 +3,7 @@
 Every key is optional at every level; a device's own ``care:`` wins over its profile's
 entry in ``care.profiles`` (by profile id, or by family for all its variants), which wins
 over the top-level ``care:``, which wins over the family's default from its manual
-(README: Sensor care, where each default and its source are listed). Example::
+(the manual: Sensor care, where each default and its source are listed). Example::
 
     care:
       due_soon_days: 2

@@ -1,6 +1,6 @@
 """What a reloaded config changes against the running one, without I/O.
 
-A reload applies only what changed (README, "Reloading the config"): a bus whose settings
+A reload applies only what changed (the manual, "Reloading the config"): a bus whose settings
 and devices are the same keeps its port and its schedule, a section whose settings are the
 same keeps its connection. This module says which those are; the application
 (:mod:`gateway.app.reload`) acts on it.

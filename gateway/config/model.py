@@ -319,7 +319,7 @@ class DeviceConfig(_Model):
     profile: Annotated[str, Field(min_length=1)]
     poll_interval: Seconds = 1.0  # process values and status
     # Where in poll_interval its values fall due, as a fraction of it (0.25: a quarter of an
-    # interval after the devices at 0); None: spread by the gateway (README: poll phases).
+    # interval after the devices at 0); None: spread by the gateway (the manual: poll phases).
     poll_phase: Annotated[float, Field(ge=0, lt=1)] | None = None
     diagnostics_interval: Seconds = 60.0
     configuration_interval: Seconds = 300.0
@@ -337,9 +337,9 @@ class DeviceConfig(_Model):
     # is refused (RAM and volatile points need no permission).
     flash_writes: list[str] = []
     flash_write_budget: Annotated[int, Field(ge=0, le=1000)] = DEFAULT_FLASH_WRITE_BUDGET
-    # The serial number the sensor must report (README: pinning serial numbers); None: any.
+    # The serial number the sensor must report (the manual: pinning serial numbers); None: any.
     serial_number: Annotated[str | int, BeforeValidator(_serial_number)] | None = None
-    # Sensor care: this device's calibration interval and limits (README: Sensor care).
+    # Sensor care: this device's calibration interval and limits (the manual: Sensor care).
     care: CareSettings | None = None
 
     def get_profile(self) -> Profile:
@@ -501,7 +501,7 @@ class MqttConfig(_Model):
     # When messages are written to the queue on disk: "outage", only while the broker is
     # away (nothing is written while connected: an SD card lasts; a kill loses the messages
     # in flight); "always", each before it is sent (a kill loses nothing handed over, for
-    # some 30 GB a day of writes at 5 sensors). README: What survives a power cut.
+    # some 30 GB a day of writes at 5 sensors). The manual: What survives a power cut.
     persist: Literal["outage", "always"] = "outage"
     discovery: DiscoveryConfig = DiscoveryConfig()
 
@@ -522,7 +522,7 @@ Deadband = Annotated[float, Field(ge=0)]
 
 
 # What a Sparkplug host may get of a device besides the poll groups' points: the care
-# report the gateway keeps of it (README: Sensor care), its metrics under ``care/``.
+# report the gateway keeps of it (the manual: Sensor care), its metrics under ``care/``.
 CARE_GROUP: Final = "care"
 _SPARKPLUG_GROUPS: Final = (*(g.value for g in PollGroup), CARE_GROUP)
 
@@ -542,7 +542,7 @@ SparkplugGroups = Annotated[list[SparkplugGroup], Field(min_length=1)]
 
 
 class SparkplugConfig(_Model):
-    """Sparkplug B: the gateway as an edge node, beside the plain topics (README: Sparkplug B).
+    """Sparkplug B: the gateway as an edge node, beside the plain topics (the manual: Sparkplug B).
 
     It connects to the broker of ``mqtt:`` (host, port, credentials, TLS, keep-alive) with a
     client of its own, whose last will is the NDEATH; ``mqtt.enabled: false`` leaves it on.
@@ -577,7 +577,7 @@ class SparkplugConfig(_Model):
     host_wait_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
     # A host's STATE online or a rebirth request reaches every edge node of a plant at
     # once: each waits a random time up to this before its births. 0 (the default, one
-    # gateway): at once; a fleet sets a few seconds (README: A plant of many cabinets).
+    # gateway): at once; a fleet sets a few seconds (the manual: A plant of many cabinets).
     birth_delay_max_s: Annotated[float, Field(ge=0, le=60)] = 0.0
 
     def server_list(self, mqtt: MqttConfig) -> list[MqttServer]:
@@ -605,7 +605,7 @@ PrometheusGroups = Annotated[list[PrometheusGroup], Field(min_length=1)]
 
 
 class PrometheusConfig(_Model):
-    """Where ``/metrics`` and ``/healthz`` are served, and what they carry (README: Prometheus).
+    """Where ``/metrics`` and ``/healthz`` are served, and what they carry (the manual: Prometheus).
 
     ``groups`` are the poll groups whose points are series (``device_groups`` per device):
     process values and status by default. Diagnostics, configuration and identity are
@@ -693,7 +693,7 @@ class ClockConfig(_Model):
     ``set-clock`` and every write of a calibration date stamp are refused until the kernel
     holds the host clock synchronised (NTP: systemd-timesyncd, chrony), since a Raspberry
     Pi boots with the time it last saved. ``trust_unsynchronised: true`` is for a plant
-    without time sync whose clock is set by hand (README: A clock you can trust)::
+    without time sync whose clock is set by hand (the manual: A clock you can trust)::
 
         clock: {trust_unsynchronised: true}
     """

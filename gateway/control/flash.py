@@ -14,7 +14,7 @@ counts go to the metrics as :class:`~gateway.shared.state.FlashCounts`):
    :class:`FlashLedger` that survives restarts. A wall clock stepped across midnight
    (NTP correcting a Raspberry Pi's boot time, an operator) neither resets a day's count
    nor opens a second budget: the writes of this run since the day's midnight, measured
-   back from now on the monotonic clock, count as well (README: A clock you can trust).
+   back from now on the monotonic clock, count as well (the manual: A clock you can trust).
 
 Record a write in the ledger *before* sending it: a write that timed out may still have
 reached the flash, so attempts are what count; and the record is on the disk itself before

@@ -186,7 +186,7 @@ def discovery_messages(
     return messages
 
 
-# Sensor care's entities (README: Sensor care), all read from the retained care document
+# Sensor care's entities (the manual: Sensor care), all read from the retained care document
 # ``{base}/{device}/care``, all in the diagnostic category: what the sensor needs, not what
 # it measures. Key -> (component, config without the topics).
 CARE_TOPIC_SUFFIX: Final = "care"

@@ -14,7 +14,7 @@ the failure is logged once with the path and the cause and kept in :attr:`health
 every :data:`RETRY_S` the file is opened afresh and what waited in memory is written
 (a file system that was unmounted, checked and mounted again is then the one written).
 
-The settings, and why (README: What survives a power cut): the write-ahead log
+The settings, and why (the manual: What survives a power cut): the write-ahead log
 (``journal_mode=WAL``) with ``synchronous=NORMAL``: a commit is one write of the log,
 without waiting for the disk, which a kill of the process never loses and a power cut
 never turns into a damaged file; what the disk had not been given yet is lost at a power

@@ -335,7 +335,7 @@ class GatewayState:
     sparkplug: SparkplugStatus = field(default_factory=SparkplugStatus)
     web: WebStatus = field(default_factory=WebStatus)
     config: ConfigStatus = field(default_factory=ConfigStatus)
-    # Shared, not copied by a snapshot: it keeps its own lock (sensor care, README).
+    # Shared, not copied by a snapshot: it keeps its own lock (sensor care, the manual).
     care: CareBook = field(default_factory=CareBook)
     # Shared, not copied by a snapshot: it keeps its own lock (the files of state_dir).
     storage: StorageStatus = field(default_factory=StorageStatus)

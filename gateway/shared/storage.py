@@ -9,7 +9,7 @@ loop; the metrics and ``/healthz`` read it from their own thread through
 :class:`StorageStatus`, which also asks the file system (:func:`directory_condition`)
 how much room is left, so a disk that fills up is seen before the first write fails.
 
-The SQLite settings of each store, and why, are in the README (What survives a power cut).
+The SQLite settings of each store, and why, are in the manual (What survives a power cut).
 """
 
 from __future__ import annotations

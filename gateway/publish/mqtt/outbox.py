@@ -11,7 +11,7 @@ the broker is away (and what was in flight when a session ended); while connecte
 is written, which an SD card lives on for years, and a kill loses the messages in flight
 (those handed over in the last milliseconds). ``always``: every message, as it is handed
 over and before it is sent, deleted there once acknowledged; a kill or a crash loses
-nothing that was handed over, for some 60 KB written per poll cycle (README: What
+nothing that was handed over, for some 60 KB written per poll cycle (the manual: What
 survives a power cut). Either way, what waits on disk is sent after a restart or when
 the broker is back, first, in order, before anything newer.
 """

@@ -8,7 +8,7 @@ Before, a value kept the sensor's unit in its name (``gateway_cell_current_nanoa
 again beside the new ones, with the values as the sensor sent them, so that dashboards and
 alerts can move one at a time; the next release drops them.
 
-:func:`renames` lists every family that changed, for the migration note (README) and
+:func:`renames` lists every family that changed, for the migration note (the manual) and
 docs/metrics.md, which the tests compare with it.
 """
 
