@@ -102,8 +102,9 @@ class Poller:
         """Plan, run and report one poll of ``state``."""
         self.lateness.mark(now)
         plan = self.plan(state, now, slow=slow)
+        # Run as planned: the plan, not the caller's arguments, says what and how.
         samples = await self.transactions.read_plan(
-            state, plan.blocks, yield_to_values=self._values_due if slow else None
+            plan.state, plan.blocks, yield_to_values=self._values_due if plan.slow else None
         )
         self._report_late(plan, samples)
         # Only a pinned device's samples wait on its identity: the others go as they are.
