@@ -8,6 +8,7 @@ that points up is a dependency that points up.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 from pathlib import Path
 
@@ -91,6 +92,12 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
+@functools.cache
+def _parsed(source: str) -> ast.Module:
+    """The syntax tree of a module's text, parsed once for all the tests that read it."""
+    return ast.parse(source)
+
+
 def _imports(module: str, source: str | None = None) -> list[tuple[int, str]]:
     """Every ``(line, imported name)`` in the module, wherever the import statement stands.
 
@@ -98,7 +105,7 @@ def _imports(module: str, source: str | None = None) -> list[tuple[int, str]]:
     """
     path = MODULES[module]
     text = path.read_text(encoding="utf-8") if source is None else source
-    tree = ast.parse(text, filename=str(path))
+    tree = _parsed(text)
     found: list[tuple[int, str]] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -280,7 +287,7 @@ def _measured_debt() -> set[str]:
         name = str(path.relative_to(PACKAGE).with_suffix(""))
         if source.count("\n") > MODULE_LINES_MAX:
             found.add(name)
-        for node in ast.walk(ast.parse(source)):
+        for node in ast.walk(_parsed(source)):
             if not isinstance(node, ast.ClassDef) or node.end_lineno is None:
                 continue
             if node.end_lineno - node.lineno + 1 > CLASS_LINES_MAX:
@@ -353,7 +360,7 @@ def _part_writes(source: str) -> list[tuple[int, str]]:
     A method of the part itself (``state.holds.hold_until(...)``) is asking, not writing;
     names bound to a part or to one of its fields are followed.
     """
-    tree = ast.parse(source)
+    tree = _parsed(source)
     parts, fields = _bindings(tree)
     writes: list[tuple[int, str]] = []
     for node in ast.walk(tree):
