@@ -70,7 +70,7 @@ def _describe(exc: ValidationError) -> str:
 # libyaml's parser when PyYAML was built with it (its wheels are): the same safe subset,
 # a tenth of the time. The profiles are read at every start of the gateway and of each
 # command that names a sensor, where the pure-Python parser took a quarter of a second.
-_SAFE_LOADER: type[yaml.SafeLoader] = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+_SAFE_LOADER = yaml.CSafeLoader if yaml.__with_libyaml__ else yaml.SafeLoader
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:

@@ -25,6 +25,7 @@ from gateway.profiles import (
     builtin_profiles,
     get_profile,
     load_profiles,
+    loader,
 )
 from gateway.profiles.loader import DATA_DIR
 from gateway.wire import codec
@@ -413,6 +414,17 @@ def _edit_point(directory: Path, file: str, name: str, changes: dict[str, object
 
 def test_copied_data_loads(data_copy: Path) -> None:
     assert set(load_profiles(data_copy)) == PROFILE_IDS
+
+
+def test_the_profiles_read_the_same_with_pyyamls_own_parser(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """libyaml's parser reads the profiles where PyYAML has it; where it has not (built
+    without it), its pure-Python parser must read the same profiles."""
+    assert loader._SAFE_LOADER is yaml.CSafeLoader
+    with_libyaml = load_profiles(DATA_DIR)
+    monkeypatch.setattr(loader, "_SAFE_LOADER", yaml.SafeLoader)
+    assert load_profiles(DATA_DIR) == with_libyaml
 
 
 @pytest.mark.parametrize(
