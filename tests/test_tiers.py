@@ -57,6 +57,17 @@ def test_a_need_used_without_its_marker_is_named_with_what_used_it() -> None:
     assert tiers.failure(Marked("tests/x.py::test_z"), {}) is None  # type: ignore[arg-type]
 
 
+def test_a_paired_test_that_is_not_timing_is_named() -> None:
+    """``paired`` orders a test beside one other within the timing step: alone, it would
+    run three at a time beside any test of the first step."""
+    item = Marked("tests/x.py::test_y", {"line", "paired"})
+    assert tiers.failure(item, {"line": ["a pseudo-terminal"]}) == (  # type: ignore[arg-type]
+        "tests/x.py::test_y is marked paired but not timing: add @pytest.mark.timing"
+    )
+    both = Marked("tests/x.py::test_y", {"line", "paired", "timing"})
+    assert tiers.failure(both, {"line": ["a pseudo-terminal"]}) is None  # type: ignore[arg-type]
+
+
 @pytest.mark.line
 def test_a_pseudo_terminal_opened_by_a_test_is_noted_as_a_line() -> None:
     master, slave = os.openpty()
@@ -74,4 +85,4 @@ def test_every_need_the_quick_tier_leaves_out_is_a_declared_marker(
     pytestconfig: pytest.Config,
 ) -> None:
     declared = {line.split(":", 1)[0] for line in pytestconfig.getini("markers")}
-    assert set(tiers.NEEDS) | {"timing"} <= declared
+    assert set(tiers.NEEDS) | {"timing", "paired"} <= declared

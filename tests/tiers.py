@@ -12,9 +12,12 @@ not declare fails, naming the marker it lacks and what it used. What a process t
 started does on its own (``gateway run`` opening its port) is that process's: the test
 started the simulator or the broker it talks to, and that is what the guard sees.
 
-One more marker is not a need but an order: ``timing`` marks the tests that hold a line, a
-sensor or the gateway's CPU to times, and those whose brokers take the machine's cores (a
-three-node cluster), which ``scripts/test`` runs after the others, alone.
+Two more markers are not needs but an order: ``timing`` marks the tests that hold a line,
+a sensor or the gateway's CPU to times, and those whose brokers take the machine's cores (a
+three-node cluster), which ``scripts/test`` runs after the others, alone. ``paired`` marks
+those of them that sleep through most of their time and follow the machine's pace as they
+run (kill windows measured, rounds that go on until there is enough to check): they run
+two at a time, with nothing else beside them. A ``paired`` test must be ``timing`` too.
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ MARKERS: Final[dict[str, str]] = {
     "root": "mounts, loop devices, network namespaces, packet filters",
     "timing": "holds a line, a sensor or the gateway's CPU to times, or takes the machine's"
     " cores (a broker cluster): runs after the others, alone (an order, not a need)",
+    "paired": "a timing test that mostly sleeps and follows the machine's pace as it runs:"
+    " two of these run side by side, nothing else beside them (an order, not a need)",
 }
 NEEDS: Final = ("line", "broker", "browser", "podman", "root")  # what the quick tier leaves out
 # Where to note every test's needs as JSON lines (nodeid, used), for a survey of the suite.
@@ -181,7 +186,10 @@ def undeclared(item: pytest.Item, used: dict[str, list[str]]) -> list[str]:
 
 
 def failure(item: pytest.Item, used: dict[str, list[str]]) -> str | None:
-    """Why ``item`` fails its markers: each need used but not declared, or None."""
+    """Why ``item`` fails its markers: each need used but not declared, or an order that
+    would put it beside others (``paired`` without ``timing``); else None."""
+    if item.get_closest_marker("paired") and not item.get_closest_marker("timing"):
+        return f"{item.nodeid} is marked paired but not timing: add @pytest.mark.timing"
     missing = undeclared(item, used)
     if not missing:
         return None
