@@ -472,6 +472,9 @@ def check_count(route: Route, document: dict[str, object], traffic: Traffic, *, 
     return outcome
 
 
+_NO_ANSWER: Final = ": no answer of "  # a timeout's reason (line/transports/answer.py)
+
+
 def check_writes(
     router: CommandRouter,
     route: Route,
@@ -511,7 +514,10 @@ def check_writes(
             assert len(accepted) == 1, mine
             assert accepted[0].address == point.address
             assert route.name in accepted[0].points
-        elif faulty and outcome == "failed":  # written once at most, to that point
+        elif outcome == "failed" and (faulty or _NO_ANSWER in str(document["reason"])):
+            # Written once at most, to that point: the answer was lost (a faulty line), or
+            # came after the gateway stopped waiting (the simulator held up on a loaded
+            # machine: an H10 write answered after 0.19 s, seen once beside the suite).
             assert len(accepted) <= 1, mine
             assert all(record.address == point.address for record in accepted), mine
         else:  # failed (the sensor refused) or unchanged
