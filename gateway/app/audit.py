@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from gateway.config import GatewayConfig
     from gateway.control.writes import SafeWriter
     from gateway.profiles import Profile
+    from gateway.publish.message import Message
     from gateway.publish.mqtt import MqttSink
     from gateway.records import Record
     from gateway.records.verification import AcceptanceRule
@@ -103,8 +104,11 @@ class AuditTrail:
         self.store.listen(self._to_care)
         mqtt = self._mqtt()
         if mqtt is not None:
-            base = self._config().mqtt.base_topic
-            mqtt.outbox.enqueue([head_message(base, self.store.head)])
+            mqtt.outbox.enqueue(self.retained())
+
+    def retained(self) -> list[Message]:
+        """What the records keep retained on MQTT: the chain's head (for a server without it)."""
+        return [head_message(self._config().mqtt.base_topic, self.store.head)]
 
     async def run(self) -> None:
         """Every few seconds: the host clock watched, other processes' records caught up."""

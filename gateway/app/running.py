@@ -103,7 +103,11 @@ class RunningGateway:
             from gateway.publish.mqtt import MqttSink  # noqa: PLC0415 - aiomqtt and paho with it
 
             self.mqtt = MqttSink(
-                config.mqtt, state, state_dir=self.state_dir, publish=publish_settings(config)
+                config.mqtt,
+                state,
+                state_dir=self.state_dir,
+                publish=publish_settings(config),
+                retained_also=self.audit.retained,
             )
         self.sparkplug: SparkplugSink | None = (
             sparkplug_sink(config, state) if config.sparkplug.enabled else None
@@ -332,7 +336,11 @@ class RunningGateway:
             from gateway.publish.mqtt import MqttSink  # noqa: PLC0415 - aiomqtt and paho with it
 
             self.mqtt = MqttSink(
-                new.mqtt, self.state, state_dir=self.state_dir, publish=publish_settings(new)
+                new.mqtt,
+                self.state,
+                state_dir=self.state_dir,
+                publish=publish_settings(new),
+                retained_also=self.audit.retained,
             )
             for worker in self.workers.values():
                 worker.sinks.append(self.mqtt)

@@ -54,6 +54,21 @@ def test_the_newcomer_stands_down_and_the_holder_is_untouched() -> None:
     assert holder.judge(held.payload(), retained=False) == []
 
 
+def test_a_will_saying_offline_while_connected_is_answered_online() -> None:
+    guard = IdentityGuard("gw", "gateway-x", start_id="a1")
+    first_connection(guard)
+    # Retained, at the subscription: the last run's word, before this session's online.
+    assert guard.answer_status(b"offline", retained=True) == []
+    assert guard.answer_status(b"online", retained=False) == []
+    (answer,) = guard.answer_status(b"offline", retained=False)  # another client's will
+    assert (answer.topic, answer.payload, answer.qos, answer.retain) == (
+        "gw/status",
+        b"online",
+        1,
+        True,
+    )
+
+
 def test_a_claim_read_retained_at_a_reconnection_is_defended() -> None:
     holder = IdentityGuard("gw", "gateway-x", start_id="a1")
     first_connection(holder)

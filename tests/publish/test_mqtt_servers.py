@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from typing import TYPE_CHECKING
 
+import paho.mqtt.client as paho
 import pytest
+from paho.mqtt.enums import CallbackAPIVersion
 
 from tests.mqtt_broker import Broker, Recorder, recording
 from tests.nats_cluster import retained_on
@@ -46,6 +49,21 @@ def brokers(tmp_path: Path, *names: str) -> list[Broker]:
         directory.mkdir()
         made.append(Broker(directory))
     return made
+
+
+def vanish_leaving_a_will(port: int, topic: str, payload: str) -> None:
+    """A client that connects with a retained will and closes its socket without a
+    DISCONNECT: the broker publishes the will."""
+    client = paho.Client(CallbackAPIVersion.VERSION2, client_id="vanishing")
+    client.will_set(topic, payload, qos=1, retain=True)
+    client.connect("127.0.0.1", port, keepalive=60)
+    deadline = time.monotonic() + 5
+    while not client.is_connected():
+        assert time.monotonic() < deadline, "no CONNACK"
+        client.loop(timeout=0.1)
+    sock = client.socket()
+    assert sock is not None
+    sock.close()
 
 
 def seqs(*recorders: Recorder) -> list[int]:
@@ -152,9 +170,56 @@ async def test_a_copied_config_stands_down_and_the_first_gateway_publishes_on(
             await eventually(
                 lambda: json.loads(seen.on("gw/owner")[-1])["start_id"] == holder, within_s=10
             )
-            assert seen.on("gw/status")[-1] == "online"
+            # What the second may have written over before it stood down (its will's
+            # offline too, if its connection closed uncleanly) is the first's again.
+            head_of = first.writes.records_head
+            assert head_of is not None
+            head = head_of()
+            wanted = {"gw/status", "gw/records/head", "gw/basin/availability"}
+            # The watcher gets every message in the broker's order: the last of a topic is
+            # what is retained.
+            await eventually(
+                lambda: (
+                    seen.on("gw/status")[-1] == "online"
+                    and json.loads(seen.on("gw/records/head")[-1])["hash"] == head.hash
+                ),
+                within_s=10,
+            )
+            node = ("127.0.0.1", broker.port)
+            retained = await retained_on(node, ["gw/#"], wanted, within_s=5)
+            assert retained["gw/status"] == b"online"
+            assert json.loads(retained["gw/records/head"])["seq"] == head.seq
+            assert retained["gw/basin/availability"] == b"online"
     print(f"stood down after {stood_down_s:.2f} s ({client_ids} client id)")  # noqa: T201
     assert stood_down_s < 60
+
+
+@pytest.mark.line
+@pytest.mark.broker
+async def test_an_offline_said_for_a_connected_gateway_is_answered_online(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """Another client's last will on ``{base}/status`` (a copied config's gateway whose
+    connection closed uncleanly after it stood down) would leave Home Assistant showing a
+    running gateway's entities unavailable: the gateway says ``online`` again."""
+    (tmp_path / "cab").mkdir()
+    text = config(tmp_path / "cab", [broker], extra=", client_id: cab-1")
+    async with (
+        simulated(tmp_path / "cab"),
+        recording(broker.port, "gw/status", name="watcher") as seen,
+        gateway(text) as state,
+    ):
+        await eventually(lambda: state.mqtt.connected, within_s=10)
+        await seen.wait_for("gw/status", "online")
+        said = len(seen.on("gw/status"))
+        await asyncio.to_thread(vanish_leaving_a_will, broker.port, "gw/status", "offline")
+        await seen.wait_for("gw/status", "offline", skip=said)
+        await seen.wait_for("gw/status", "online", within_s=5, skip=said + 1)
+        node = ("127.0.0.1", broker.port)
+        assert (await retained_on(node, ["gw/status"], {"gw/status"}, within_s=5)) == {
+            "gw/status": b"online"
+        }
+        assert seen.on("gw/status")[said:] == ["offline", "online"]  # answered once
 
 
 @pytest.mark.line
@@ -163,8 +228,8 @@ async def test_the_next_server_gets_the_retained_discovery_availability_and_valu
     tmp_path: Path,
 ) -> None:
     """Separate servers share no retained messages: after a switch the gateway sends its
-    discovery configs and availability again at once, and every value at the next cycle,
-    even one published on change only (the simulator's values do not change)."""
+    discovery configs, availability and records head again at once, and every value at the
+    next cycle, even one published on change only (the simulator's values do not change)."""
     a, b = brokers(tmp_path, "a", "b")
     listed = ", ".join(f"{{host: 127.0.0.1, port: {x.port}}}" for x in (a, b))
     text = (
@@ -190,7 +255,7 @@ async def test_the_next_server_gets_the_retained_discovery_availability_and_valu
             await eventually(
                 lambda: mqtt.connected and mqtt.server.endswith(f":{a.port}"), within_s=10
             )
-            values = {"gw/basin/availability", "gw/basin/concentration"}
+            values = {"gw/basin/availability", "gw/basin/concentration", "gw/records/head"}
             await eventually(lambda: all(seen_a.on(t) for t in values), within_s=10)
             await eventually(lambda: seen_a.on("gw/basin/care"), within_s=10)  # care's configs too
             configs = {m.topic for m in seen_a.messages if m.topic.startswith("homeassistant/")}
@@ -207,6 +272,8 @@ async def test_the_next_server_gets_the_retained_discovery_availability_and_valu
             assert on_b["gw/basin/availability"] == b"online"
             assert on_b["gw/basin/concentration"] == on_a["gw/basin/concentration"]
             assert all(on_b[t] == on_a[t] for t in configs)  # the same configs, byte for byte
+            head_a, head_b = (json.loads(x["gw/records/head"]) for x in (on_a, on_b))
+            assert (head_b["seq"], head_b["hash"]) == (head_a["seq"], head_a["hash"])
     finally:
         for x in (a, b):
             x.stop()

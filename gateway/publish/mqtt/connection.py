@@ -25,7 +25,7 @@ import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
 
 from gateway.publish.mqtt.client import BrokerClient
-from gateway.publish.mqtt.identity import IdentityGuard, IdentityTakenError
+from gateway.publish.mqtt.identity import CLAIM_ANSWER_S, IdentityGuard, IdentityTakenError
 from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, SUBSCRIBE_TIMEOUT_S, WINDOW
 from gateway.publish.mqtt.servers import ServerWalk
 
@@ -88,6 +88,7 @@ class Connection:
         self.listeners = listeners
         self.base = settings.base_topic
         self._handling: set[asyncio.Task[None]] = set()
+        self._claim_echoed = asyncio.Event()  # this session's claim read back (identity)
         self._rng = random.Random()  # noqa: S311 - jitter only
         self._failures_in_a_row = 0
         self.walk = ServerWalk(settings.server_list(), return_to_first_s=settings.return_to_first_s)
@@ -217,8 +218,10 @@ class Connection:
         # backlog drains in the session, while commands are already taken.
         for topic_filter in self._filters():
             await client.subscribe(topic_filter, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
-        # The owner marker: read (a retained one arrives first), then claimed.
+        # The owner marker: read (a retained one arrives first), then claimed; the status
+        # watched for another client's will (publish/mqtt/identity).
         await client.subscribe(self.identity.topic, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
+        await client.subscribe(self.identity.status_topic, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
         await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
         claim = self.identity.claim()
         await client.publish(claim.topic, claim.payload, qos=1, retain=True)
@@ -250,10 +253,13 @@ class Connection:
 
     async def _session(self, client: aiomqtt.Client) -> None:
         """Send, and take messages for the listeners, until the connection fails."""
+        self._claim_echoed.clear()
         try:
             async with asyncio.TaskGroup() as group:
-                group.create_task(self.outbox.send_forever(client))
                 group.create_task(self._receive_forever(client))
+                if self.identity.newcomer:
+                    await self._until_the_claim_stands()
+                group.create_task(self.outbox.send_forever(client))
         except* (IdentityTakenError, aiomqtt.MqttError) as ended:
             # One handler for both: a stand-down as the connection drops (seen) made two
             # handlers raise one each, which left as a group that ended the task. The
@@ -263,6 +269,20 @@ class Connection:
                 ended.exceptions[0],
             )
             raise first from None
+
+    async def _until_the_claim_stands(self) -> None:
+        """At the run's first connection: nothing published until a live holder could answer.
+
+        The claim read back from the broker has reached every subscriber of the marker, a
+        live holder too; :data:`CLAIM_ANSWER_S` more is its time to answer. A stand-down
+        read meanwhile ends the session (the receiver raises). Without the echo (a broker
+        whose ACL lets this client write the marker but not read it) the wait ends after a
+        publish's timeout.
+        """
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(CLIENT_TIMEOUT_S):
+                await self._claim_echoed.wait()
+        await asyncio.sleep(CLAIM_ANSWER_S)
 
     def _filters(self) -> list[str]:
         """The listeners' topic filters, each once."""
@@ -281,7 +301,11 @@ class Connection:
             payload = message.payload
             data = payload if isinstance(payload, bytes) else str(payload or "").encode()
             if topic.value == self.identity.topic:
-                self.outbox.enqueue(self.identity.judge(data, retained=message.retain))
+                self._judge(client, data, retained=message.retain)
+                continue
+            if topic.value == self.identity.status_topic:
+                answer = self.identity.answer_status(data, retained=message.retain)
+                say_at_once(client, answer, self._handling)
                 continue
             for listener in self.listeners:
                 if any(topic.matches(f) for f in listener.subscriptions()):
@@ -290,6 +314,19 @@ class Connection:
                     )
                     self._handling.add(task)
                     task.add_done_callback(self._handling.discard)
+
+    def _judge(self, client: aiomqtt.Client, payload: bytes, *, retained: bool) -> None:
+        """The identity guard's answer to a marker, at once; a defence resends the retained.
+
+        The newcomer may have written over this gateway's retained messages (availability,
+        discovery, the records head) had its wait been too short: they go again, queued.
+        """
+        answer = self.identity.judge(payload, retained=retained)
+        if self.identity.echoed:
+            self._claim_echoed.set()
+        say_at_once(client, answer, self._handling)
+        if answer and self._for_a_new_server is not None:
+            self.outbox.enqueue(self._for_a_new_server())
 
     async def _handle(
         self, listener: Listener, topic: str, payload: bytes, *, retained: bool
@@ -302,6 +339,33 @@ class Connection:
             return
         if replies:
             self.outbox.enqueue(replies)
+
+
+def say_at_once(
+    client: aiomqtt.Client, messages: list[Message], tasks: set[asyncio.Task[None]]
+) -> None:
+    """The identity's messages beside the queue, not behind a backlog (a task kept in ``tasks``).
+
+    A newcomer waits for the answer; a lost one is of no use later (the session's end ends
+    it, and the next session claims again).
+    """
+    if not messages:
+        return
+
+    async def say() -> None:
+        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            for message in messages:
+                await client.publish(
+                    message.topic,
+                    message.payload,
+                    qos=message.qos,
+                    retain=message.retain,
+                    timeout=CLIENT_TIMEOUT_S,
+                )
+
+    task = asyncio.create_task(say())
+    tasks.add(task)
+    task.add_done_callback(tasks.discard)
 
 
 def broker_client(

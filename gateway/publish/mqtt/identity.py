@@ -22,6 +22,21 @@ host, process id and the wall time it started. What it then reads there decides:
   not connect again until its config is fixed (a reload or a restart). Two that claimed
   at the same instant each defend; the larger start id stands down.
 
+At its first connection a run publishes nothing but ``online`` and its claim until the
+claim has come back from the broker and :data:`CLAIM_ANSWER_S` more has passed: a live
+holder's answer reaches it within that, and the newcomer stands down having written over
+none of the holder's retained messages (its backlog, availability, values and records
+head). The identity's messages (a defence, ``online`` again) go at once, never behind
+a backlog, so that a holder draining an outage's queue answers in time.
+
+A defence also sends again what the newcomer may have written over in the moment before
+it stood down (the retained availability, discovery configs and records head: the
+connection's ``for_a_new_server``). And the holder watches its own ``{base}/status``: an
+``offline`` said there while it is connected is another client's last will (a newcomer
+that stood down and whose connection closed uncleanly, seen with mosquitto 2.0.11, or a
+copied config's session taken over), and would show every entity of this gateway as
+unavailable in Home Assistant: the holder says ``online`` again.
+
 The marker is plain MQTT, read by any broker: no broker feature (MQTT 5's "session taken
 over" reason) is needed, and the take-over loop of a shared client id ends with the
 second connection of the newcomer.
@@ -43,6 +58,10 @@ from gateway.publish.message import Message
 _LOGGER = logging.getLogger(__name__)
 
 OWNER_LEVEL: Final = "owner"  # {base}/owner
+# A live holder's time to answer a claim once it has come back from the broker: its event
+# loop's turn and one message through the broker (a few milliseconds on a LAN; a loaded
+# 2-core machine has shown tens). Waited at a run's first connection only.
+CLAIM_ANSWER_S: Final = 1.0
 
 
 class IdentityTakenError(Exception):
@@ -105,6 +124,7 @@ class IdentityGuard:
         """Claim ``base`` as ``client_id``; a random start id unless one is given (tests)."""
         self.base = base
         self.topic = f"{base}/{OWNER_LEVEL}"
+        self.status_topic = f"{base}/status"
         self.mine = Claim(
             start_id=start_id or uuid.uuid4().hex,
             client_id=client_id,
@@ -113,16 +133,20 @@ class IdentityGuard:
             since=datetime.now(UTC).isoformat(timespec="seconds"),
         )
         self.connections = 0  # sessions begun, this one included
+        self.echoed = False  # this session's claim read back from the broker
         self.contested: set[str] = set()  # start ids this run defended against
 
     def claim(self) -> Message:
         """The claim published at every connection (retained, QoS 1)."""
         self.connections += 1
+        self.echoed = False
         return Message(topic=self.topic, payload=self.mine.payload(), qos=1, retain=True)
 
     def judge(self, payload: bytes, *, retained: bool) -> list[Message]:
         """What to publish in answer to a marker read; raises if this run must stand down."""
         other = Claim.parse(payload)
+        if other is not None and other.start_id == self.mine.start_id:
+            self.echoed = True
         if other is None or other.start_id == self.mine.start_id:
             return []
         if other.contested_by == self.mine.start_id:
@@ -139,6 +163,33 @@ class IdentityGuard:
             return []  # the previous holder, maybe a dead run: a live one will answer
         return self._defend(other)
 
+    @property
+    def newcomer(self) -> bool:
+        """At the run's first connection: a live holder may yet answer this claim.
+
+        At a later one this run held the identity first (or stood down already): a claim
+        read then is defended, never yielded to, so nothing need wait.
+        """
+        return self.connections <= 1
+
+    def answer_status(self, payload: bytes, *, retained: bool) -> list[Message]:
+        """What to publish in answer to ``{base}/status`` read while connected.
+
+        A retained ``offline`` arrives at the subscription, before this session says
+        ``online``: nothing to answer. A live one is another client's last will.
+        """
+        if retained or payload != b"offline":
+            return []
+        _LOGGER.warning(
+            "MQTT: 'offline' was said on %s while this gateway is connected (another "
+            "client's last will: a copied config's gateway that stood down?): said online again",
+            self.status_topic,
+        )
+        return [self._online()]
+
+    def _online(self) -> Message:
+        return Message.text(self.status_topic, "online", qos=1, retain=True)
+
     def _defend(self, other: Claim) -> list[Message]:
         self.contested.add(other.start_id)
         _LOGGER.error(
@@ -151,5 +202,5 @@ class IdentityGuard:
         defence = replace(self.mine, contested_by=other.start_id)
         return [
             Message(topic=self.topic, payload=defence.payload(), qos=1, retain=True),
-            Message.text(f"{self.base}/status", "online", qos=1, retain=True),
+            self._online(),
         ]

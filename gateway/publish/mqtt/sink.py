@@ -22,7 +22,7 @@ from gateway.publish.store import MessageStore
 
 if TYPE_CHECKING:
     import random
-    from collections.abc import Iterable, Mapping, Sequence
+    from collections.abc import Callable, Iterable, Mapping, Sequence
     from pathlib import Path
 
     from gateway.config import MqttConfig, PublishSettings
@@ -63,14 +63,17 @@ class MqttSink:
         state_dir: Path,
         publish: Mapping[tuple[str, str], PublishSettings] | None = None,
         listeners: Sequence[Listener] = (),
+        retained_also: Callable[[], list[Message]] | None = None,
         rng: random.Random | None = None,
     ) -> None:
         """Check the settings that can fail at start (TLS files, the state directory).
 
-        ``rng`` draws the waits before a re-announce (seeded in tests; by default the
-        re-announcer's own).
+        ``retained_also``: the retained messages of other parts (the records' head), sent
+        again with this sink's own where a server may lack them. ``rng`` draws the waits
+        before a re-announce (seeded in tests; by default the re-announcer's own).
         """
         self.state = state
+        self._retained_also = retained_also
         self.state_dir = state_dir
         self.listeners = list(listeners)
         self._build(settings, publish)
@@ -104,8 +107,12 @@ class MqttSink:
         )
 
     def _for_a_new_server(self) -> list[Message]:
-        # The topics of the moment: a reload's reconfigure builds new ones.
-        return self.topics.for_a_new_server()
+        """The retained state again: on another server of the list, or after a defence.
+
+        The topics of the moment: a reload's reconfigure builds new ones.
+        """
+        also = self._retained_also() if self._retained_also is not None else []
+        return self.topics.for_a_new_server() + also
 
     def reconfigure(
         self, settings: MqttConfig, publish: Mapping[tuple[str, str], PublishSettings]
