@@ -69,6 +69,27 @@ def test_a_will_saying_offline_while_connected_is_answered_online() -> None:
     )
 
 
+def test_a_first_connection_awaits_an_answer_only_where_the_marker_named_another_run() -> None:
+    holder = IdentityGuard("gw", "gateway-x", start_id="a1")
+    held = first_connection(holder)
+    # A broker without a marker: the claim comes back, nobody could answer.
+    assert holder.judge(held.payload(), retained=False) == []
+    assert holder.echoed
+    assert not holder.answer_awaited
+    # A newcomer reads the holder's marker (retained) before its own claim comes back.
+    newcomer = IdentityGuard("gw", "gateway-x", start_id="b2")
+    claimed = first_connection(newcomer)
+    assert newcomer.judge(held.payload(), retained=True) == []
+    assert not newcomer.echoed
+    assert newcomer.judge(claimed.payload(), retained=False) == []
+    assert newcomer.echoed
+    assert newcomer.answer_awaited
+    # At a later connection nothing is awaited: this run held the identity first.
+    first_connection(newcomer)
+    assert not newcomer.echoed
+    assert not newcomer.answer_awaited
+
+
 def test_a_claim_read_retained_at_a_reconnection_is_defended() -> None:
     holder = IdentityGuard("gw", "gateway-x", start_id="a1")
     first_connection(holder)

@@ -274,15 +274,16 @@ class Connection:
         """At the run's first connection: nothing published until a live holder could answer.
 
         The claim read back from the broker has reached every subscriber of the marker, a
-        live holder too; :data:`CLAIM_ANSWER_S` more is its time to answer. A stand-down
-        read meanwhile ends the session (the receiver raises). Without the echo (a broker
-        whose ACL lets this client write the marker but not read it) the wait ends after a
-        publish's timeout.
+        live holder too; if the marker named another run, :data:`CLAIM_ANSWER_S` more is
+        its time to answer. A stand-down read meanwhile ends the session (the receiver
+        raises). Without the echo (a broker whose ACL lets this client write the marker but
+        not read it) the wait ends after a publish's timeout.
         """
         with contextlib.suppress(TimeoutError):
             async with asyncio.timeout(CLIENT_TIMEOUT_S):
                 await self._claim_echoed.wait()
-        await asyncio.sleep(CLAIM_ANSWER_S)
+        if self.identity.answer_awaited:
+            await asyncio.sleep(CLAIM_ANSWER_S)
 
     def _filters(self) -> list[str]:
         """The listeners' topic filters, each once."""

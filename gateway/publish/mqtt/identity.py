@@ -23,11 +23,13 @@ host, process id and the wall time it started. What it then reads there decides:
   at the same instant each defend; the larger start id stands down.
 
 At its first connection a run publishes nothing but ``online`` and its claim until the
-claim has come back from the broker and :data:`CLAIM_ANSWER_S` more has passed: a live
+claim has come back from the broker (a round trip) and, if the marker named another run
+(a live holder, or this gateway's own last run), :data:`CLAIM_ANSWER_S` more: a live
 holder's answer reaches it within that, and the newcomer stands down having written over
 none of the holder's retained messages (its backlog, availability, values and records
-head). The identity's messages (a defence, ``online`` again) go at once, never behind
-a backlog, so that a holder draining an outage's queue answers in time.
+head). A broker without a marker (a new one) costs no wait. The identity's messages (a
+defence, ``online`` again) go at once, never behind a backlog, so that a holder draining
+an outage's queue answers in time.
 
 A defence also sends again what the newcomer may have written over in the moment before
 it stood down (the retained availability, discovery configs and records head: the
@@ -134,6 +136,7 @@ class IdentityGuard:
         )
         self.connections = 0  # sessions begun, this one included
         self.echoed = False  # this session's claim read back from the broker
+        self.held_before = False  # another run's claim read retained at the first connection
         self.contested: set[str] = set()  # start ids this run defended against
 
     def claim(self) -> Message:
@@ -160,6 +163,7 @@ class IdentityGuard:
                 )
             return []  # both defended at once: the larger start id stands down, not this one
         if retained and self.connections <= 1:
+            self.held_before = True
             return []  # the previous holder, maybe a dead run: a live one will answer
         return self._defend(other)
 
@@ -171,6 +175,15 @@ class IdentityGuard:
         read then is defended, never yielded to, so nothing need wait.
         """
         return self.connections <= 1
+
+    @property
+    def answer_awaited(self) -> bool:
+        """At the run's first connection the marker named another run: it may answer.
+
+        Read once this session's claim is back (:attr:`echoed`): a retained marker reaches
+        a subscriber before anything published after the subscription.
+        """
+        return self.newcomer and self.held_before
 
     def answer_status(self, payload: bytes, *, retained: bool) -> list[Message]:
         """What to publish in answer to ``{base}/status`` read while connected.
