@@ -186,10 +186,11 @@ def decode(data: bytes) -> DecodedPayload:
 
 
 def _key(number: int, wire: int) -> bytes:
-    return _encode_varint((number << 3) | wire)
+    return encode_varint((number << 3) | wire)
 
 
-def _encode_varint(value: int) -> bytes:
+def encode_varint(value: int) -> bytes:
+    """Base-128, least significant group first: protobuf's varint, and MQTT's remaining length."""
     out = bytearray()
     while True:
         low = value & 0x7F
@@ -200,7 +201,7 @@ def _encode_varint(value: int) -> bytes:
 
 
 def _length_delimited(number: int, data: bytes) -> bytes:
-    return _key(number, 2) + _encode_varint(len(data)) + data
+    return _key(number, 2) + encode_varint(len(data)) + data
 
 
 def command(
@@ -212,26 +213,26 @@ def command(
     Float's value in ``boolean_value`` by naming the type ``Boolean``.
     """
     codes = {name: code for code, name in TYPE_NAMES.items()}
-    out = _key(1, 0) + _encode_varint(timestamp)
+    out = _key(1, 0) + encode_varint(timestamp)
     for who, type_name, value in metrics:
         body = b""
         if isinstance(who, str):
             body += _length_delimited(1, who.encode())
         else:
-            body += _key(2, 0) + _encode_varint(who)
+            body += _key(2, 0) + encode_varint(who)
         if datatype_given:
-            body += _key(4, 0) + _encode_varint(codes[type_name])
+            body += _key(4, 0) + encode_varint(codes[type_name])
         if type_name == "Float":
             body += _key(12, 5) + struct.pack("<f", float(value))  # type: ignore[arg-type]
         elif type_name == "Double":
             body += _key(13, 1) + struct.pack("<d", float(value))  # type: ignore[arg-type]
         elif type_name == "Boolean":
-            body += _key(14, 0) + _encode_varint(int(bool(value)))
+            body += _key(14, 0) + encode_varint(int(bool(value)))
         elif type_name in {"String", "Text"}:
             body += _length_delimited(15, str(value).encode())
         elif type_name in {"Int64", "UInt64", "DateTime"}:
-            body += _key(11, 0) + _encode_varint(int(value) & 0xFFFFFFFFFFFFFFFF)  # type: ignore[call-overload]
+            body += _key(11, 0) + encode_varint(int(value) & 0xFFFFFFFFFFFFFFFF)  # type: ignore[call-overload]
         else:
-            body += _key(10, 0) + _encode_varint(int(value) & 0xFFFFFFFF)  # type: ignore[call-overload]
+            body += _key(10, 0) + encode_varint(int(value) & 0xFFFFFFFF)  # type: ignore[call-overload]
         out += _length_delimited(2, body)
     return out

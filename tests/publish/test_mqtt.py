@@ -25,6 +25,7 @@ from gateway.simulator import SimulatorServer, build_bus, parse_settings
 from tests.mqtt_broker import Broker, TlsFiles, recording
 from tests.publish.prometheus.test_prometheus import sample
 from tests.rigs import ListSink
+from tests.sparkplug_decoder import encode_varint
 from tests.waiting import eventually
 
 if TYPE_CHECKING:
@@ -288,18 +289,8 @@ def _swallowing_answer(kind: int, body: bytes) -> bytes:
     packet_id = body[2 + topic_length : 4 + topic_length]
     answer = b"\x40\x02" + packet_id  # PUBACK: ``online`` and the claim
     if topic.endswith(b"/owner"):  # and the claim to its subscriber
-        answer += bytes([kind]) + _encoded_length(len(body)) + body
+        answer += bytes([kind]) + encode_varint(len(body)) + body
     return answer
-
-
-def _encoded_length(value: int) -> bytes:
-    """MQTT's variable-length integer, written."""
-    out = bytearray()
-    while True:
-        byte, value = value & 0x7F, value >> 7
-        out.append(byte | (0x80 if value else 0))
-        if not value:
-            return bytes(out)
 
 
 async def test_a_broker_that_stops_acknowledging_ends_the_session_and_keeps_the_messages(

@@ -108,7 +108,7 @@ class Connection:
             settings,
             server,
             client_id=self.client_id,
-            will=aiomqtt.Will(f"{self.base}/status", "offline", qos=1, retain=True),
+            will=aiomqtt.Will(self.identity.status_topic, "offline", qos=1, retain=True),
             clean_session=settings.clean_session,
         )
         client.pending_calls_threshold = PENDING_CALLS_WARNING
@@ -203,7 +203,7 @@ class Connection:
     async def _say_offline(self, client: aiomqtt.Client) -> None:
         with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
             async with asyncio.timeout(2):
-                await client.publish(f"{self.base}/status", "offline", qos=1, retain=True)
+                await client.publish(self.identity.status_topic, "offline", qos=1, retain=True)
 
     async def _on_connect(self, client: aiomqtt.Client, server: MqttServer) -> None:
         if self._failures_in_a_row:
@@ -222,7 +222,7 @@ class Connection:
         # watched for another client's will (publish/mqtt/identity).
         await client.subscribe(self.identity.topic, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
         await client.subscribe(self.identity.status_topic, qos=1, timeout=SUBSCRIBE_TIMEOUT_S)
-        await client.publish(f"{self.base}/status", "online", qos=1, retain=True)
+        await client.publish(self.identity.status_topic, "online", qos=1, retain=True)
         claim = self.identity.claim()
         await client.publish(claim.topic, claim.payload, qos=1, retain=True)
         if self._last_server not in (None, server) and self._for_a_new_server is not None:
