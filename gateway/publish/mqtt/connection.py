@@ -44,10 +44,6 @@ _LOGGER = logging.getLogger(__name__)
 # 16 on purpose, so it warns only past the window and the few publishes outside it.
 PENDING_CALLS_WARNING: Final = WINDOW + 4
 BACKOFF_FIRST_S: Final = 0.5
-# The retained state is sent again after a defence at most this often: each newcomer's
-# claim is answered, but a client flooding the marker with claims gets no copy of every
-# discovery config for each.
-RESEND_AFTER_DEFENCE_S: Final = 10.0
 NOT_AUTHORISED: Final = frozenset({4, 5, 134, 135})  # CONNACK: MQTT 3.1.1 4, 5; MQTT 5 134, 135
 
 
@@ -93,7 +89,6 @@ class Connection:
         self.base = settings.base_topic
         self._handling: set[asyncio.Task[None]] = set()
         self._claim_echoed = asyncio.Event()  # this session's claim read back (identity)
-        self._resend_after = 0.0  # monotonic: the retained state sent again after a defence
         self._rng = random.Random()  # noqa: S311 - jitter only
         self._failures_in_a_row = 0
         self.walk = ServerWalk(settings.server_list(), return_to_first_s=settings.return_to_first_s)
@@ -331,10 +326,7 @@ class Connection:
         if self.identity.echoed:
             self._claim_echoed.set()
         say_at_once(client, answer, self._handling)
-        now = time.monotonic()
-        if answer and self._for_a_new_server is not None and now >= self._resend_after:
-            # Once per RESEND_AFTER_DEFENCE_S: a flood of claims is not a flood of configs.
-            self._resend_after = now + RESEND_AFTER_DEFENCE_S
+        if answer and self._for_a_new_server is not None:
             self.outbox.enqueue(self._for_a_new_server())
 
     async def _handle(
