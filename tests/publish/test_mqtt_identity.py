@@ -69,7 +69,7 @@ def test_a_will_saying_offline_while_connected_is_answered_online() -> None:
     )
 
 
-def test_a_first_connection_awaits_an_answer_only_where_the_marker_named_another_run() -> None:
+def test_a_claim_awaits_an_answer_only_where_the_marker_named_another_run() -> None:
     holder = IdentityGuard("gw", "gateway-x", start_id="a1")
     held = first_connection(holder)
     # A broker without a marker: the claim comes back, nobody could answer.
@@ -84,15 +84,24 @@ def test_a_first_connection_awaits_an_answer_only_where_the_marker_named_another
     assert newcomer.judge(claimed.payload(), retained=False) == []
     assert newcomer.echoed
     assert newcomer.answer_awaited
-    # At a later connection nothing is awaited: this run held the identity first.
+    # Thrown off before its wait ended (the holder came back with the same client id): at
+    # the next connection the claim has not stood, the holder's marker is yielded to again.
     first_connection(newcomer)
     assert not newcomer.echoed
+    assert not newcomer.answer_awaited  # nothing read yet in this session
+    assert newcomer.judge(held.payload(), retained=True) == []
+    assert newcomer.answer_awaited
+    # Its wait ended unanswered: the claim stands, nothing is awaited at later connections.
+    newcomer.has_stood()
+    first_connection(newcomer)
+    assert newcomer.judge(held.payload(), retained=True) != []  # defended, not yielded to
     assert not newcomer.answer_awaited
 
 
 def test_a_claim_read_retained_at_a_reconnection_is_defended() -> None:
     holder = IdentityGuard("gw", "gateway-x", start_id="a1")
     first_connection(holder)
+    holder.has_stood()
     first_connection(holder)  # thrown off by a newcomer with the same client id: back again
     other = Claim(start_id="b2", client_id="gateway-x", host="h", pid=1, since="s")
     assert len(holder.judge(other.payload(), retained=True)) == 2

@@ -14,6 +14,7 @@ import json
 import time
 from typing import TYPE_CHECKING
 
+import aiomqtt
 import paho.mqtt.client as paho
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
@@ -219,6 +220,44 @@ async def test_an_offline_said_for_a_connected_gateway_is_answered_online(
             "gw/status": b"online"
         }
         assert seen.on("gw/status")[said:] == ["offline", "online"]  # answered once
+
+
+@pytest.mark.line
+@pytest.mark.broker
+async def test_a_flood_of_claims_and_offlines_is_answered_without_amplifying_it(
+    tmp_path: Path, broker: Broker
+) -> None:
+    """A careless or hostile client publishing claims on ``{base}/owner`` and ``offline``
+    on ``{base}/status`` live: each claim is defended, the retained state goes again once
+    (not once per claim), the status ends ``online`` and the gateway publishes on."""
+    (tmp_path / "cab").mkdir()
+    text = config(tmp_path / "cab", [broker], extra=", client_id: cab-1")
+    async with (
+        simulated(tmp_path / "cab"),
+        recording(broker.port, "gw/#", name="watcher") as seen,
+        gateway(text) as state,
+    ):
+        await eventually(lambda: state.mqtt.connected, within_s=10)
+        await seen.wait_for("gw/basin/availability", "online")
+        availability = len(seen.on("gw/basin/availability"))
+        claims = 50
+        async with aiomqtt.Client("127.0.0.1", broker.port, identifier="flooder") as flooder:
+            for n in range(claims):
+                claim = {"start_id": f"fake{n:03d}", "client_id": "x", "host": "h", "pid": n}
+                await flooder.publish("gw/owner", json.dumps(claim), qos=1)
+                await flooder.publish("gw/status", "offline", qos=1, retain=True)
+
+        def defences() -> list[str]:
+            return [
+                p for p in seen.on("gw/owner") if "fake" in json.loads(p).get("contested_by", "")
+            ]
+
+        await eventually(lambda: len(defences()) == claims, within_s=20)
+        await eventually(lambda: seen.on("gw/status")[-1] == "online", within_s=10)
+        documents = len(seen.on(STATE))
+        await eventually(lambda: len(seen.on(STATE)) >= documents + 3, within_s=10)
+        assert len(seen.on("gw/basin/availability")) <= availability + 1  # sent again once
+        assert state.mqtt.connected
 
 
 @pytest.mark.line

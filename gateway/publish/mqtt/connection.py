@@ -25,7 +25,12 @@ import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
 
 from gateway.publish.mqtt.client import BrokerClient
-from gateway.publish.mqtt.identity import CLAIM_ANSWER_S, IdentityGuard, IdentityTakenError
+from gateway.publish.mqtt.identity import (
+    CLAIM_ANSWER_S,
+    RESEND_AFTER_DEFENCE_S,
+    IdentityGuard,
+    IdentityTakenError,
+)
 from gateway.publish.mqtt.outbox import CLIENT_TIMEOUT_S, SUBSCRIBE_TIMEOUT_S, WINDOW
 from gateway.publish.mqtt.servers import ServerWalk
 
@@ -89,6 +94,7 @@ class Connection:
         self.base = settings.base_topic
         self._handling: set[asyncio.Task[None]] = set()
         self._claim_echoed = asyncio.Event()  # this session's claim read back (identity)
+        self._resend_after = 0.0  # monotonic: the retained state sent again after a defence
         self._rng = random.Random()  # noqa: S311 - jitter only
         self._failures_in_a_row = 0
         self.walk = ServerWalk(settings.server_list(), return_to_first_s=settings.return_to_first_s)
@@ -271,7 +277,7 @@ class Connection:
             raise first from None
 
     async def _until_the_claim_stands(self) -> None:
-        """At the run's first connection: nothing published until a live holder could answer.
+        """Until the run's claim has stood: nothing published until a live holder could answer.
 
         The claim read back from the broker has reached every subscriber of the marker, a
         live holder too; if the marker named another run, :data:`CLAIM_ANSWER_S` more is
@@ -284,6 +290,7 @@ class Connection:
                 await self._claim_echoed.wait()
         if self.identity.answer_awaited:
             await asyncio.sleep(CLAIM_ANSWER_S)
+        self.identity.has_stood()
 
     def _filters(self) -> list[str]:
         """The listeners' topic filters, each once."""
@@ -320,13 +327,17 @@ class Connection:
         """The identity guard's answer to a marker, at once; a defence resends the retained.
 
         The newcomer may have written over this gateway's retained messages (availability,
-        discovery, the records head) had its wait been too short: they go again, queued.
+        discovery, the records head) had its wait been too short: they go again, queued,
+        at most once in :data:`RESEND_AFTER_DEFENCE_S` (a flood of claims is not a flood
+        of discovery configs).
         """
         answer = self.identity.judge(payload, retained=retained)
         if self.identity.echoed:
             self._claim_echoed.set()
         say_at_once(client, answer, self._handling)
-        if answer and self._for_a_new_server is not None:
+        now = time.monotonic()
+        if answer and self._for_a_new_server is not None and now >= self._resend_after:
+            self._resend_after = now + RESEND_AFTER_DEFENCE_S
             self.outbox.enqueue(self._for_a_new_server())
 
     async def _handle(

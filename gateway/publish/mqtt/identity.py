@@ -11,33 +11,38 @@ Each run of the gateway has a random start id. At every connection it subscribes
 host, process id and the wall time it started. What it then reads there decides:
 
 - its own claim: nothing to do;
-- another claim, retained, at its first connection of the run: the previous holder (a
+- another claim, retained, before this run's claim has once stood: the previous holder (a
   dead run of this gateway, or a live other one); this claim replaces it, and a live
   holder will answer;
-- another claim, live, or retained at a later connection (someone claimed while this one
-  was away): this gateway held the identity first: it *defends*, publishing its claim
-  again, naming the other's start id as ``contested_by``, and says ``online`` again;
+- another claim, live, or retained once this run's claim has stood (someone claimed while
+  this one was away): this gateway held the identity first: it *defends*, publishing its
+  claim again, naming the other's start id as ``contested_by``, and says ``online`` again;
 - a claim that names this run's start id as ``contested_by``: another gateway held the
   identity first. This one *stands down*: it logs why, ``/healthz`` says so, and it does
   not connect again until its config is fixed (a reload or a restart). Two that claimed
   at the same instant each defend; the larger start id stands down.
 
-At its first connection a run publishes nothing but ``online`` and its claim until the
-claim has come back from the broker (a round trip) and, if the marker named another run
-(a live holder, or this gateway's own last run), :data:`CLAIM_ANSWER_S` more: a live
-holder's answer reaches it within that, and the newcomer stands down having written over
-none of the holder's retained messages (its backlog, availability, values and records
-head). A broker without a marker (a new one) costs no wait. The identity's messages (a
-defence, ``online`` again) go at once, never behind a backlog, so that a holder draining
-an outage's queue answers in time.
+Until its claim has once *stood* a run publishes nothing but ``online`` and its claim, at
+every connection: the claim must come back from the broker (a round trip) and, if the
+marker named another run (a live holder, or this gateway's own last run),
+:data:`CLAIM_ANSWER_S` more must pass. A live holder's answer reaches it within that, and
+the newcomer stands down having written over none of the holder's retained messages (its
+backlog, availability, values and records head). Every connection, not only the first: a
+newcomer with the holder's client id is thrown off by the holder's return before its wait
+ends, and reads the defence only at its next connection. A broker without a marker (a new
+one) costs no wait. Once the claim has stood the run never yields, and nothing waits. The
+identity's messages (a defence, ``online`` again) go at once, never behind a backlog, so
+that a holder draining an outage's queue answers in time.
 
 A defence also sends again what the newcomer may have written over in the moment before
 it stood down (the retained availability, discovery configs and records head: the
-connection's ``for_a_new_server``). And the holder watches its own ``{base}/status``: an
-``offline`` said there while it is connected is another client's last will (a newcomer
-that stood down and whose connection closed uncleanly, seen with mosquitto 2.0.11, or a
-copied config's session taken over), and would show every entity of this gateway as
-unavailable in Home Assistant: the holder says ``online`` again.
+connection's ``for_a_new_server``), at most once in :data:`RESEND_AFTER_DEFENCE_S`: each
+claim is answered, but a client flooding the marker gets no copy of every discovery config
+for each. And the holder watches its own ``{base}/status``: an ``offline`` said there
+while it is connected is another client's last will (a newcomer that stood down and whose
+connection closed uncleanly, seen with mosquitto 2.0.11, or a copied config's session
+taken over), and would show every entity of this gateway as unavailable in Home
+Assistant: the holder says ``online`` again.
 
 The marker is plain MQTT, read by any broker: no broker feature (MQTT 5's "session taken
 over" reason) is needed, and the take-over loop of a shared client id ends with the
@@ -62,8 +67,11 @@ _LOGGER = logging.getLogger(__name__)
 OWNER_LEVEL: Final = "owner"  # {base}/owner
 # A live holder's time to answer a claim once it has come back from the broker: its event
 # loop's turn and one message through the broker (a few milliseconds on a LAN; a loaded
-# 2-core machine has shown tens). Waited at a run's first connection only.
+# 2-core machine has shown tens). Waited until the run's claim has once stood.
 CLAIM_ANSWER_S: Final = 1.0
+# After a defence the retained state is sent again at most this often (the connection's
+# clock): a newcomer's claim is answered at once, a flood of claims only claim by claim.
+RESEND_AFTER_DEFENCE_S: Final = 10.0
 
 
 class IdentityTakenError(Exception):
@@ -136,13 +144,15 @@ class IdentityGuard:
         )
         self.connections = 0  # sessions begun, this one included
         self.echoed = False  # this session's claim read back from the broker
-        self.held_before = False  # another run's claim read retained at the first connection
+        self.held_before = False  # another run's claim read retained in this session
+        self.stood = False  # a session's wait ended with the claim unanswered: never yields now
         self.contested: set[str] = set()  # start ids this run defended against
 
     def claim(self) -> Message:
         """The claim published at every connection (retained, QoS 1)."""
         self.connections += 1
         self.echoed = False
+        self.held_before = False
         return Message(topic=self.topic, payload=self.mine.payload(), qos=1, retain=True)
 
     def judge(self, payload: bytes, *, retained: bool) -> list[Message]:
@@ -162,28 +172,32 @@ class IdentityGuard:
                     "(and sparkplug.edge_node_id), then reload"
                 )
             return []  # both defended at once: the larger start id stands down, not this one
-        if retained and self.connections <= 1:
+        if retained and not self.stood:
             self.held_before = True
             return []  # the previous holder, maybe a dead run: a live one will answer
         return self._defend(other)
 
     @property
     def newcomer(self) -> bool:
-        """At the run's first connection: a live holder may yet answer this claim.
+        """This run's claim has not yet stood: a live holder may yet answer it.
 
-        At a later one this run held the identity first (or stood down already): a claim
+        Once it has stood (:meth:`has_stood`) this run held the identity first: a claim
         read then is defended, never yielded to, so nothing need wait.
         """
-        return self.connections <= 1
+        return not self.stood
 
     @property
     def answer_awaited(self) -> bool:
-        """At the run's first connection the marker named another run: it may answer.
+        """Before the claim has stood the marker named another run: it may answer.
 
         Read once this session's claim is back (:attr:`echoed`): a retained marker reaches
         a subscriber before anything published after the subscription.
         """
         return self.newcomer and self.held_before
+
+    def has_stood(self) -> None:
+        """A session's wait ended and no holder answered: the identity is this run's."""
+        self.stood = True
 
     def answer_status(self, payload: bytes, *, retained: bool) -> list[Message]:
         """What to publish in answer to ``{base}/status`` read while connected.
