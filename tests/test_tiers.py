@@ -57,14 +57,14 @@ def test_a_need_used_without_its_marker_is_named_with_what_used_it() -> None:
     assert tiers.failure(Marked("tests/x.py::test_z"), {}) is None  # type: ignore[arg-type]
 
 
-def test_a_paired_test_that_is_not_timing_is_named() -> None:
-    """``paired`` orders a test beside one other within the timing step: alone, it would
+def test_a_side_by_side_test_that_is_not_timing_is_named() -> None:
+    """``side_by_side`` orders a test beside others within the timing step: alone, it would
     run three at a time beside any test of the first step."""
-    item = Marked("tests/x.py::test_y", {"line", "paired"})
+    item = Marked("tests/x.py::test_y", {"line", "side_by_side"})
     assert tiers.failure(item, {"line": ["a pseudo-terminal"]}) == (  # type: ignore[arg-type]
-        "tests/x.py::test_y is marked paired but not timing: add @pytest.mark.timing"
+        "tests/x.py::test_y is marked side_by_side but not timing: add @pytest.mark.timing"
     )
-    both = Marked("tests/x.py::test_y", {"line", "paired", "timing"})
+    both = Marked("tests/x.py::test_y", {"line", "side_by_side", "timing"})
     assert tiers.failure(both, {"line": ["a pseudo-terminal"]}) is None  # type: ignore[arg-type]
 
 
@@ -85,4 +85,4 @@ def test_every_need_the_quick_tier_leaves_out_is_a_declared_marker(
     pytestconfig: pytest.Config,
 ) -> None:
     declared = {line.split(":", 1)[0] for line in pytestconfig.getini("markers")}
-    assert set(tiers.NEEDS) | {"timing", "paired"} <= declared
+    assert set(tiers.NEEDS) | {"timing", "side_by_side"} <= declared

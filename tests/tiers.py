@@ -14,10 +14,11 @@ started the simulator or the broker it talks to, and that is what the guard sees
 
 Two more markers are not needs but an order: ``timing`` marks the tests that hold a line,
 a sensor or the gateway's CPU to times, and those whose brokers take the machine's cores (a
-three-node cluster), which ``scripts/test`` runs after the others, alone. ``paired`` marks
-those of them that sleep through most of their time and follow the machine's pace as they
-run (kill windows measured, rounds that go on until there is enough to check): they run
-two at a time, with nothing else beside them. A ``paired`` test must be ``timing`` too.
+three-node cluster), which ``scripts/test`` runs after the others, alone. ``side_by_side``
+marks those of them that sleep through most of their time and follow the machine's pace as
+they run (kill windows measured, rounds that go on until there is enough to check, a faulty
+line's timeouts): they run three at a time, with nothing else beside them. A
+``side_by_side`` test must be ``timing`` too.
 """
 
 from __future__ import annotations
@@ -43,8 +44,8 @@ MARKERS: Final[dict[str, str]] = {
     "root": "mounts, loop devices, network namespaces, packet filters",
     "timing": "holds a line, a sensor or the gateway's CPU to times, or takes the machine's"
     " cores (a broker cluster): runs after the others, alone (an order, not a need)",
-    "paired": "a timing test that mostly sleeps and follows the machine's pace as it runs:"
-    " two of these run side by side, nothing else beside them (an order, not a need)",
+    "side_by_side": "a timing test that mostly sleeps and follows the machine's pace as it"
+    " runs: three of these run side by side, nothing else beside them (an order, not a need)",
 }
 NEEDS: Final = ("line", "broker", "browser", "podman", "root")  # what the quick tier leaves out
 # Where to note every test's needs as JSON lines (nodeid, used), for a survey of the suite.
@@ -187,9 +188,9 @@ def undeclared(item: pytest.Item, used: dict[str, list[str]]) -> list[str]:
 
 def failure(item: pytest.Item, used: dict[str, list[str]]) -> str | None:
     """Why ``item`` fails its markers: each need used but not declared, or an order that
-    would put it beside others (``paired`` without ``timing``); else None."""
-    if item.get_closest_marker("paired") and not item.get_closest_marker("timing"):
-        return f"{item.nodeid} is marked paired but not timing: add @pytest.mark.timing"
+    would put it beside others (``side_by_side`` without ``timing``); else None."""
+    if item.get_closest_marker("side_by_side") and not item.get_closest_marker("timing"):
+        return f"{item.nodeid} is marked side_by_side but not timing: add @pytest.mark.timing"
     missing = undeclared(item, used)
     if not missing:
         return None

@@ -63,15 +63,18 @@ if TYPE_CHECKING:
 # timing: the kills fall in windows timed on this machine's pace, and each test needs a
 # number of documents, backlogs or flash writes to check; beside two other tests on 2 cores
 # the pace changed while a test ran, and one of them missed its number in 3 of the last 4
-# whole-suite runs. paired: they sleep through most of their time, and two of them side by
-# side kept every margin (2026-12-04, two runs: 471-476 documents for 100, backlogs of
+# whole-suite runs. side_by_side: they sleep through most of their time, and two of them side
+# by side kept every margin (2026-12-04, two runs: 471-476 documents for 100, backlogs of
 # 291-304 for 250, 196 flash writes for 60, 35 of 50 calibrations killed for 25, 152
-# writes for 30), each within a few seconds of its time alone.
+# writes for 30), each within a few seconds of its time alone; three side by side with the
+# faulty line's fuzz and the shared bus's frames the same (2026-12-04, two runs: 521-533
+# documents, backlogs of 300-313, 219-270 flash writes, 34-45 of 50 calibrations killed
+# and 132-148 writes).
 pytestmark = [
     pytest.mark.line,
     pytest.mark.broker,
     pytest.mark.timing,
-    pytest.mark.paired,
+    pytest.mark.side_by_side,
     pytest.mark.timeout(300),
 ]
 
