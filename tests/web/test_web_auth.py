@@ -130,7 +130,7 @@ async def _state(_request: web.Request) -> web.StreamResponse:
 async def test_reading_from_another_machine_needs_a_session() -> None:
     config = WebConfig.model_validate({"enabled": True, "password": PASSWORD})
     server = WebServer(config, GatewayState(), {})
-    guarded = server._reader(_state)
+    guarded = server.guards.reader(_state)
     local = make_mocked_request("GET", "/api/state", transport=Peer("127.0.0.1"))
     assert (await guarded(local)).status == 200
     remote = make_mocked_request("GET", "/api/state", transport=Peer("192.0.2.7"))
