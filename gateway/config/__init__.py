@@ -9,6 +9,8 @@ guard in :mod:`gateway.config.flash_policy`. Import from here.
 """
 
 from gateway.config.brokers import MqttServer, TlsConfig
+from gateway.config.feeds import FeedConfig, FeedSource
+from gateway.config.fields import MAX_INTERVAL_S, Seconds, TcpPort
 from gateway.config.flash_policy import FlashPolicy
 from gateway.config.loading import check_config, load_config, parse_config, review_config
 from gateway.config.model import (
@@ -16,36 +18,29 @@ from gateway.config.model import (
     DEFAULT_FLASH_WRITE_BUDGET,
     ENV_NESTED_DELIMITER,
     ENV_PREFIX,
-    MAX_INTERVAL_S,
     MAX_MIN_RESPONSE_TIME_MS,
     MAX_RESPONSE_TIMEOUT_S,
     SERIAL_URL_SCHEMES,
     BusConfig,
     BusName,
     Cadence,
-    CommandsConfig,
     DeviceConfig,
     DeviceName,
-    DiscoveryConfig,
-    FeedConfig,
-    FeedSource,
     GatewayConfig,
     LoggingConfig,
-    MqttConfig,
     PointSchedule,
     PointSettings,
-    PrometheusConfig,
     PublishMode,
     PublishSettings,
     ResponseTimeout,
     Retries,
-    Seconds,
-    SparkplugConfig,
-    TcpPort,
-    WebConfig,
 )
+from gateway.config.mqtt import CommandsConfig, DiscoveryConfig, MqttConfig
 from gateway.config.problems import ConfigProblems, Problem
+from gateway.config.prometheus import PrometheusConfig
 from gateway.config.rs485 import Rs485Config
+from gateway.config.sparkplug import SparkplugConfig
+from gateway.config.web import WebConfig
 
 __all__ = [
     "BAUDRATES",

@@ -27,12 +27,8 @@ from pydantic import (
 )
 
 from gateway.config.brokers import check_brokers
-from gateway.config.model import (
-    BusConfig,
-    DeviceConfig,
-    FeedConfig,
-    FeedSource,
-)
+from gateway.config.feeds import FeedConfig, FeedSource
+from gateway.config.model import BusConfig, DeviceConfig
 from gateway.config.problems import close_matches
 from gateway.config.serial_pin import check_serial_number
 from gateway.profiles import Profile, builtin_profiles

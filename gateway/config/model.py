@@ -1,4 +1,8 @@
-"""The models of the config file: buses, devices and their points, feeds and the sinks.
+"""The models of the config file: buses, devices and their points, and the whole file.
+
+:class:`GatewayConfig` gathers every section; the sections other than buses and devices
+have their own modules beside this one (``config/mqtt``, ``feeds``, ``sparkplug``,
+``prometheus``, ``web``, ``shared_bus``, ``care``, ``verification``).
 
 Each model validates its own fields (``extra="forbid"``, bounds in the annotations); what
 needs the whole file (unique names, known buses and profiles, timeouts that fit) is
@@ -34,8 +38,6 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
-    SecretStr,
-    model_validator,
 )
 from pydantic_settings import (
     BaseSettings,
@@ -44,14 +46,19 @@ from pydantic_settings import (
     SettingsConfigDict,
 )
 
-from gateway.config.brokers import MqttServer, TlsConfig
 from gateway.config.care import CareConfig, CareSettings
 from gateway.config.echo import EchoMode, echo_words
+from gateway.config.feeds import FeedConfig  # noqa: TC001 - pydantic resolves it at run time
+from gateway.config.fields import Seconds  # noqa: TC001 - pydantic resolves it at run time
 from gateway.config.flash_policy import FlashPolicy
+from gateway.config.mqtt import CommandsConfig, MqttConfig
 from gateway.config.network import MBAP_URL_SCHEME, TcpSettings, tcp_for_network_port
+from gateway.config.prometheus import PrometheusConfig
 from gateway.config.rs485 import Rs485Config  # noqa: TC001 - pydantic resolves it at run time
 from gateway.config.shared_bus import SharedBusConfig
+from gateway.config.sparkplug import SparkplugConfig
 from gateway.config.verification import VerificationConfig
+from gateway.config.web import WebConfig
 from gateway.errors import ConfigError
 from gateway.profiles import Point, PollGroup, Profile, get_profile
 from gateway.profiles.serial_number import EMPTY_SERIAL
@@ -70,7 +77,6 @@ BAUDRATES: Final = (1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200)
 MAX_RESPONSE_TIMEOUT_S: Final = 5.0
 MAX_MIN_RESPONSE_TIME_MS: Final = 500  # digiLine register 0x0305: 0 to 500 ms (S10 manual 4)
 DEFAULT_FLASH_WRITE_BUDGET: Final = 4  # flash writes per point and UTC day
-MAX_INTERVAL_S: Final = 86_400.0  # a day; longer is a typo, not a polling plan
 # URL handlers of pyserial's serial_for_url (serial/urlhandler/protocol_*.py).
 SERIAL_URL_SCHEMES: Final = frozenset(
     {"socket", "rfc2217", "loop", "spy", "alt", "hwgrep", "cp2110"}
@@ -172,26 +178,10 @@ def _upper(value: object) -> object:
     return value.upper() if isinstance(value, str) else value
 
 
-def _feed_topic(value: str) -> str:
-    if not value or {"+", "#"} & set(value):
-        raise ValueError(f"{value!r} is not a topic to read a value from: no wildcards (+, #)")
-    return value
-
-
-def _mqtt_topic(value: str) -> str:
-    if not value or value.startswith("/") or value.endswith("/") or {"+", "#"} & set(value):
-        raise ValueError(
-            f"{value!r} is not a base topic: no wildcards (+, #) and no leading or trailing '/'"
-        )
-    return value
-
-
 BusName = Annotated[str, Field(min_length=1, max_length=_MAX_NAME), AfterValidator(_bus_name)]
 DeviceName = Annotated[str, Field(min_length=1, max_length=_MAX_NAME), AfterValidator(_device_name)]
-Seconds = Annotated[float, Field(gt=0, le=MAX_INTERVAL_S)]
 ResponseTimeout = Annotated[float, Field(gt=0, le=MAX_RESPONSE_TIMEOUT_S)]
 Retries = Annotated[int, Field(ge=0, le=10)]
-TcpPort = Annotated[int, Field(ge=1, le=65535)]
 
 
 class BusConfig(_Model):
@@ -391,300 +381,6 @@ class DeviceConfig(_Model):
         return FlashPolicy(
             allowed=frozenset(self.flash_writes), daily_budget=self.flash_write_budget
         )
-
-
-class CommandsConfig(_Model):
-    """Writes over MQTT: ``{base}/{device}/{point}/set`` and ``{base}/{device}/command/{name}``."""
-
-    enabled: bool = True  # False: the gateway only reads; set and command topics are ignored
-
-
-class FeedSource(_Model):
-    """Where a feed's value comes from: a polled point of any device, or an MQTT topic.
-
-    An MQTT payload is a plain number or JSON: a number, or an object whose ``value``
-    (or the configured ``key``) is one.
-    """
-
-    device: str | None = None
-    point: str | None = None
-    topic: Annotated[str, AfterValidator(_feed_topic)] | None = None
-    key: Annotated[str, Field(min_length=1)] = "value"
-
-    @model_validator(mode="after")
-    def _one_kind(self) -> FeedSource:
-        by_point = self.device is not None or self.point is not None
-        if by_point and self.topic is not None:
-            raise ValueError("give either device and point, or topic, not both")
-        if not by_point and self.topic is None:
-            raise ValueError("give device and point of a polled value, or an MQTT topic")
-        if by_point and (self.device is None or self.point is None):
-            raise ValueError("a point source needs both device and point")
-        return self
-
-    def describe(self) -> str:
-        """The source as text for logs and metrics: ``device/point`` or ``mqtt:topic``."""
-        return f"mqtt:{self.topic}" if self.topic is not None else f"{self.device}/{self.point}"
-
-
-class FeedConfig(_Model):
-    """Keep a compensation value of a sensor current from another instrument.
-
-    Written every ``interval`` seconds while the source is fresh, and at once when the
-    source moves by more than ``deadband`` since the last write. A source older than
-    ``max_age`` is not written (the log and the metrics say so). Feeds only write RAM or
-    volatile registers; a flash-backed target is a config error.
-    """
-
-    device: str
-    point: str
-    source: FeedSource
-    interval: Seconds = 60.0
-    deadband: Annotated[float, Field(ge=0)] | None = None
-    max_age: Seconds = 300.0
-
-    @property
-    def name(self) -> str:
-        """The feed as ``device/point``, its label in logs and metrics."""
-        return f"{self.device}/{self.point}"
-
-
-class DiscoveryConfig(_Model):
-    """Home Assistant MQTT discovery (opt-in).
-
-    Example::
-
-        DiscoveryConfig(enabled=True, prefix="homeassistant", announce_delay_max_s=5.0)
-    """
-
-    enabled: bool = False
-    prefix: Annotated[str, AfterValidator(_mqtt_topic)] = "homeassistant"
-    announce_delay_max_s: Annotated[
-        float,
-        Field(
-            ge=0,
-            le=300,
-            description=(
-                "Home Assistant's restart (`online` on `{prefix}/status`) reaches every gateway "
-                "of a plant at once; each sends its discovery configs again after a random wait "
-                "of up to this many seconds, so that tens of gateways do not answer in the same "
-                "instant. 5 s by default: the configs are retained, so Home Assistant has its "
-                "entities at its start and the re-announce only repairs what a broker lost; "
-                "nothing else waits for it, and 5 s spreads tens of gateways apart. 0: at once."
-            ),
-        ),
-    ] = 5.0
-
-
-class MqttConfig(_Model):
-    """The broker connection, topics, quality of service and the store-and-forward queue."""
-
-    enabled: bool = True
-    host: Annotated[str, Field(min_length=1)] = "localhost"
-    port: TcpPort = 1883
-    # Several brokers (or nodes of a cluster), tried in turn; replaces host, port and tls
-    # (config.brokers). Empty: the one of host and port.
-    servers: list[MqttServer] = []
-    # Back to the first server after this long on another; None: stay where it is.
-    return_to_first_s: Annotated[float, Field(ge=10, le=86400)] | None = 600.0
-    base_topic: Annotated[str, AfterValidator(_mqtt_topic)] = "gateway"
-    client_id: str | None = None  # None: gateway-<host name>
-    username: str | None = None
-    password: SecretStr | None = None  # meant to come from GATEWAY_MQTT__PASSWORD
-    qos: Annotated[int, Field(ge=0, le=1)] = 1  # state, status bits, availability, results
-    value_qos: Annotated[int, Field(ge=0, le=1)] = 1  # the plain value topics
-    tls: TlsConfig | None = None
-    clean_session: bool = True  # False: a persistent session on the broker
-    keepalive: Annotated[int, Field(ge=5, le=3600)] = 60
-    reconnect_max_s: Annotated[float, Field(gt=0, le=3600)] = 30.0
-    queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
-    # When messages are written to the queue on disk: "outage", only while the broker is
-    # away (nothing is written while connected: an SD card lasts; a kill loses the messages
-    # in flight); "always", each before it is sent (a kill loses nothing handed over, for
-    # some 30 GB a day of writes at 5 sensors). The manual: What survives a power cut.
-    persist: Literal["outage", "always"] = "outage"
-    discovery: DiscoveryConfig = DiscoveryConfig()
-
-    def server_list(self) -> list[MqttServer]:
-        """The servers to try, in order: ``servers``, or the one of ``host`` and ``port``."""
-        return list(self.servers) or [MqttServer(host=self.host, port=self.port, tls=self.tls)]
-
-
-def _sparkplug_id(value: str) -> str:
-    """A Sparkplug group, edge node or host id: one topic level (Sparkplug 3.0, 4.1.1)."""
-    if not value or {"/", "+", "#"} & set(value):
-        raise ValueError(f"{value!r} is not a Sparkplug id: one topic level, no '/', '+' or '#'")
-    return value
-
-
-SparkplugId = Annotated[str, Field(min_length=1, max_length=64), AfterValidator(_sparkplug_id)]
-Deadband = Annotated[float, Field(ge=0)]
-
-
-# What a Sparkplug host may get of a device besides the poll groups' points: the care
-# report the gateway keeps of it (the manual: Sensor care), its metrics under ``care/``.
-CARE_GROUP: Final = "care"
-_SPARKPLUG_GROUPS: Final = (*(g.value for g in PollGroup), CARE_GROUP)
-
-
-def _sparkplug_group(value: object) -> object:
-    """A poll group (:class:`PollGroup`) or ``care``; anything else named, with the choices."""
-    if value == CARE_GROUP or isinstance(value, PollGroup):
-        return value
-    if isinstance(value, str) and value in _SPARKPLUG_GROUPS:
-        return PollGroup(value)
-    choices = ", ".join(_SPARKPLUG_GROUPS)
-    raise ValueError(f"{value!r} is not a Sparkplug group: one of {choices}")
-
-
-SparkplugGroup = Annotated[PollGroup | Literal["care"], BeforeValidator(_sparkplug_group)]
-SparkplugGroups = Annotated[list[SparkplugGroup], Field(min_length=1)]
-
-
-class SparkplugConfig(_Model):
-    """Sparkplug B: the gateway as an edge node, beside the plain topics (the manual: Sparkplug B).
-
-    It connects to the broker of ``mqtt:`` (host, port, credentials, TLS, keep-alive) with a
-    client of its own, whose last will is the NDEATH; ``mqtt.enabled: false`` leaves it on.
-    ``deadband`` applies to every Float metric, ``deadbands`` per device and point (in the
-    point's unit); a change smaller than it is not reported by exception.
-
-    ``groups`` are the poll groups whose points are metrics (``device_groups`` per device):
-    process values and status by default, what a host expects of a sensor. Diagnostics,
-    configuration and identity are polled all the same, but each adds to every DBIRTH (an
-    H10 with every group is 312 metrics), so a host gets them only when asked for; so is
-    ``care``, the sensor care report of each device (``care/state``, ``care/due``, ...).
-    ``birth_wait_s`` bounds how long a device's DBIRTH waits for the unit registers its
-    metrics take their unit from (tecLine, Reiss): one birth with its units rather than a
-    birth without them and another a second later.
-    """
-
-    enabled: bool = False
-    group_id: SparkplugId = "water"
-    edge_node_id: SparkplugId | None = None  # None: the host name
-    primary_host_id: SparkplugId | None = None  # None: publish without waiting for a host
-    client_id: str | None = None  # None: spb-<group>-<edge node>
-    deadband: Deadband = 0.0
-    deadbands: dict[str, dict[str, Deadband]] = {}  # device -> point -> deadband
-    groups: SparkplugGroups = [PollGroup.PROCESS, PollGroup.STATUS]
-    device_groups: dict[str, SparkplugGroups] = {}
-    birth_wait_s: Annotated[float, Field(ge=0, le=600)] = 10.0
-    queue_max: Annotated[int, Field(ge=100, le=10_000_000)] = 100_000  # messages kept offline
-    # Its own server list (config.brokers); empty: the one of ``mqtt:``.
-    servers: list[MqttServer] = []
-    # With several servers: how long to wait on one for the primary host's STATE online
-    # before moving to the next (Eclipse Tahu's edge client waits 30 s).
-    host_wait_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
-    # A host's STATE online or a rebirth request reaches every edge node of a plant at
-    # once: each waits a random time up to this before its births. 0 (the default, one
-    # gateway): at once; a fleet sets a few seconds (the manual: A plant of many cabinets).
-    birth_delay_max_s: Annotated[float, Field(ge=0, le=60)] = 0.0
-
-    def server_list(self, mqtt: MqttConfig) -> list[MqttServer]:
-        """The servers of the edge node's session, in order (its own, else ``mqtt``'s)."""
-        return list(self.servers) or mqtt.server_list()
-
-
-def _prometheus_group(value: object) -> object:
-    """A poll group (:class:`PollGroup`); anything else named, with the choices."""
-    if isinstance(value, PollGroup):
-        return value
-    choices = ", ".join(g.value for g in PollGroup)
-    if isinstance(value, str) and value in {g.value for g in PollGroup}:
-        return PollGroup(value)
-    if value == CARE_GROUP:
-        raise ValueError(
-            "'care' is not a poll group: the care metrics (gateway_care_state, ...) are "
-            f"always exported; list poll groups only: {choices}"
-        )
-    raise ValueError(f"{value!r} is not a poll group: one of {choices}")
-
-
-PrometheusGroup = Annotated[PollGroup, BeforeValidator(_prometheus_group)]
-PrometheusGroups = Annotated[list[PrometheusGroup], Field(min_length=1)]
-
-
-class PrometheusConfig(_Model):
-    """Where ``/metrics`` and ``/healthz`` are served, and what they carry (the manual: Prometheus).
-
-    ``groups`` are the poll groups whose points are series (``device_groups`` per device):
-    process values and status by default. Diagnostics, configuration and identity are
-    polled all the same and go to MQTT; as series they are some 170 more per O-DO H10 that
-    rarely change, so Prometheus gets them only when asked for. The gateway's own health,
-    sensor care and ``gateway_device_info`` are always exported. ``legacy_names: true``
-    exports the values whose names changed (base units, no ``_total`` on gauges, no log
-    entries as families) under their old names too, for one release. Example::
-
-        prometheus: {port: 9108, groups: [process, status, diagnostics]}
-    """
-
-    enabled: bool = True
-    port: TcpPort = 9108
-    host: Annotated[str, Field(min_length=1)] = "0.0.0.0"  # noqa: S104 - the documented default
-    groups: PrometheusGroups = [PollGroup.PROCESS, PollGroup.STATUS]
-    device_groups: dict[str, PrometheusGroups] = {}  # device -> its own groups
-    legacy_names: bool = False  # also the old names (until the next release)
-
-
-def _sha256_hex(value: str | None) -> str | None:
-    if value is not None and not re.fullmatch(r"[0-9a-fA-F]{64}", value):
-        raise ValueError("expected a SHA-256 digest as 64 hexadecimal digits")
-    return value.lower() if value is not None else None
-
-
-_HOST_LABEL = r"(?!-)[a-z0-9-]{1,63}(?<!-)"
-_HOST_NAME = re.compile(rf"(?:\*\.)?{_HOST_LABEL}(?:\.{_HOST_LABEL})*\.?")
-
-
-def _host_name(value: str) -> str:
-    """A host name (or ``*.`` and a domain) as the page's ``Host`` header may carry it."""
-    name = value.strip().lower()
-    if "://" in name or "/" in name:
-        raise ValueError(f"{value!r}: a host name only, without scheme or path")
-    if name.count(":") == 1 or (name.startswith("[") and "]:" in name):
-        raise ValueError(f"{value!r}: a host name only, without a port")
-    if name.startswith("[") and name.endswith("]"):
-        name = name[1:-1]
-    if ":" in name or re.fullmatch(r"[0-9.]+", name):
-        return name  # an address: checked as one by the page
-    if not _HOST_NAME.fullmatch(name):
-        raise ValueError(f"{value!r} is not a host name (letters, digits, '-' and '.')")
-    return name.rstrip(".")
-
-
-class WebConfig(_Model):
-    """The commissioning and calibration page in the browser (off unless enabled).
-
-    Reading is open to this machine only (loopback); from elsewhere, and for any write or
-    calibration, the page asks the user to sign in: by name, as one of the users of the
-    users file (``gateway users add NAME --role operator``; ``users_file``, by default
-    ``users.json`` in ``state_dir``), or with the one shared password of a plant without
-    accounts, meant to come from the environment (``GATEWAY_WEB__PASSWORD``). Without
-    users and a password, the page is read-only. Example::
-
-        web: {enabled: true, port: 8080}  # http://127.0.0.1:8080/
-        web: {enabled: true, host: 0.0.0.0, allowed_hosts: [gateway.plant.example]}
-        web: {enabled: true, users_file: /etc/rs485-gateway/users.json}
-    """
-
-    enabled: bool = False
-    host: Annotated[str, Field(min_length=1)] = "127.0.0.1"
-    port: TcpPort = 8080
-    password: SecretStr | None = None
-    # The shared password as its SHA-256, for configs written before the users file: a
-    # fast hash, kept only for compatibility (a stolen config gives a guesser billions of
-    # tries a second). The gateway keeps it as a scrypt hash in memory; named users in
-    # the users file (slow salted hashes, a name on every record) are the way to go.
-    password_sha256: Annotated[str | None, AfterValidator(_sha256_hex)] = None
-    # The page's named users and their roles (``gateway users``); None: users.json in
-    # state_dir. A file that does not exist means no named users.
-    users_file: Path | None = None
-    session_minutes: Annotated[float, Field(gt=0, le=24 * 60)] = 30.0
-    # The names the page answers to in ``Host`` (besides the listen address, and localhost
-    # from this machine): a name not listed is a DNS-rebinding attempt, refused with 421.
-    allowed_hosts: list[Annotated[str, AfterValidator(_host_name)]] = []
-    # A calibration waiting for the operator's "write" ends after this, nothing written.
-    confirm_minutes: Annotated[float, Field(gt=0, le=60)] = 10.0
 
 
 class ClockConfig(_Model):

@@ -37,7 +37,7 @@ if TYPE_CHECKING:
 
     from prometheus_client.metrics_core import Metric
 
-    from gateway.config.model import PrometheusConfig
+    from gateway.config.prometheus import PrometheusConfig
     from gateway.shared.state import GatewayState
 
 _LOGGER = logging.getLogger(__name__)

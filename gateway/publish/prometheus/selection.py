@@ -19,7 +19,7 @@ from gateway.profiles.model import PollGroup
 if TYPE_CHECKING:
     from collections.abc import Iterable, Mapping
 
-    from gateway.config.model import PrometheusConfig
+    from gateway.config.prometheus import PrometheusConfig
     from gateway.line.samples import Sample
 
 DEFAULT_GROUPS: Final = frozenset({PollGroup.PROCESS.value, PollGroup.STATUS.value})

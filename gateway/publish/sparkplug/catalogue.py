@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
 from gateway.care import CareKind, care_kind
-from gateway.config.model import CARE_GROUP
+from gateway.config.sparkplug import CARE_GROUP
 from gateway.profiles.model import PollGroup
 from gateway.publish.sparkplug.payloads import DATATYPE_OF, SpType
 from gateway.wire import codec
