@@ -37,8 +37,8 @@ from gateway.wire.codec import (
     DataType,
     Format,
     WordOrder,
-    encode,
 )
+from gateway.wire.encoding import encode
 
 if TYPE_CHECKING:
     from gateway.profiles.model import Point, Profile

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Final
 from gateway.errors import GatewayError
 from gateway.line.samples import Quality
 from gateway.shared.state import FeedStatus
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Coroutine, Mapping, Sequence
@@ -221,7 +221,7 @@ class FeedEngine:
             return
         # Bits the profile does not name (4-7, for JUMO masters) are kept as read; the
         # raw word, not the bit's name, so the write path does not read the byte again.
-        raw = codec.with_bits(target.format, control.raw, {bit: use_ram})
+        raw = encoding.with_bits(target.format, control.raw, {bit: use_ram})
         await writer.set(target, raw, read_back=False, feed=True)
 
     # --- refresh and staleness ------------------------------------------------------------

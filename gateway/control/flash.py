@@ -309,7 +309,7 @@ class FlashLedger:
 
 
 def _holds(current: tuple[int, ...], registers: tuple[int, ...]) -> bool:
-    # A string is written only as far as its terminating NUL (codec.encode), while the
+    # A string is written only as far as its terminating NUL (encoding.encode), while the
     # whole field is read: the device holds the text if the read starts with the write.
     return len(current) >= len(registers) and tuple(current[: len(registers)]) == registers
 

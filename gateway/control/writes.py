@@ -49,7 +49,7 @@ from gateway.errors import (
 from gateway.profiles.model import Storage
 from gateway.records.model import Result, json_decoded
 from gateway.shared.host_clock import HostClock
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -291,7 +291,7 @@ class SafeWriter:
             raise CommandRejectedError(
                 f"the bits to keep read as {held!r}, so nothing was written", point=point.name
             )
-        return codec.with_bits(point.format, held.raw, bits)
+        return encoding.with_bits(point.format, held.raw, bits)
 
     async def _current(self, point: Point) -> tuple[codec.Decoded, tuple[int, ...] | None]:
         """What a flash-backed point holds, decoded and as registers to compare with."""
@@ -304,7 +304,7 @@ class SafeWriter:
                 point=point.name,
             ) from exc
         try:
-            held = codec.encode(point.format, current, float_order=await self.link.float_order())
+            held = encoding.encode(point.format, current, float_order=await self.link.float_order())
         except EncodeError:
             held = None  # a fault value or an unknown code: compare nothing, write
         return current, held

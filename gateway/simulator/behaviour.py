@@ -15,7 +15,7 @@ from datetime import UTC, datetime, timedelta
 from typing import TYPE_CHECKING
 
 from gateway.simulator import aging as ages
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -473,7 +473,7 @@ def apply_aged(device: SimulatedDevice, aged: Aged) -> None:
         current = device.get(name)
         raw = current.raw if isinstance(current, codec.BitfieldValue) else 0
         changes: dict[object, object] = dict(bits.items())
-        device.put(name, codec.with_bits(point.format, raw, changes))
+        device.put(name, encoding.with_bits(point.format, raw, changes))
 
 
 def _flag_counter_overflow(device: SimulatedDevice) -> None:
@@ -486,7 +486,7 @@ def _flag_counter_overflow(device: SimulatedDevice) -> None:
     if dict(current.flags).get("measurement_counter_overflow") != overflow:
         point = device.profile.point("error_register")
         bits: dict[object, object] = {"measurement_counter_overflow": overflow}
-        device.put("error_register", codec.with_bits(point.format, current.raw, bits))
+        device.put("error_register", encoding.with_bits(point.format, current.raw, bits))
 
 
 def _raw(device: SimulatedDevice, name: str) -> tuple[int, ...]:

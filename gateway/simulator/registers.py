@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from gateway.errors import CodecError
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 from gateway.wire.codec import DataType, Decoded, WordOrder
 
 if TYPE_CHECKING:
@@ -137,7 +137,7 @@ class RegisterImage:
         if isinstance(value, codec.Fault):
             self.set_fault(point.name, value.name)
             return
-        registers = codec.encode(point.format, value, float_order=self.profile.float_order)
+        registers = encoding.encode(point.format, value, float_order=self.profile.float_order)
         if point.dtype is DataType.STRING:
             registers = (*registers, *([0] * (point.count - len(registers))))
         self._write_registers(point.address, registers)

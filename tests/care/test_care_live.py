@@ -26,7 +26,7 @@ from gateway.config import parse_config
 from gateway.line.engine.devices import DeviceTarget
 from gateway.profiles import PollGroup, get_profile
 from gateway.simulator import SimulatorServer, build_bus, parse_settings
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 from tests.app.test_app import scrape
 from tests.mqtt_broker import Broker, free_port, recording
 from tests.rigs import link_rig, run_gateway, simulate_process
@@ -169,11 +169,11 @@ async def test_a_falling_tecline_is_due_with_a_projection_and_a_calibration_by_a
             span = 0.9 * NOMINAL
             client = AsyncModbusTcpClient("127.0.0.1", port=modbus_port, timeout=3)
             await client.connect()
-            registers = [*codec.encode(FLOAT, 0.0), *codec.encode(FLOAT, span)]
+            registers = [*encoding.encode(FLOAT, 0.0), *encoding.encode(FLOAT, span)]
             wrote_values = await client.write_registers(0x0206, registers, device_id=20)
             written_at = asyncio.get_running_loop().time()
             wrote_stamp = await client.write_registers(
-                0x020A, list(codec.encode(STAMP, stamp)), device_id=20
+                0x020A, list(encoding.encode(STAMP, stamp)), device_id=20
             )
             client.close()
             # Between the two writes a document may say the new values are not active yet;

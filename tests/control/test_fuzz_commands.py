@@ -53,7 +53,7 @@ from gateway.errors import BusError, CommandRejectedError, EncodeError
 from gateway.profiles import get_profile
 from gateway.profiles.model import Storage
 from gateway.shared.state import GatewayState
-from gateway.wire import codec, frames
+from gateway.wire import encoding, frames
 from gateway.wire.codec import (
     BITFIELD_TYPES,
     ENUM_TYPES,
@@ -667,7 +667,9 @@ def test_set_payloads_json_cannot_parse_or_echo_are_rejected(payload: bytes, rea
 def test_an_integer_beyond_any_float_is_an_encode_error() -> None:
     # OverflowError from float() before; JSON hands over integers of up to 4300 digits.
     with pytest.raises(EncodeError, match="does not fit a float32"):
-        codec.encode(Format(dtype=DataType.FLOAT32, count=2), 10**400, float_order=WordOrder.CDAB)
+        encoding.encode(
+            Format(dtype=DataType.FLOAT32, count=2), 10**400, float_order=WordOrder.CDAB
+        )
 
 
 @pytest.mark.line

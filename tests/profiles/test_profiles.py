@@ -28,7 +28,7 @@ from gateway.profiles import (
     loader,
 )
 from gateway.profiles.loader import DATA_DIR
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 from gateway.wire.codec import DataType, EnumValue
 
 if TYPE_CHECKING:
@@ -160,7 +160,7 @@ def test_every_writable_point_round_trips_its_valid_values(
     point = get_profile(profile_id).point(name)
     value = _value_for(point, data)
     for order in codec.WordOrder:
-        registers = codec.encode(point.format, value, float_order=order)
+        registers = encoding.encode(point.format, value, float_order=order)
         assert len(registers) <= point.count
         padded = (*registers, *([0] * (point.count - len(registers))))
         decoded = codec.decode(point.format, padded, float_order=order)

@@ -37,7 +37,7 @@ from gateway.records import DeviceRef, Kind, Query, RecordStore
 from gateway.records.history import HistoryKeeper, device_refs
 from gateway.shared.state import DeviceInfo, GatewayState, StateSink
 from gateway.simulator import build_bus, parse_settings
-from gateway.wire import codec, frames
+from gateway.wire import codec, encoding, frames
 from tests.rigs import rig
 from tests.simulator.helpers import ClockedMaster
 from tests.waiting import eventually
@@ -434,7 +434,7 @@ def read(master: ClockedMaster, name: str) -> codec.Decoded:
 
 def write(master: ClockedMaster, name: str, value: object) -> None:
     point = TECLINE.point(name)
-    master.ask(frames.write_request(ADDRESS, point.address, codec.encode(point.format, value)))
+    master.ask(frames.write_request(ADDRESS, point.address, encoding.encode(point.format, value)))
 
 
 def history_values(ring: Sequence[Calibration]) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from gateway.simulator.aging import (
     s10_values,
     slope_fraction,
 )
-from gateway.wire import codec, frames
+from gateway.wire import codec, encoding, frames
 from gateway.wire.codec import BitfieldValue, EnumValue
 from tests.simulator.helpers import ClockedMaster
 
@@ -75,7 +75,7 @@ def read(master: ClockedMaster, address: int, name: str) -> codec.Decoded:
 
 def write(master: ClockedMaster, address: int, name: str, value: object) -> None:
     point = master.bus.devices[address].profile.point(name)
-    registers = codec.encode(point.format, value)
+    registers = encoding.encode(point.format, value)
     master.ask(frames.write_request(address, point.address, registers))
 
 

@@ -10,7 +10,7 @@ from gateway.errors import ConfigError, DeviceExceptionError
 from gateway.profiles import get_profile
 from gateway.simulator import SimulatedDevice
 from gateway.simulator.bus import Reply
-from gateway.wire import codec, frames
+from gateway.wire import codec, encoding, frames
 from gateway.wire.codec import Fault, WordOrder
 from tests.simulator.helpers import ClockedMaster, make_bus
 
@@ -40,7 +40,7 @@ def write_point(
 ) -> frames.Response:
     profile = get_profile(profile_id)
     point = profile.point(name)
-    registers = codec.encode(point.format, value)
+    registers = encoding.encode(point.format, value)
     return master.ask(
         frames.write_request(address, point.address, registers), exceptions=profile.exceptions
     )

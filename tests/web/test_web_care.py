@@ -26,7 +26,7 @@ from gateway.line.samples import Quality, Sample
 from gateway.profiles import get_profile
 from gateway.shared.state import DeviceInfo, GatewayState
 from gateway.web import WebServer
-from gateway.wire import codec
+from gateway.wire import codec, encoding
 from tests.mqtt_broker import free_port
 from tests.web_rig import CHLORINE, NAMES, PHONE, browser, plant
 
@@ -59,7 +59,7 @@ ORDER: Final = [
 def _decoded(profile_id: str, point: str, value: object) -> codec.Decoded:
     """``value`` as a poll decodes it: encoded to the point's registers and back."""
     fmt = get_profile(profile_id).point(point).format
-    registers = () if value is None else codec.encode(fmt, value)
+    registers = () if value is None else encoding.encode(fmt, value)
     return codec.decode(fmt, (*registers, *(0,) * (fmt.count - len(registers))))
 
 

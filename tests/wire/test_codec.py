@@ -19,9 +19,9 @@ from gateway.wire.codec import (
     Format,
     WordOrder,
     decode,
-    encode,
     float_to_registers,
 )
+from gateway.wire.encoding import encode
 
 FLOAT = Format(dtype=DataType.FLOAT32, count=2)
 FLOAT_WITH_FAULTS = Format(dtype=DataType.FLOAT32, count=2, float_faults=True)

@@ -17,7 +17,7 @@ import yaml
 
 from gateway.errors import DeviceExceptionError
 from gateway.profiles import Point, Profile, get_profile
-from gateway.wire import codec, frames
+from gateway.wire import codec, encoding, frames
 
 CASES: list[dict[str, Any]] = yaml.safe_load(
     (Path(__file__).parent / "golden" / "frames.yaml").read_text(encoding="utf-8")
@@ -152,7 +152,7 @@ def test_writes_encode_the_manual_value_into_the_manual_bytes(case: dict[str, An
     point = point_at(profile, request.address, request.count)
     assert point is not None, "every write example targets a point of the profile"
     assert point.writable
-    encoded = codec.encode(point.format, case["value"], float_order=profile.float_order)
+    encoded = encoding.encode(point.format, case["value"], float_order=profile.float_order)
     assert list(encoded) == case["registers"]
     assert frames.write_request(request.device, request.address, encoded).frame == hexbytes(
         case["request"]

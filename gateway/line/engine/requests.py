@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Final
 
 from gateway.line.boundary import RequestOptions
-from gateway.wire import codec, frames
+from gateway.wire import encoding, frames
 
 if TYPE_CHECKING:
     from gateway.line.engine.devices import DeviceState, DeviceTarget
@@ -151,5 +151,5 @@ class DeviceRequests:
     ) -> frames.Request:
         """The request that writes ``registers``, or ``value`` encoded (an :class:`EncodeError`)."""
         if registers is None:
-            registers = codec.encode(point.format, value, float_order=state.float_order)
+            registers = encoding.encode(point.format, value, float_order=state.float_order)
         return frames.write_request(state.target.address, point.address, registers)
