@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING
 
 import aiomqtt
 
+from tests.waiting import cancelled
+
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable
 
@@ -276,9 +278,7 @@ async def subscribed(
     try:
         yield
     finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        await cancelled(task)  # asked again if aiomqtt's wait_for swallowed it (Python 3.11)
 
 
 @contextlib.asynccontextmanager

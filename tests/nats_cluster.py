@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, Final
 import aiomqtt
 
 from tests.mqtt_broker import free_port
+from tests.waiting import cancelled
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator, Callable, Iterator, Sequence
@@ -337,9 +338,7 @@ async def subscriber(
         await asyncio.wait_for(ready.wait(), timeout=30)
         yield path
     finally:
-        task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await task
+        await cancelled(task)  # asked again if aiomqtt's wait_for swallowed it (Python 3.11)
 
 
 async def retained_on(

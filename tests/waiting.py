@@ -37,3 +37,24 @@ async def eventually(check: Callable[[], object], *, within_s: float, every_s: f
         if loop.time() > deadline:
             raise AssertionError(f"not within {within_s} s: {check}")
         await asyncio.sleep(every_s)
+
+
+async def cancelled(task: asyncio.Task[Any], *, within_s: float = 10.0) -> None:
+    """Cancel ``task`` and wait until it has ended, asking again while it runs on.
+
+    aiomqtt awaits every answer of the broker with ``asyncio.wait_for``, which on Python
+    3.11 returns the answer, not the cancellation, when both arrive in one turn of the loop
+    (CPython issue 86296; ``wait_for`` was rewritten in 3.12): a subscriber's task cancelled
+    at that instant runs on, and a teardown awaiting it waited until pytest-timeout ended
+    the test at 120 s (seen under load, the loop idle in ``select``). The task's own
+    failure, if it failed, is raised as awaiting it would.
+    """
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + within_s
+    while not task.done():
+        if loop.time() > deadline:
+            raise AssertionError(f"{task.get_name()} ran on {within_s} s after its cancellation")
+        task.cancel()
+        await asyncio.wait({task}, timeout=0.5)
+    if not task.cancelled():
+        task.result()

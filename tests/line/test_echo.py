@@ -27,6 +27,7 @@ from gateway.simulator.shim import FTDI_LATENCY_S, LineShim
 from gateway.wire import frames
 from tests.rigs import link_target, target
 from tests.shimmed import LINE, shimmed
+from tests.waiting import eventually
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -201,14 +202,23 @@ async def test_an_echoing_adapter_with_a_16_ms_latency_timer_unplugged_and_back(
     targets = [target("s10", "jumo-digiline-odo-s10", 1, interval=0.3)]
     async with shimmed(tmp_path, [S10_VALUES], targets, echo=True, latency_s=FTDI_LATENCY_S) as rig:
         task = asyncio.create_task(rig.worker.run())
-        await asyncio.sleep(1.5)
+
+        def temperatures_since(when: float) -> bool:
+            return any(
+                s.point == "temperature" and s.good and s.monotonic > when for s in rig.sink.samples
+            )
+
+        await eventually(
+            lambda: rig.line.echo.echoes is not None and temperatures_since(0.0), within_s=10
+        )
         assert rig.line.echo.echoes is True
         rig.shim.drop_carrier()
         unplugged = time.monotonic()
-        await asyncio.sleep(1.5)
+        await eventually(lambda: rig.line.stats.port_failures >= 1, within_s=10)
         rig.shim.restore_carrier()
         back = time.monotonic()
-        await asyncio.sleep(2.5)
+        # The port's backoff (0.5 s, then longer) and a loaded machine: as long as it takes.
+        await eventually(lambda: temperatures_since(back), within_s=15)
         rig.worker.request_stop()
         await asyncio.wait_for(task, timeout=5)
         assert rig.line.stats.port_failures >= 1
