@@ -10,6 +10,7 @@ within seconds, the first publishes on (publish/mqtt/identity).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from typing import TYPE_CHECKING
@@ -25,7 +26,10 @@ from tests.publish.test_mqtt import gateway, simulated
 from tests.waiting import eventually
 
 if TYPE_CHECKING:
+    from collections.abc import AsyncIterator
     from pathlib import Path
+
+    from gateway.shared.state import GatewayState
 
 STATE = "gw/basin/state"
 
@@ -194,6 +198,22 @@ async def test_a_copied_config_stands_down_and_the_first_gateway_publishes_on(
     assert stood_down_s < 60
 
 
+@contextlib.asynccontextmanager
+async def connected_gateway(
+    tmp_path: Path, broker: Broker, topic_filter: str
+) -> AsyncIterator[tuple[Recorder, GatewayState]]:
+    """One gateway (client id ``cab-1``) on ``broker``, connected, watched on ``topic_filter``."""
+    (tmp_path / "cab").mkdir()
+    text = config(tmp_path / "cab", [broker], extra=", client_id: cab-1")
+    async with (
+        simulated(tmp_path / "cab"),
+        recording(broker.port, topic_filter, name="watcher") as seen,
+        gateway(text) as state,
+    ):
+        await eventually(lambda: state.mqtt.connected, within_s=10)
+        yield seen, state
+
+
 @pytest.mark.line
 @pytest.mark.broker
 async def test_an_offline_said_for_a_connected_gateway_is_answered_online(
@@ -202,14 +222,7 @@ async def test_an_offline_said_for_a_connected_gateway_is_answered_online(
     """Another client's last will on ``{base}/status`` (a copied config's gateway whose
     connection closed uncleanly after it stood down) would leave Home Assistant showing a
     running gateway's entities unavailable: the gateway says ``online`` again."""
-    (tmp_path / "cab").mkdir()
-    text = config(tmp_path / "cab", [broker], extra=", client_id: cab-1")
-    async with (
-        simulated(tmp_path / "cab"),
-        recording(broker.port, "gw/status", name="watcher") as seen,
-        gateway(text) as state,
-    ):
-        await eventually(lambda: state.mqtt.connected, within_s=10)
+    async with connected_gateway(tmp_path, broker, "gw/status") as (seen, _):
         await seen.wait_for("gw/status", "online")
         said = len(seen.on("gw/status"))
         await asyncio.to_thread(vanish_leaving_a_will, broker.port, "gw/status", "offline")
@@ -230,14 +243,7 @@ async def test_a_flood_of_claims_and_offlines_is_answered_without_amplifying_it(
     """A careless or hostile client publishing claims on ``{base}/owner`` and ``offline``
     on ``{base}/status`` live: each claim is defended, the retained state goes again once
     (not once per claim), the status ends ``online`` and the gateway publishes on."""
-    (tmp_path / "cab").mkdir()
-    text = config(tmp_path / "cab", [broker], extra=", client_id: cab-1")
-    async with (
-        simulated(tmp_path / "cab"),
-        recording(broker.port, "gw/#", name="watcher") as seen,
-        gateway(text) as state,
-    ):
-        await eventually(lambda: state.mqtt.connected, within_s=10)
+    async with connected_gateway(tmp_path, broker, "gw/#") as (seen, state):
         await seen.wait_for("gw/basin/availability", "online")
         availability = len(seen.on("gw/basin/availability"))
         claims = 50
