@@ -163,7 +163,7 @@ class WebServer:
         self.guards = Guards(self.sessions, self.throttle)
         self._writes = WriteRoutes(writers, state, self.guards)
         self._runs = CalibrationRoutes(calibrations, self.guards)
-        self._records = RecordRoutes(records, verifier, writers, state, self.guards)
+        self._record_routes = RecordRoutes(records, verifier, writers, state, self.guards)
         self._sign_in = SignInRoutes(config, state, calibrations, self.guards)
         self._allowed_hosts = frozenset(config.allowed_hosts)
         self._refused_hosts: set[str] = set()
@@ -202,9 +202,9 @@ class WebServer:
                 post("/api/calibrations/{id}/cancel", write(runs.cancel)),
                 post("/api/lines/{bus}/scan", write(self._start_scan)),
                 get("/api/lines/{bus}/scan", read(self._scan)),
-                get("/api/records", read(self._records.records)),
-                get("/api/devices/{device}/verification", read(self._records.verification)),
-                post("/api/devices/{device}/verify", write(self._records.verify)),
+                get("/api/records", read(self._record_routes.records)),
+                get("/api/devices/{device}/verification", read(self._record_routes.verification)),
+                post("/api/devices/{device}/verify", write(self._record_routes.verify)),
             ]
         )
         return app
