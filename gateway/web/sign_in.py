@@ -41,8 +41,16 @@ class SignInRoutes:
         self.state = state
         self.calibrations = calibrations
         self.guards = guards
-        self.sessions: Sessions = guards.sessions
-        self.throttle: SignInThrottle = guards.throttle
+
+    @property
+    def sessions(self) -> Sessions:
+        """The page's sessions (the guards')."""
+        return self.guards.sessions
+
+    @property
+    def throttle(self) -> SignInThrottle:
+        """The sign-in throttle (the guards')."""
+        return self.guards.throttle
 
     async def session_info(self, request: web.Request) -> web.StreamResponse:
         """Who is signed in, their role and CSRF token, and what this browser may do."""

@@ -142,7 +142,6 @@ class IdentityGuard:
             pid=os.getpid(),
             since=datetime.now(UTC).isoformat(timespec="seconds"),
         )
-        self.connections = 0  # sessions begun, this one included
         self.echoed = False  # this session's claim read back from the broker
         self.held_before = False  # another run's claim read retained in this session
         self.stood = False  # a session's wait ended with the claim unanswered: never yields now
@@ -150,7 +149,6 @@ class IdentityGuard:
 
     def claim(self) -> Message:
         """The claim published at every connection (retained, QoS 1)."""
-        self.connections += 1
         self.echoed = False
         self.held_before = False
         return Message(topic=self.topic, payload=self.mine.payload(), qos=1, retain=True)
