@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import socket
 import time
 
 import pytest
@@ -29,8 +30,31 @@ async def test_a_wait_never_ends_before_its_deadline() -> None:
 
 async def test_a_deadline_in_the_past_returns_at_once() -> None:
     clock = DeadlineTimer()
-    await clock.sleep_until(time.monotonic() - 1.0)
+    assert await clock.sleep_until(time.monotonic() - 1.0) is False  # no wake: nothing polled
     clock.close()
+
+
+async def test_a_wake_by_the_timer_says_so_and_the_port_was_read_in_its_pass() -> None:
+    """What the line relies on to skip asking the kernel: the wake's pass read every port."""
+    clock = DeadlineTimer()
+    loop = asyncio.get_running_loop()
+    reader, writer = socket.socketpair()
+    received = bytearray()
+    loop.add_reader(reader.fileno(), lambda: received.extend(reader.recv(64)))
+    try:
+        deadline = time.monotonic() + 0.01
+        writer.send(b"late")  # readable long before the deadline; the loop reads it meanwhile
+        assert await clock.sleep_until(deadline, loop) is True
+        assert received == b"late"
+        # Bytes that arrive during the wait, read in the pass that wakes it at the latest.
+        writer.send(b"x")
+        assert await clock.sleep_until(time.monotonic() + 0.005) is True
+        assert received == b"latex"
+    finally:
+        loop.remove_reader(reader.fileno())
+        reader.close()
+        writer.close()
+        clock.close()
 
 
 async def test_a_cancelled_wait_leaves_the_timer_usable() -> None:
@@ -66,7 +90,7 @@ async def test_without_a_timerfd_the_wait_falls_back_to_the_event_loop(
     monkeypatch.setattr(timer, "_LIBC", None)
     clock = DeadlineTimer()
     deadline = time.monotonic() + 0.002
-    await clock.sleep_until(deadline)
+    assert await clock.sleep_until(deadline) is False  # the loop's own timer: no such promise
     assert time.monotonic() >= deadline
     assert clock._fd is None
     clock.close()

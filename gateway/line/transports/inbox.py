@@ -30,8 +30,13 @@ class Inbox(asyncio.Protocol):
     transport closes ours and :meth:`connection_lost` follows.
     """
 
-    def __init__(self) -> None:
-        """Nothing received yet; not lost."""
+    def __init__(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+        """Nothing received yet; not lost. ``loop``: the one the transport runs on.
+
+        Known, it spares each wait asking for the running loop, a system call (``getpid``,
+        asyncio's check for a fork) that is dear on a virtual machine.
+        """
+        self.loop = loop
         self.buffer = bytearray()
         self.last_byte_at = -math.inf
         self.lost = asyncio.Event()
@@ -73,7 +78,7 @@ class Inbox(asyncio.Protocol):
 
     async def wait(self, timeout_s: float) -> None:
         """Return when bytes arrive, the connection ends, or after ``timeout_s``."""
-        loop = asyncio.get_running_loop()
+        loop = self.loop or asyncio.get_running_loop()
         waiter = self._waiter = loop.create_future()
         timer = loop.call_later(timeout_s, self._wake)
         try:

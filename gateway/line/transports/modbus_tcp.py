@@ -115,7 +115,7 @@ class ModbusTcpLine:
 
     async def open(self) -> None:
         """Connect, with keepalive and the user timeout; a failure is a :class:`BusClosedError`."""
-        session = Inbox()
+        session = Inbox(asyncio.get_running_loop())
         try:
             link = await connect(
                 self.port, self.host, self.tcp_port, session, self.tcp, mode="Modbus TCP"

@@ -145,7 +145,7 @@ class RtuLine(ABC):
 
     async def open(self) -> None:
         """Open the stream; one that cannot be opened raises :class:`BusClosedError`."""
-        inbox = Inbox()
+        inbox = Inbox(asyncio.get_running_loop())
         transport = await self._connect(inbox)
         self._transport, self._inbox = transport, inbox
         self.stats.closed_because(None, "")
@@ -223,17 +223,18 @@ class RtuLine(ABC):
         inbox = self._live_inbox()
         give_up = math.inf  # set at the first wait: most gaps are over when they are asked for
         bound_s = 0.0
+        read_at = -math.inf  # when the loop had surely read all the port held
         while True:
             last_frame_end, last_byte_at = self.last_frame_end, inbox.last_byte_at
             ready = max(max(last_frame_end, last_byte_at) + gap_s, not_before)
             now = time.monotonic()
             if ready <= now:
-                if self._unread_input():
-                    # Bytes wait in the port's buffer that the event loop has not handed
-                    # over yet (a late answer or noise while this process was busy
-                    # elsewhere): the line was not quiet. They arrived at the latest now;
-                    # the gap starts again.
-                    inbox.last_byte_at = time.monotonic()
+                # Bytes the loop has not read (a late answer, noise, while the process
+                # was busy): the line was not quiet. The kernel is asked, unless the
+                # timer woke this wait less than a character ago: the loop read the port
+                # in that pass (one system call less, ~5 % of a transaction's CPU).
+                if now - read_at > self._character_s and self._unread_input():
+                    inbox.last_byte_at = time.monotonic()  # at the latest: the gap anew
                     continue
                 self.stats.noisy = None
                 return ready
@@ -245,15 +246,14 @@ class RtuLine(ABC):
             if now >= give_up:
                 self._no_silence(device, gap_s, bound_s)
             wake_at = min(ready, give_up)
-            watch = self.wait_watch
-            if watch is None:
-                await self._timer.sleep_until(wake_at)
-            else:
+            if (watch := self.wait_watch) is not None:
                 watch.asleep()
-                try:
-                    await self._timer.sleep_until(wake_at)
-                finally:
+            try:
+                woken = await self._timer.sleep_until(wake_at, inbox.loop)
+            finally:
+                if watch is not None:
                     watch.awake(wake_at, time.monotonic())
+            read_at = wake_at if woken else read_at  # read at wake_at or later if woken
             self._live_inbox()
 
     def _no_silence(self, device: int, gap_s: float, bound_s: float) -> None:

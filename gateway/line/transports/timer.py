@@ -67,14 +67,26 @@ class DeadlineTimer:
         self._spec = _Itimerspec()
         self._usable = _LIBC is not None
 
-    async def sleep_until(self, deadline: float) -> None:
-        """Return at ``deadline`` (monotonic seconds), or at once if it has passed."""
+    async def sleep_until(
+        self, deadline: float, loop: asyncio.AbstractEventLoop | None = None
+    ) -> bool:
+        """Return at ``deadline`` (monotonic seconds), or at once if it has passed.
+
+        ``loop`` is the running loop where the caller knows it: asking for it costs a
+        system call (``getpid``, asyncio's check for a fork), dear on a virtual machine.
+
+        Returns whether the timer woke the wait: then the event loop looked at every
+        descriptor it watches at or after ``deadline`` and, in the same pass, before this
+        returns, handed over what any of them had to read (a port's bytes). ``False`` when
+        the deadline had passed or the fallback slept.
+        """
         if deadline <= time.monotonic():
-            return
-        loop = asyncio.get_running_loop()
+            return False
+        if loop is None:
+            loop = asyncio.get_running_loop()
         if self._waiter is not None or not self._arm(loop, deadline):
             await asyncio.sleep(deadline - time.monotonic())
-            return
+            return False
         waiter = loop.create_future()
         self._waiter = waiter
         try:
@@ -83,6 +95,7 @@ class DeadlineTimer:
             self._waiter = None
             if not waiter.done():  # cancelled: the timer must not fire for nobody
                 self._set(0.0)
+        return True
 
     def close(self) -> None:
         """Release the file descriptor (idempotent); the next wait makes a new one."""
