@@ -8,13 +8,18 @@ decoded values, no device health, no timing rules beyond sleeping the inter-fram
 figure). What it costs per transaction is what any asyncio master with these libraries
 pays on this machine: the event loop's turns, the port's reads and writes, the framer.
 
-``bench/bus_efficiency.py`` runs it after the gateway on the same line and prints both.
+``bench/bus_efficiency.py`` runs it after the gateway on the same line and prints both, or,
+with ``--at-once``, in a process of its own on a line of its own while the gateway runs
+(this module's command line: the reads as JSON, the figures printed as JSON).
 """
 
 from __future__ import annotations
 
+import argparse
 import asyncio
+import json
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import serial_asyncio_fast
@@ -24,7 +29,6 @@ from pymodbus.pdu.register_message import ReadHoldingRegistersRequest
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
-    from pathlib import Path
 
 ANSWER_TIMEOUT_S = 1.0
 
@@ -103,3 +107,38 @@ async def wake_cost(wait_s: float, waits: int = 300) -> dict[str, float]:
     for _ in range(waits):
         await asyncio.sleep(wait_s)
     return {"wake_cpu_us": 1e6 * (time.process_time() - cpu0) / waits}
+
+
+async def warmed_up(
+    port: Path,
+    baudrate: int,
+    gap_s: float,
+    reads: Sequence[tuple[int, int, int]],
+    seconds: float,
+    *,
+    warm_s: float,
+) -> dict[str, float]:
+    """:func:`measure_bare` after ``warm_s`` unmeasured, as the gateway's run warms up."""
+    await measure_bare(port, baudrate, gap_s, reads, warm_s)
+    return await measure_bare(port, baudrate, gap_s, reads, seconds)
+
+
+def main() -> None:
+    """Measure on one port and print the figures as JSON (for ``bus_efficiency --at-once``)."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--port", type=Path, required=True)
+    parser.add_argument("--baudrate", type=int, required=True)
+    parser.add_argument("--gap-s", type=float, required=True)
+    parser.add_argument("--reads", required=True, help="JSON list of [device, address, count]")
+    parser.add_argument("--seconds", type=float, required=True)
+    parser.add_argument("--warm-s", type=float, default=2.0)
+    args = parser.parse_args()
+    reads = [(int(d), int(a), int(c)) for d, a, c in json.loads(args.reads)]
+    figures = asyncio.run(
+        warmed_up(args.port, args.baudrate, args.gap_s, reads, args.seconds, warm_s=args.warm_s)
+    )
+    print(json.dumps(figures), flush=True)
+
+
+if __name__ == "__main__":
+    main()
