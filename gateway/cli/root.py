@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import importlib
 import json
-import signal
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Final
@@ -33,13 +32,14 @@ from gateway.wire.timing import LineFormat
 if TYPE_CHECKING:
     from typer import _click
 
-    from gateway.simulator import SimulationSettings
 
 # What only one command needs (tables, progress bars, the simulator, the bus scan) is
 # imported in that command, so that `gateway run` does not hold it in memory for as long
 # as the gateway runs. The commands of a module of their own are imported only when one
 # of them is run or listed (tests/cli/test_imports.py checks what `gateway run` imports).
 LAZY_COMMANDS: Final = {
+    "simulate": "gateway.cli.simulate",
+    "scan": "gateway.cli.scan",
     "demo": "gateway.cli.demo_command",
     "write": "gateway.cli.write",
     "calibrate": "gateway.cli.calibrate",
@@ -218,181 +218,6 @@ def profiles_show(
     _out.print(table)
 
 
-def _simulation_settings(
-    devices: list[str],
-    config: Path | None,
-    overrides: dict[str, object],
-) -> SimulationSettings:
-    from gateway.simulator import load_settings, parse_device_option, parse_settings  # noqa: PLC0415
-
-    if config is not None:
-        settings = load_settings(config)
-        if devices:
-            extra = [parse_device_option(text) for text in devices]
-            settings = parse_settings(
-                {
-                    **settings.model_dump(),
-                    "devices": [
-                        *settings.model_dump()["devices"],
-                        *[d.model_dump() for d in extra],
-                    ],
-                },
-                source=str(config),
-            )
-    else:
-        if not devices:
-            raise ConfigError("give at least one --device PROFILE:ADDRESS or a --config file")
-        settings = parse_settings(
-            {"devices": [parse_device_option(t).model_dump() for t in devices]}
-        )
-    data = settings.model_dump()
-    line = {
-        k: v
-        for k, v in overrides.items()
-        if k in {"baudrate", "parity", "stopbits"} and v is not None
-    }
-    data["line"] = {**data["line"], **line}
-    for key in ("pace", "seed"):
-        if overrides.get(key) is not None:
-            data[key] = overrides[key]
-    if overrides.get("static"):
-        for device in data["devices"]:
-            device["animate"] = False
-    return parse_settings(data, source=str(config or "command line"))
-
-
-async def _simulate(
-    settings: SimulationSettings,
-    pty: Path | None,
-    tcp: tuple[str, int] | None,
-    stats: Path | None,
-    *,
-    framing: str = "rtu",
-    converter_timeout_s: float = 0.05,
-) -> None:
-    from gateway.simulator import SimulatorServer, build_bus  # noqa: PLC0415
-
-    bus = build_bus(settings)
-    server = SimulatorServer(bus, stats_path=stats)
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(signum, stop.set)
-    try:
-        where = []
-        if pty is not None:
-            slave = server.open_pty(pty)
-            where.append(f"{pty} (-> {slave})")
-        if tcp is not None:
-            port = await server.open_tcp(
-                *tcp, framing=framing, converter_timeout_s=converter_timeout_s
-            )
-            scheme = "tcp" if framing == "tcp" else "socket"
-            where.append(f"{scheme}://{tcp[0]}:{port}")
-        server.start_stats()
-        devices = ", ".join(f"{d.profile.id}@{a}" for a, d in sorted(bus.devices.items()))
-        _out.print(
-            f"simulating {devices} on {' and '.join(where)}, {bus.line}; Ctrl-C stops",
-            markup=False,
-        )
-        sys.stdout.flush()
-        await stop.wait()
-    finally:
-        await server.close()
-
-
-def _host_port(text: str) -> tuple[str, int]:
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not host:
-        raise ConfigError(f"--tcp {text!r}: expected HOST:PORT, e.g. 127.0.0.1:5020")
-    return host, int(port)
-
-
-@app.command()
-def simulate(
-    device: Annotated[
-        list[str] | None,
-        typer.Option("--device", "-d", help="PROFILE:ADDRESS of a simulated sensor; repeatable."),
-    ] = None,
-    config: Annotated[
-        Path | None,
-        typer.Option("--config", "-c", help="YAML file with line, devices, values, faults."),
-    ] = None,
-    pty: Annotated[
-        Path | None,
-        typer.Option("--pty", help="Create a pseudo-terminal and link it at this path."),
-    ] = None,
-    tcp: Annotated[
-        str | None, typer.Option("--tcp", help="Serve RTU over TCP on HOST:PORT (port 0: any).")
-    ] = None,
-    framing: Annotated[
-        str,
-        typer.Option(
-            help="On --tcp: rtu (RTU over TCP, a transparent converter) or tcp (Modbus TCP: "
-            "MBAP frames, unit id = address, 0B for a device that does not answer)."
-        ),
-    ] = "rtu",
-    converter_timeout: Annotated[
-        float,
-        typer.Option(
-            help="With --framing tcp: seconds the converter waits for an answer after its "
-            "wire time before it answers 0B."
-        ),
-    ] = 0.05,
-    baudrate: Annotated[
-        int | None, typer.Option(help="Line speed for timing rules and pacing.")
-    ] = None,
-    parity: Annotated[str | None, typer.Option(help="N, E or O.")] = None,
-    stopbits: Annotated[int | None, typer.Option(help="1 or 2.")] = None,
-    pace: Annotated[
-        bool | None, typer.Option("--pace/--no-pace", help="Take the line's real time per frame.")
-    ] = None,
-    static: Annotated[
-        bool, typer.Option("--static", help="Keep values still (for tests).")
-    ] = False,
-    seed: Annotated[int | None, typer.Option(help="Seed for values and fault injection.")] = None,
-    stats: Annotated[
-        Path | None, typer.Option("--stats", help="Keep a JSON stats file up to date here.")
-    ] = None,
-) -> None:
-    """Simulate sensors on a pseudo-terminal or TCP, refereeing the master's timing."""
-    try:
-        if pty is None and tcp is None:
-            raise ConfigError("give --pty PATH and/or --tcp HOST:PORT")
-        if framing not in {"rtu", "tcp"}:
-            raise ConfigError(
-                f"--framing {framing!r}: expected rtu (RTU over TCP) or tcp (Modbus TCP)"
-            )
-        if not 0 < converter_timeout <= 10:  # noqa: PLR2004 - seconds, as the help says
-            raise ConfigError(
-                f"--converter-timeout {converter_timeout:g}: expected more than 0 and at most 10 s"
-            )
-        settings = _simulation_settings(
-            device or [],
-            config,
-            {
-                "baudrate": baudrate,
-                "parity": parity,
-                "stopbits": stopbits,
-                "pace": pace,
-                "seed": seed,
-                "static": static,
-            },
-        )
-        asyncio.run(
-            _simulate(
-                settings,
-                pty,
-                _host_port(tcp) if tcp else None,
-                stats,
-                framing=framing,
-                converter_timeout_s=converter_timeout,
-            )
-        )
-    except GatewayError as exc:
-        raise fail(exc) from exc
-
-
 def _read_targets(profile_id: str, points: list[str], *, every: bool) -> dict[str, float | None]:
     profile = get_profile(profile_id)
     if points:
@@ -523,112 +348,6 @@ def run(
         run_command(config, show=show)
     except GatewayError as exc:
         raise fail(exc) from exc
-
-
-@app.command("scan")
-def scan_command(
-    port: Annotated[
-        str, typer.Option(help="Serial device, socket://HOST:PORT (RTU) or tcp://HOST:PORT (MBAP).")
-    ],
-    baudrate: Annotated[int, typer.Option(help="Line speed.")] = 9600,
-    parity: Annotated[str, typer.Option(help="N, E or O.")] = "N",
-    stopbits: Annotated[int, typer.Option(help="1 or 2.")] = 1,
-    addresses: Annotated[
-        str, typer.Option(help="Addresses to probe: 1-247, 7, or a list such as 1-10,20.")
-    ] = "1-247",
-    all_formats: Annotated[
-        bool,
-        typer.Option(
-            "--all-formats",
-            help="Also try every baud rate and character format the sensor families support.",
-        ),
-    ] = False,
-    timeout: Annotated[
-        float | None,
-        typer.Option(
-            help="Seconds to wait for a probe's answer (default: its wire time + 40 ms); "
-            "raise it for sensors with a digiLine minimum response time."
-        ),
-    ] = None,
-    as_json: Annotated[
-        bool, typer.Option("--json", help="Print {devices, config} as JSON, no progress bar.")
-    ] = False,
-) -> None:
-    """Find the sensors on a line and print them with a config snippet; exit 1 if none."""
-    from rich.progress import (  # noqa: PLC0415
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-    from rich.table import Table  # noqa: PLC0415
-
-    from gateway.line.scan import parse_addresses, scan_formats  # noqa: PLC0415
-    from gateway.line.scan import scan as scan_bus  # noqa: PLC0415
-
-    try:
-        formats = scan_formats(
-            baudrate=baudrate, parity=parity, stopbits=stopbits, every=all_formats
-        )
-        wanted = parse_addresses(addresses)
-        with Progress(
-            TextColumn("{task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("found {task.fields[found]}"),
-            TimeElapsedColumn(),
-            TextColumn("left"),
-            TimeRemainingColumn(),
-            console=_err,
-            transient=True,
-            disable=as_json or not _err.is_terminal,
-        ) as progress:
-            task = progress.add_task("scanning", total=len(formats) * len(wanted), found=0)
-
-            def advance(fmt: LineFormat, address: int, found: int) -> None:
-                progress.update(task, advance=1, description=f"{fmt} #{address}", found=found)
-
-            report = asyncio.run(
-                scan_bus(
-                    port, formats=formats, addresses=wanted, timeout_s=timeout, progress=advance
-                )
-            )
-    except GatewayError as exc:
-        raise fail(exc) from exc
-    if as_json:
-        sys.stdout.write(json.dumps(report.as_dict(), indent=2, ensure_ascii=False) + "\n")
-    elif report.devices:
-        table = Table(title=escape(f"Devices on {port}"), show_lines=True)
-        for column in ("address", "format", "profile"):
-            table.add_column(column, no_wrap=True)
-        table.add_column("identification", overflow="fold", ratio=1)
-        table.add_column("notes", overflow="fold", ratio=1)
-        for device in report.devices:
-            profile = device.profile or "-"
-            table.add_row(
-                str(device.address),
-                str(device.line),
-                f"{profile} (guess)" if device.guess else profile,
-                escape(device.details_text(sep="\n")),
-                escape("; ".join(device.notes)),
-            )
-        _out.print(table)
-        sys.stdout.write("\n" + report.config_yaml())
-    _err.print(
-        f"{len(report.devices)} device(s); {len(wanted)} address(es) x {len(formats)} "
-        f"format(s) in {report.elapsed_s:.1f} s, {report.requests} requests",
-        markup=False,
-    )
-    if report.garbled:
-        where = ", ".join(f"{address} at {fmt}" for fmt, address in report.garbled)
-        _err.print(
-            f"broken answers from {where}: another line format? try --all-formats", markup=False
-        )
-    if not report.devices:
-        _err.print(f"[bold red]no device answered[/] on {escape(port)}", highlight=False)
-        raise typer.Exit(code=1)
 
 
 def main() -> None:
