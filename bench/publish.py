@@ -267,7 +267,7 @@ async def timed(sink, samples):
     # When the bus task hands a decoded cycle over, keyed by the document's seq.
     if samples:
         device = samples[0].device
-        handed.append((device, sink.topics._sequence.get(device, 0) + 1, time.time()))
+        handed.append((device, sink.topics.documents.sent(device) + 1, time.time()))
     await hand_over(sink, samples)
 MqttSink.publish = timed
 handed_file, config = sys.argv[1], sys.argv[2]

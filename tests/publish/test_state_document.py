@@ -26,7 +26,7 @@ def topics_for(intervals: dict[str, float | None]) -> tuple[GatewayState, Topics
 
 
 def document(topics: Topics) -> dict[str, object]:
-    message = topics._state_document("line1", "basin", datetime(2026, 11, 25, tzinfo=UTC))
+    message = topics.documents.build("line1", "basin", datetime(2026, 11, 25, tzinfo=UTC))
     assert message.topic == "gw/basin/state"
     assert message.payload.startswith(b'{"time":"2026-11-25T00:00:00+00:00","seq":')  # compact
     loaded: dict[str, object] = json.loads(message.payload)

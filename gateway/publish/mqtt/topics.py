@@ -14,28 +14,23 @@ fault.
 from __future__ import annotations
 
 import json
-import operator
-import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import orjson
 
 from gateway.config import PublishMode, PublishSettings
-from gateway.line.samples import Quality, hex_registers, json_value
-from gateway.profiles import get_profile
+from gateway.line.samples import Quality, json_value
 from gateway.publish.discovery import (
     CARE_TOPIC_SUFFIX,
-    care_discovery_messages,
-    discovery_messages,
 )
 from gateway.publish.message import Message
-from gateway.shared.state import STALE_FACTOR, STALE_MARGIN_S
+from gateway.publish.mqtt.announcements import Announcements
+from gateway.publish.mqtt.state_document import StateDocuments
 from gateway.wire.codec import BitfieldValue
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterable, Mapping, Sequence
-    from datetime import datetime
+    from collections.abc import Iterable, Mapping, Sequence
 
     from gateway.config import MqttConfig
     from gateway.line.samples import DeviceEvent, Sample
@@ -51,15 +46,6 @@ class _Published:
     at: float
 
 
-# The state document's serialiser. orjson, not the standard library's json, on purpose:
-# the document carries every point of the device at every cycle (an H10's 289 points, some
-# 20 KB), and json took about 200 µs to encode it where orjson takes 17 µs (bench/README.md,
-# "Issue 23's targets, the night's session"). Its text is compact (no spaces after ``:`` and
-# ``,``), UTF-8, and a float that is not a number (none reaches it: a value that does not
-# decode is a fault) would be ``null``, where json wrote the invalid ``NaN``.
-_encode_json = orjson.dumps
-
-
 def _payload(value: object) -> str:
     """A plain value as text: numbers as numbers, true/false, labels, ISO date-times."""
     data = json_value(value)  # type: ignore[arg-type]
@@ -68,42 +54,6 @@ def _payload(value: object) -> str:
     if isinstance(data, dict):
         return str(value.raw) if isinstance(value, BitfieldValue) else json.dumps(data)
     return "" if data is None else str(data)
-
-
-@dataclass(frozen=True, slots=True)
-class _DocumentLayout:
-    """A device's points in the state document's order, and their intervals: made once.
-
-    Per device some 8 bytes a point (two tuples of references to strings and floats the
-    profile and the config hold already); it saves the sort, and a lookup per point, at
-    every cycle.
-    """
-
-    order: tuple[str, ...]
-    intervals: tuple[float | None, ...]  # of each point in ``order``; None: read once
-    distinct_intervals: frozenset[float]
-    rows: Callable[[Mapping[str, Sample]], Sequence[Sample]]  # the samples in ``order``
-
-    @classmethod
-    def of(
-        cls, samples: Mapping[str, Sample], intervals: Mapping[str, float | None]
-    ) -> _DocumentLayout:
-        order = tuple(sorted(samples))
-        point_intervals = tuple(intervals.get(point) for point in order)
-        rows: Callable[[Mapping[str, Sample]], Sequence[Sample]]
-        if len(order) > 1:
-            rows = operator.itemgetter(*order)
-        elif order:  # itemgetter of one key gives the item itself, not a tuple of one
-            only = order[0]
-            rows = lambda found: (found[only],)  # noqa: E731 - one of three shapes
-        else:  # none recorded yet: itemgetter takes no empty list of keys
-            rows = lambda _: ()  # noqa: E731
-        return cls(
-            order=order,
-            intervals=point_intervals,
-            distinct_intervals=frozenset(i for i in point_intervals if i is not None),
-            rows=rows,
-        )
 
 
 class Topics:
@@ -138,18 +88,8 @@ class Topics:
         # string shared by every device of the profile, not a topic made per bit).
         self._flags: dict[str, dict[str, bool]] = {}
         self._fault_cleared: set[str] = set()
-        # The discovery configs sent, by device: kept (some 1 KB an entity, 42 KB for an
-        # H10; built once anyway) so that a re-announce is the retained bytes again, not a
-        # rebuild from whatever was read since, and costs the poll loop no JSON encoding
-        # just as Home Assistant starts.
-        self._discovered: dict[tuple[str, str], list[Message]] = {}
-        # The points each device's announcement covers: a point first read after it (a
-        # slower rate, or a first read put off by a late line) is announced then.
-        self._discovered_points: dict[tuple[str, str], frozenset[str]] = {}
-        self._care_announced: dict[str, list[Message]] = {}  # the care entities' configs
-        self._sequence: dict[str, int] = {}  # state documents per device since the start
-        # Each device's points in the document's order with their intervals, made once.
-        self._layouts: dict[str, _DocumentLayout] = {}
+        self.announcements = Announcements(settings, state, client_id=client_id)
+        self.documents = StateDocuments(settings, state)
         self._care_sent: dict[str, int] = {}  # each device's care version last sent
 
     def cycle(self, samples: Sequence[Sample]) -> list[Message]:
@@ -165,30 +105,11 @@ class Topics:
         for sample in samples:
             self._value_messages(sample, messages)
         first = samples[0]
-        messages.append(self._state_document(first.bus, first.device, first.time))
+        messages.append(self.documents.build(first.bus, first.device, first.time))
         if self.settings.discovery.enabled:
-            self._announce(first.bus, first.device, samples, messages)
+            messages.extend(self.announcements.cycle(first.bus, first.device, samples))
         self._care(first.bus, first.device, messages)
         return messages
-
-    def _announce(
-        self, bus: str, device: str, samples: Sequence[Sample], messages: list[Message]
-    ) -> None:
-        """The device's discovery at its first cycle; a point's when it is first read later.
-
-        A later point adds the configs of its own entities only: those sent are kept as they
-        were sent, and are what a restart of Home Assistant gets again.
-        """
-        covered = self._discovered_points.get((bus, device))
-        if covered is not None and all(sample.point in covered for sample in samples):
-            return
-        sent = self._discovered.setdefault((bus, device), [])
-        topics = {message.topic for message in sent}
-        added = [m for m in self._discovery(bus, device) if m.topic not in topics]
-        known = self.state.device_samples(bus, device).keys()
-        self._discovered_points[bus, device] = frozenset(known).union(s.point for s in samples)
-        sent.extend(added)
-        messages.extend(added)
 
     def _care(self, bus: str, device: str, messages: list[Message]) -> None:
         """The device's care document (retained), when its content changed since the last.
@@ -214,28 +135,11 @@ class Topics:
             )
         )
         if first and self.settings.discovery.enabled:
-            mine = self.state.device_samples(bus, device)
-            announced = self._care_announced[device] = care_discovery_messages(
-                prefix=self.settings.discovery.prefix,
-                base_topic=self.base,
-                gateway_id=self.client_id,
-                device=device,
-                profile=get_profile(report.profile),
-                identity={p: s.value for p, s in mine.items() if s.group == "identity" and s.good},
-                slope=report.slope_limit is not None,
-                qos=self.settings.qos,
-            )
-            messages.extend(announced)
+            messages.extend(self.announcements.care(bus, device, report))
 
     def announced(self) -> list[Message]:
-        """Every discovery config announced and still standing, as it was sent (retained).
-
-        What Home Assistant is sent again when it restarts: the devices' entities, then the
-        care entities. A device a reload changed is left out until its next cycle announces
-        it anew; one a reload removed, for good.
-        """
-        entities = [message for sent in self._discovered.values() for message in sent]
-        return entities + [message for sent in self._care_announced.values() for message in sent]
+        """Every discovery config announced and still standing, as it was sent (retained)."""
+        return self.announcements.announced()
 
     def for_a_new_server(self) -> list[Message]:
         """What a server without this gateway's retained messages needs first.
@@ -257,7 +161,7 @@ class Topics:
             for info in list(self.state.devices.values())
             if info.online is not None
         ]
-        return availability + self.announced()
+        return availability + self.announcements.announced()
 
     def set_publish(self, publish: Mapping[tuple[str, str], PublishSettings]) -> None:
         """The publish settings per ``(device, point)`` after a reload."""
@@ -273,34 +177,13 @@ class Topics:
         """
         dropped = tuple(dropped)
         clear = [f"{self.base}/{device}/{point}" for point in dropped]
-        if dropped and (bus, device) in self._discovered:
-            clear += self._entity_topics(device, profile, dropped)
-        self._discovered = {
-            known: sent for known, sent in self._discovered.items() if known[1] != device
-        }
-        self._discovered_points = {
-            known: points for known, points in self._discovered_points.items() if known[1] != device
-        }
-        self._layouts.pop(device, None)
+        clear += self.announcements.replan(bus, device, profile, dropped)
+        self.documents.replanned(device)
         for topic in clear:
             self._last.pop(topic, None)
         return [
             Message(topic=topic, payload=b"", qos=self.settings.qos, retain=True) for topic in clear
         ]
-
-    def _entity_topics(self, device: str, profile: Profile, points: Iterable[str]) -> list[str]:
-        """The discovery topics of the points' Home Assistant entities (to clear them)."""
-        announced = discovery_messages(
-            prefix=self.settings.discovery.prefix,
-            base_topic=self.base,
-            gateway_id=self.client_id,
-            device=device,
-            profile=profile,
-            points=points,
-            identity={},
-            units={},
-        )
-        return [message.topic for message in announced]
 
     def forget(
         self, bus: str, device: str, profile: Profile, points: Iterable[str]
@@ -316,24 +199,11 @@ class Topics:
             f"{self.base}/{device}/status/{flag}" for flag in self._flags.pop(device, {})
         ]
         clear += [f"{self.base}/{device}/state", f"{self.base}/{device}/{CARE_TOPIC_SUFFIX}"]
-        if (bus, device) in self._discovered or device in self._care_sent:
-            clear += self._entity_topics(device, profile, points)
-            announced = care_discovery_messages(
-                prefix=self.settings.discovery.prefix,
-                base_topic=self.base,
-                gateway_id=self.client_id,
-                device=device,
-                profile=profile,
-                identity={},
-                slope=True,
-            )
-            clear += [message.topic for message in announced]
-        self._discovered.pop((bus, device), None)
-        self._discovered_points.pop((bus, device), None)
+        clear += self.announcements.forget(
+            bus, device, profile, points, care_sent=device in self._care_sent
+        )
         self._care_sent.pop(device, None)
-        self._care_announced.pop(device, None)
-        self._sequence.pop(device, None)
-        self._layouts.pop(device, None)
+        self.documents.forget(device)
         prefix = f"{self.base}/{device}/"
         for topic in [t for t in self._last if t.startswith(prefix)]:
             del self._last[topic]
@@ -348,24 +218,6 @@ class Topics:
         """A device's ``online``/``offline`` (retained)."""
         payload = "online" if event.online else "offline"
         return self._message(f"{event.device}/availability", payload, retain=True)
-
-    def _discovery(self, bus: str, device: str) -> list[Message]:
-        """Home Assistant discovery for a device, from its identity and units read so far."""
-        info = self.state.devices.get((bus, device))
-        if info is None:
-            return []
-        mine = self.state.device_samples(bus, device)
-        return discovery_messages(
-            prefix=self.settings.discovery.prefix,
-            base_topic=self.base,
-            gateway_id=self.client_id,
-            device=device,
-            profile=get_profile(info.profile),
-            points=[p for p in info.intervals if p in mine],
-            identity={p: s.value for p, s in mine.items() if s.group == "identity" and s.good},
-            units={p: s.unit for p, s in mine.items()},
-            qos=self.settings.qos,
-        )
 
     def _message(
         self, suffix: str, payload: str, *, retain: bool, qos: int | None = None
@@ -432,62 +284,3 @@ class Topics:
         if isinstance(value, int | float) and isinstance(previous, int | float):
             return abs(value - previous) > settings.deadband
         return value != previous
-
-    def _state_document(self, bus: str, device: str, when: datetime) -> Message:
-        """Every point's latest value, unit, fault and quality, as the gateway sees them now.
-
-        A value that could not be decoded also has its registers under ``raw`` (a key
-        present only then), so a subscriber sees what the sensor sent. Built once per
-        cycle: the device's intervals and the clock are read once, not per point.
-        """
-        values: dict[str, object] = {}
-        faults: dict[str, str] = {}
-        quality: dict[str, str] = {}
-        raw: dict[str, list[str]] = {}
-        samples = self.state.device_samples(bus, device)
-        layout = self._layouts.get(device)
-        if layout is None or len(layout.order) != len(samples):  # points are added, not removed
-            info = self.state.devices.get((bus, device))
-            layout = self._layouts[device] = _DocumentLayout.of(
-                samples, info.intervals if info is not None else {}
-            )
-        order = layout.order
-        rows = layout.rows(samples)
-        # A value is stale once older than STALE_FACTOR of its interval (and a margin): one
-        # cut-off per distinct interval, a handful per device, not one sum per point.
-        now = time.monotonic()
-        cutoffs = {
-            interval: now - (STALE_FACTOR * interval + STALE_MARGIN_S)
-            for interval in layout.distinct_intervals
-        }
-        good = Quality.GOOD
-        for point, sample, interval in zip(order, rows, layout.intervals, strict=True):
-            if sample.quality is good:
-                value = sample.value
-                kind = type(value)
-                values[point] = value if kind is float or kind is int else json_value(value)
-                stale = interval is not None and sample.monotonic < cutoffs[interval]
-                quality[point] = "stale" if stale else "good"
-            else:
-                faults[point] = sample.fault or sample.quality.value
-                quality[point] = sample.quality.value
-            if sample.raw:
-                raw[point] = hex_registers(sample.raw)
-        units = {point: sample.unit for point, sample in zip(order, rows, strict=True)}
-        seq = self._sequence[device] = self._sequence.get(device, 0) + 1
-        document = {
-            "time": when.isoformat(),
-            "seq": seq,
-            "values": values,
-            "units": units,
-            "faults": faults,
-            "quality": quality,
-        }
-        if raw:
-            document["raw"] = raw
-        return Message(
-            topic=f"{self.base}/{device}/state",
-            payload=_encode_json(document),
-            qos=self.settings.qos,
-            retain=False,
-        )
