@@ -28,7 +28,7 @@ most), and the target is judged by the median.
 
 With --at-once the bare master runs at the same time as the gateway, in a process of its
 own on a simulated line of its own, over the same seconds. Both then meet the same machine:
-a virtual machine's speed moves by half within a minute (the same code's CPU per
+a virtual machine's speed moves twofold within a minute (the same code's CPU per
 transaction measured 225 and 540 µs a minute apart), and in turns that move lands on one
 side of a ratio only (ratios of one commit spread 1.21-2.53 in turns, 1.47-1.55 at once).
 Each process sleeps nearly all the time (some 2 % of a core each), so neither waits for
