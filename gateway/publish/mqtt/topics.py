@@ -1,10 +1,12 @@
 """What MQTT sends where: value topics, status bits, state documents, availability, discovery.
 
-Every message of the contract that a sample or a device event becomes is built here, and
-nothing here touches the broker: :class:`Topics` turns one device's poll cycle into its
-messages, in the order they go out, and the connection sends them as they are (topic,
-payload, QoS, retain). Kept apart from the connection so that what a subscriber sees can be
-read, and changed, without the reconnect loop and the in-flight window in the way.
+Every message of the contract that a sample or a device event becomes is built here or by
+the parts :class:`Topics` holds (the state documents: :mod:`.state_document`; the Home
+Assistant announcements: :mod:`.announcements`), and nothing here touches the broker:
+:class:`Topics` turns one device's poll cycle into its messages, in the order they go out,
+and the connection sends them as they are (topic, payload, QoS, retain). Kept apart from
+the connection so that what a subscriber sees can be read, and changed, without the
+reconnect loop and the in-flight window in the way.
 
 A value in fault or unreadable is never published as a number: its plain topic is cleared
 (an empty retained payload, so no stale number lingers) and the state document names the
@@ -21,9 +23,7 @@ import orjson
 
 from gateway.config import PublishMode, PublishSettings
 from gateway.line.samples import Quality, json_value
-from gateway.publish.discovery import (
-    CARE_TOPIC_SUFFIX,
-)
+from gateway.publish.discovery import CARE_TOPIC_SUFFIX
 from gateway.publish.message import Message
 from gateway.publish.mqtt.announcements import Announcements
 from gateway.publish.mqtt.state_document import StateDocuments
