@@ -9,7 +9,9 @@ the time (some 2 % of a core), so on two cores neither waits for the other. Two 
 one commit measured this way differ by 0.95-1.05 in a pair, median 1.01.
 
 The earlier commit's ``gateway`` package is taken from git (``git archive``) into a
-temporary directory and put first on the child's path; the measuring code is this tree's.
+temporary directory and put first on the child's path; the measuring code is this tree's
+(so the earlier commit must have the engine's module paths ``bench/bus_efficiency.py``
+imports), and each child simulates its line with its own package's ``gateway simulate``.
 Per run it prints both figures and their ratio (new / old), per format the median and the
 spread of the ratios.
 
@@ -46,11 +48,10 @@ def line_format(text: str) -> LineFormat:
 
 def child(text: str, seconds: float) -> None:
     """Measure the engine this process imports and print its figures as JSON."""
+    import gateway  # noqa: PLC0415 - which one: said for the reader of the output
     from bench.bus_efficiency import measure, simulated_line  # noqa: PLC0415 - the child's gateway
 
     line = line_format(text)
-    import gateway  # noqa: PLC0415 - which one: said for the reader of the output
-
     with simulated_line(line) as (port, referee):
         figures: dict[str, object] = dict(asyncio.run(measure(port, line, seconds)))
     figures |= {"timing_violations": referee["timing_violations"], "gateway": gateway.__file__}
