@@ -317,8 +317,13 @@ def one_format(line: LineFormat, seconds: float, *, at_once: bool = False) -> di
     if at_once:
         with simulated_line(line) as (port, referee), simulated_line(line) as (bare_port, _):
             bare = bare_process(bare_port, line, gap_s, seconds)
-            measured = asyncio.run(measure(port, line, seconds))
-            out, _ = bare.communicate(timeout=seconds + 60)
+            try:
+                measured = asyncio.run(measure(port, line, seconds))
+                out, _ = bare.communicate(timeout=seconds + 60)
+            finally:
+                if bare.poll() is None:  # the gateway's run failed: the bare master goes too
+                    bare.kill()
+                    bare.wait()
         floor: dict[str, float] = json.loads(out.strip().splitlines()[-1])
     else:
         with simulated_line(line) as (port, referee):

@@ -12,7 +12,6 @@ import sys
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.progress import (
     BarColumn,
@@ -24,16 +23,13 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from gateway.cli.device import fail
+from gateway.cli.device import err, fail, out
 from gateway.errors import GatewayError
 from gateway.line.scan import parse_addresses, scan_formats
 from gateway.line.scan import scan as scan_bus
 
 if TYPE_CHECKING:
     from gateway.wire.timing import LineFormat
-
-_out = Console(highlight=False, soft_wrap=True)
-_err = Console(stderr=True, highlight=False)
 
 
 def scan_command(
@@ -78,9 +74,9 @@ def scan_command(
             TimeElapsedColumn(),
             TextColumn("left"),
             TimeRemainingColumn(),
-            console=_err,
+            console=err,
             transient=True,
-            disable=as_json or not _err.is_terminal,
+            disable=as_json or not err.is_terminal,
         ) as progress:
             task = progress.add_task("scanning", total=len(formats) * len(wanted), found=0)
 
@@ -111,20 +107,20 @@ def scan_command(
                 escape(device.details_text(sep="\n")),
                 escape("; ".join(device.notes)),
             )
-        _out.print(table)
+        out.print(table)
         sys.stdout.write("\n" + report.config_yaml())
-    _err.print(
+    err.print(
         f"{len(report.devices)} device(s); {len(wanted)} address(es) x {len(formats)} "
         f"format(s) in {report.elapsed_s:.1f} s, {report.requests} requests",
         markup=False,
     )
     if report.garbled:
         where = ", ".join(f"{address} at {fmt}" for fmt, address in report.garbled)
-        _err.print(
+        err.print(
             f"broken answers from {where}: another line format? try --all-formats", markup=False
         )
     if not report.devices:
-        _err.print(f"[bold red]no device answered[/] on {escape(port)}", highlight=False)
+        err.print(f"[bold red]no device answered[/] on {escape(port)}", highlight=False)
         raise typer.Exit(code=1)
 
 

@@ -13,9 +13,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.console import Console
 
-from gateway.cli.device import fail
+from gateway.cli.device import fail, out
 from gateway.errors import ConfigError, GatewayError
 from gateway.simulator import (
     SimulatorServer,
@@ -27,8 +26,6 @@ from gateway.simulator import (
 
 if TYPE_CHECKING:
     from gateway.simulator import SimulationSettings
-
-_out = Console(highlight=False, soft_wrap=True)
 
 
 def _simulation_settings(
@@ -100,7 +97,7 @@ async def _simulate(
             where.append(f"{scheme}://{tcp[0]}:{port}")
         server.start_stats()
         devices = ", ".join(f"{d.profile.id}@{a}" for a, d in sorted(bus.devices.items()))
-        _out.print(
+        out.print(
             f"simulating {devices} on {' and '.join(where)}, {bus.line}; Ctrl-C stops",
             markup=False,
         )

@@ -61,15 +61,11 @@ class Announcements:
     def care(self, bus: str, device: str, report: CareReport) -> list[Message]:
         """The care entities of a device, at its first care document; kept as sent."""
         mine = self.state.device_samples(bus, device)
-        announced = self._care_announced[device] = care_discovery_messages(
-            prefix=self.settings.discovery.prefix,
-            base_topic=self.base,
-            gateway_id=self.client_id,
-            device=device,
-            profile=get_profile(report.profile),
+        announced = self._care_announced[device] = self._care_configs(
+            device,
+            get_profile(report.profile),
             identity={p: s.value for p, s in mine.items() if s.group == "identity" and s.good},
             slope=report.slope_limit is not None,
-            qos=self.settings.qos,
         )
         return announced
 
@@ -108,20 +104,27 @@ class Announcements:
         clear: list[str] = []
         if (bus, device) in self._discovered or care_sent:
             clear += self.entity_topics(device, profile, points)
-            announced = care_discovery_messages(
-                prefix=self.settings.discovery.prefix,
-                base_topic=self.base,
-                gateway_id=self.client_id,
-                device=device,
-                profile=profile,
-                identity={},
-                slope=True,
-            )
+            announced = self._care_configs(device, profile, identity={}, slope=True)
             clear += [message.topic for message in announced]
         self._discovered.pop((bus, device), None)
         self._discovered_points.pop((bus, device), None)
         self._care_announced.pop(device, None)
         return clear
+
+    def _care_configs(
+        self, device: str, profile: Profile, *, identity: dict[str, object], slope: bool
+    ) -> list[Message]:
+        """The discovery configs of a device's care entities (their topics alone, to clear)."""
+        return care_discovery_messages(
+            prefix=self.settings.discovery.prefix,
+            base_topic=self.base,
+            gateway_id=self.client_id,
+            device=device,
+            profile=profile,
+            identity=identity,
+            slope=slope,
+            qos=self.settings.qos,
+        )
 
     def entity_topics(self, device: str, profile: Profile, points: Iterable[str]) -> list[str]:
         """The discovery topics of the points' Home Assistant entities (to clear them)."""
