@@ -43,6 +43,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import cProfile
 import json
 import os
 import resource
@@ -178,8 +179,12 @@ async def measure(
     seconds: float,
     *,
     keep_stats: list[LineStats] | None = None,
+    profile: cProfile.Profile | None = None,
 ) -> dict[str, float]:
-    """Poll the plant on ``port`` for ``seconds`` after a warm-up (line stats to ``keep_stats``)."""
+    """Poll the plant on ``port`` for ``seconds`` after a warm-up (line stats to ``keep_stats``).
+
+    ``profile`` runs over the measured seconds only (``bench/engine_calls.py``).
+    """
     sink = CountingSink()
     line = SerialLine(port=str(port), line=line_format)
     worker = BusWorker(name="bench", line=line, devices=targets(0.001), sinks=[sink])
@@ -190,9 +195,13 @@ async def measure(
     line.gap_lateness_s = lateness
     requests0, busy0 = sum(stats.requests.values()), stats.busy_s
     values0 = sum(sink.values.values())
+    if profile is not None:
+        profile.enable()
     cpu0, wall0 = time.process_time(), time.monotonic()
     await asyncio.sleep(seconds)
     cpu1, wall1 = time.process_time(), time.monotonic()
+    if profile is not None:
+        profile.disable()
     line.gap_lateness_s = None
     requests = sum(stats.requests.values()) - requests0
     values = sum(sink.values.values()) - values0
