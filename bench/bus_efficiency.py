@@ -43,7 +43,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import cProfile
 import json
 import os
 import resource
@@ -64,6 +63,7 @@ from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import TYPICAL_PROCESSING_S, LineFormat
 
 if TYPE_CHECKING:
+    import cProfile
     from collections.abc import Iterator, Sequence
     from typing import Any
 

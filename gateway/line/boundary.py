@@ -60,8 +60,9 @@ class RequestOptions:
     answer's window), ``timeout_s`` how long the answer may take once the request is on the
     wire, ``turnaround_s`` the least time the device takes to answer (a converter times its
     serial side itself and ignores it); ``exceptions`` names the device's exception codes
-    and ``byte_count_16bit`` is a profile's quirk for string reads. Made per request (not
-    frozen: a frozen dataclass is built field by field, and every poll makes one).
+    and ``byte_count_16bit`` is a profile's quirk for string reads. Not frozen: a device's
+    options are kept per kind of request and ``not_before`` set for each one (a line carries
+    one transaction at a time and none keeps its options past it).
     """
 
     timeout_s: float

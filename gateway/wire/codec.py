@@ -299,7 +299,7 @@ def _shortest(value: float, packed: bytes) -> float:
 
 
 def _decode_float(fmt: Format, regs: Sequence[int], order: WordOrder) -> Decoded:
-    bits = _float_bits(regs, order)
+    bits = _FLOAT_BITS[order](regs)  # _float_bits() without its call: every float of a poll
     packed = _U32.pack(bits)
     value: float = _F32.unpack(packed)[0]
     if fmt.float_faults and (name := FLOAT_FAULTS.get(bits)) is not None:

@@ -20,7 +20,7 @@ another function from garbage as before.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Final
 
 from gateway.errors import (
@@ -115,16 +115,17 @@ class Request:
     count: int
     values: tuple[int, ...] = ()
     frame: bytes
+    # Said once, at the build, not worked out at every look: a transaction looks three
+    # times, and a request is built once and sent again and again.
+    is_broadcast: bool = field(init=False, repr=False, compare=False)
+    """Broadcast requests (address 0) get no answer."""
+    is_write: bool = field(init=False, repr=False, compare=False)
+    """Whether the request writes registers."""
 
-    @property
-    def is_broadcast(self) -> bool:
-        """Broadcast requests (address 0) get no answer."""
-        return self.device == BROADCAST
-
-    @property
-    def is_write(self) -> bool:
-        """Whether the request writes registers."""
-        return self.function in {WRITE_SINGLE, WRITE_MULTIPLE}
+    def __post_init__(self) -> None:
+        """Its kinds, from its device and function."""
+        object.__setattr__(self, "is_broadcast", self.device == BROADCAST)
+        object.__setattr__(self, "is_write", self.function in {WRITE_SINGLE, WRITE_MULTIPLE})
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

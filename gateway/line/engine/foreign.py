@@ -225,6 +225,10 @@ class ForeignQueue:
             _settle(job, exc)
             self._jobs.remove(job)
 
+    def waiting(self) -> bool:
+        """Whether another master's request is queued (asked before :meth:`run_next`)."""
+        return bool(self._jobs)
+
     async def run_next(self, now: float) -> bool:
         """Send one request if its device is free and the share allows; whether one went."""
         if not self._jobs:

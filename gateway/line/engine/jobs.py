@@ -151,6 +151,10 @@ class JobQueue:
                 job.done.set_exception(exc)
             self._jobs.remove(job)
 
+    def waiting(self) -> bool:
+        """Whether a job or a broadcast is queued (asked before :meth:`run_next`'s coroutine)."""
+        return bool(self._jobs or self._broadcasts)
+
     async def run_next(self, now: float) -> bool:
         """Run one job, else one broadcast, if one may run now; whether one did."""
         return await self._run_a_job(now) or await self._run_a_broadcast(now)

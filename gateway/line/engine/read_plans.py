@@ -72,7 +72,7 @@ class ReadPlans:
         learn = state.target.min_response_point
         if learn is not None and len(blocks) > 1 and learn.name not in state.values:
             # The block with the device's minimum response time first: the reads after
-            # it in the same turn then wait as long as the device takes (``_learning``).
+            # it in the same turn then wait as long as the device takes (``learning_wait``).
             first = [b for b in blocks if learn in b.points]
             blocks = (*first, *(b for b in blocks if b not in first))
         return blocks

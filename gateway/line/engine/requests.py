@@ -68,6 +68,9 @@ class DeviceRequests:
         self._reads: dict[tuple[int, int, int], frames.Request] = {}
         self._gaps: dict[str, float] = {}
         self._timeouts: dict[tuple[str, int, float | None], float] = {}
+        # The options of each device's kind of request (its name, the answer's length, the
+        # stand-in and the reported minimum response time): the same few, over and over.
+        self._options: dict[tuple[str, int, float | None, float | None], RequestOptions] = {}
 
     def use_format(self, line_format: LineFormat) -> None:
         """Another line, maybe of another format (a reload): every wait anew."""
@@ -75,12 +78,14 @@ class DeviceRequests:
         self._reads.clear()
         self._gaps.clear()
         self._timeouts.clear()
+        self._options.clear()
 
     def remove(self, state: DeviceState) -> None:
         """Forget a device a reload removed or re-plans: its waits and timeouts."""
         name = state.target.name
         self._gaps.pop(name, None)
         self._timeouts = {key: t for key, t in self._timeouts.items() if key[0] != name}
+        self._options = {key: o for key, o in self._options.items() if key[0] != name}
 
     def options(
         self, state: DeviceState, response_bytes: int, min_response_s: float | None = None
@@ -94,17 +99,24 @@ class DeviceRequests:
         # the configured value, not the manual's longest. An answer refused as too early
         # must never be the device's own.
         reported = reported_min_response_s(state)
-        profile = state.target.profile
-        return RequestOptions(
-            timeout_s=self.timeout_for(
-                state, response_bytes, min_response_s if reported is None else reported
-            ),
-            gap_s=self.gap_s(state),
-            not_before=state.holds.not_before,
-            exceptions=profile.exceptions,
-            byte_count_16bit=profile.quirks.string_byte_count_16bit,
-            turnaround_s=0.0 if reported is None else reported,
-        )
+        key = (state.target.name, response_bytes, min_response_s, reported)
+        options = self._options.get(key)
+        if options is None:  # cleared when the target or the line changes
+            profile = state.target.profile
+            options = self._options[key] = RequestOptions(
+                timeout_s=self.timeout_for(
+                    state, response_bytes, min_response_s if reported is None else reported
+                ),
+                gap_s=self.gap_s(state),
+                exceptions=profile.exceptions,
+                byte_count_16bit=profile.quirks.string_byte_count_16bit,
+                turnaround_s=0.0 if reported is None else reported,
+            )
+        # The one field that moves (a post-write wait, a late answer's window): set for
+        # this request. A line carries one transaction at a time, and none keeps its
+        # options past it.
+        options.not_before = state.holds.not_before
+        return options
 
     def timeout_for(
         self, state: DeviceState, response_bytes: int, min_response_s: float | None

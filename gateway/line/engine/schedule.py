@@ -218,10 +218,18 @@ class Schedule:
 
     def due_points(self, state: DeviceState, now: float, *, slow: bool) -> list[str]:
         """The device's points of the class due at ``now``, pending identity included."""
-        due = [name for name, deadline in state.deadlines.next_due.items() if deadline <= now]
-        due.extend(state.deadlines.identity_pending - set(due))
-        unreadable = state.holds.unreadable
-        return [n for n in due if n not in unreadable and self.is_slow(state, n) == slow]
+        deadlines = state.deadlines
+        due = [name for name, deadline in deadlines.next_due.items() if deadline <= now]
+        pending = deadlines.identity_pending
+        if pending:
+            due.extend(pending - set(due))
+        unreadable, slow_points = state.holds.unreadable, state.target.slow_points
+        # is_slow() written out: a call per due point on every poll's path.
+        return [
+            n
+            for n in due
+            if n not in unreadable and (n in slow_points and n not in pending) == slow
+        ]
 
     @staticmethod
     def in_order(state: DeviceState, blocks: Sequence[ReadBlock]) -> Sequence[ReadBlock]:
@@ -232,7 +240,11 @@ class Schedule:
         if len(blocks) <= 1:  # nearly every poll: nothing to order
             return blocks
         earliest = state.deadlines.earliest
-        return sorted(blocks, key=lambda block: earliest(p.name for p in block.points))
+        keyed = []  # (deadline, place, block): the planner's order among equal deadlines
+        for place, block in enumerate(blocks):
+            keyed.append((earliest(block.points), place, block))
+        keyed.sort()
+        return [block for _, _, block in keyed]
 
     def next_deadline(self, state: DeviceState, *, slow: bool) -> float:
         """When the device next has work of the class: values (fast) or diagnostics (slow)."""

@@ -63,6 +63,19 @@ _FAILURE_NAMES: Final[dict[type[Exception], str]] = {
 }
 
 
+def learning_wait(state: DeviceState, block: ReadBlock) -> float | None:
+    """The wait for a read of the device's minimum response time register itself.
+
+    Until the device has said its own, the read of it waits the manual's longest (500
+    ms): a sensor set slower than the config says would otherwise time out on every
+    read, that one included, and never be heard. Every other read waits as configured.
+    """
+    learn = state.target.min_response_point
+    if learn is None or learn.name in state.values or learn not in block.points:
+        return None
+    return MIN_RESPONSE_TIME_MAX_S
+
+
 class Transactions:
     """Reads, writes, probes and broadcasts on one line, one transaction at a time."""
 
@@ -213,9 +226,15 @@ class Transactions:
         an exception included, shows it is there.
         """
         request = self.requests.read(state, block)
+        learn = state.target.min_response_point  # looked at here: a call less on every read
         try:
             response = await self.transact(
-                state, request, 5 + 2 * block.count, min_response_s=self._learning(state, block)
+                state,
+                request,
+                5 + 2 * block.count,
+                min_response_s=None
+                if learn is None or learn.name in state.values
+                else learning_wait(state, block),
             )
         except DeviceExceptionError as exc:
             await self.availability.answered(state, "answered")
@@ -247,26 +266,14 @@ class Transactions:
                 return None
             _LOGGER.debug("%s/%s: %s", self.bus, state.target.name, exc)
             return self.decoder.failed(state, block, _FAILURE_NAMES.get(type(exc), "comms_error"))
-        await self.availability.answered(state, "answered")
+        if not self.availability.answered_online(state):
+            await self.availability.answered(state, "answered")
         if state.holds.attempts:  # only after a failure: nearly every read has nothing to forget
             for point in block.points:
                 state.holds.attempts.pop(point.name, None)
         if self.cache.enabled:
             self.cache.store(state.target.name, block.address, response.registers, time.monotonic())
         return self.decoder.decode(state, block, response.registers)
-
-    @staticmethod
-    def _learning(state: DeviceState, block: ReadBlock) -> float | None:
-        """The wait for a read of the device's minimum response time register itself.
-
-        Until the device has said its own, the read of it waits the manual's longest (500
-        ms): a sensor set slower than the config says would otherwise time out on every
-        read, that one included, and never be heard. Every other read waits as configured.
-        """
-        learn = state.target.min_response_point
-        if learn is None or learn.name in state.values or learn not in block.points:
-            return None
-        return MIN_RESPONSE_TIME_MAX_S
 
     def _retry(self, state: DeviceState, block: ReadBlock) -> bool:
         names = [p.name for p in block.points]

@@ -463,9 +463,12 @@ class BusWorker:
             if self._changes:
                 self._changes.apply()
             now = time.monotonic()
-            if await self.jobs.run_next(now):
+            # Each queue asked first whether it holds anything: a coroutine made for an
+            # empty queue, on every poll, is CPU on every transaction's path.
+            if self.jobs.waiting() and await self.jobs.run_next(now):
                 continue
-            if foreign_turn and await self.foreign.run_next(now):
+            foreign = self.foreign.waiting()
+            if foreign and foreign_turn and await self.foreign.run_next(now):
                 foreign_turn = False
                 continue
             if (state := self.schedule.pick(now, slow=False)) is not None:
@@ -477,7 +480,7 @@ class BusWorker:
                     await self.poller.poll(state, now, slow=False)
                 foreign_turn = True
                 continue
-            if await self.foreign.run_next(now):
+            if foreign and await self.foreign.run_next(now):
                 continue
             if (state := self.schedule.pick(now, slow=True)) is not None:
                 await self.poller.poll(state, now, slow=True)

@@ -40,6 +40,8 @@ class Inbox(asyncio.Protocol):
         self.buffer = bytearray()
         self.last_byte_at = -math.inf
         self.lost = asyncio.Event()
+        # ``lost`` as a plain flag, for the looks of every transaction (a method call less)
+        self.gone = False
         self.lost_reason: Exception | None = None
         self.peer_closed = False  # the peer ended its side (a FIN) before the stream ended
         self._waiter: asyncio.Future[None] | None = None
@@ -68,6 +70,7 @@ class Inbox(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         """The stream ended (``exc``: why, if it failed); a waiting transaction wakes to it."""
         self.lost_reason = exc
+        self.gone = True
         self.lost.set()
         self._wake()
 

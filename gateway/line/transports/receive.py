@@ -182,7 +182,12 @@ class Receiver:
         looks = 0  # at the deadline, for bytes the kernel holds that the loop has not handed over
         while True:
             try:
-                result = scan.feed(inbox.buffer, inbox.last_byte_at)
+                # Fed only what is new: the first pass, before the answer came, has nothing.
+                result = (
+                    scan.feed(inbox.buffer, inbox.last_byte_at)
+                    if len(inbox.buffer) > scan.start
+                    else None
+                )
             except DeviceExceptionError:
                 # An exception answer is an answer too: consumed here, or the next
                 # transaction would flush it and count it a second time, as a stale frame.
@@ -190,7 +195,9 @@ class Receiver:
                 raise
             if result is not None:
                 self._consume(inbox, scan, request.device)
-                return self._later_answer(inbox, scan, result), inbox.last_byte_at
+                if len(inbox.buffer) > 1:  # more than the answer came: a later one?
+                    result = self._later_answer(inbox, scan, result)
+                return result, inbox.last_byte_at
             now = time.monotonic()
             # A corrupted answer from the device itself is final once the line falls silent.
             # A frame of another device is not: it may be a late answer that came first,
@@ -209,7 +216,8 @@ class Receiver:
                 inbox.buffer.clear()
                 raise scan.failure(self.port)
             await inbox.wait(wake - now)
-            self._live()
+            if inbox.gone:  # ``_live`` only then: a method call less on every answer
+                self._live()
 
     async def _handed_over_late(self, inbox: Inbox) -> bool:
         """At a deadline: whether bytes waited in the kernel, now handed to ``inbox``.

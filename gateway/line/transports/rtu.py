@@ -58,6 +58,17 @@ QUIET_WAIT_FRAMES: Final = 2 * 256
 QUIET_WAIT_GAPS: Final = 5  # and never fewer than five of the gaps it waits for
 
 
+def no_silence_words(port: str, device: int, gap_s: float, bound_s: float, noise: int) -> str:
+    """Why a request was not sent: the line never fell silent, and what to check."""
+    return (
+        f"{port}: the line never fell silent for the {gap_s * 1000:.1f} ms gap in "
+        f"{bound_s:.1f} s ({noise} bytes of noise); the request to device "
+        f"{device} was not sent. Check the termination (120 ohm at both ends only), "
+        "the bias resistors, the earth (GND) wire, and that no other master drives "
+        "the line"
+    )
+
+
 class RtuLine(ABC):
     """RTU frames on one byte stream, one strict transaction at a time.
 
@@ -122,7 +133,7 @@ class RtuLine(ABC):
     @property
     def is_open(self) -> bool:
         """Whether the stream is open and has not been lost."""
-        return self._inbox is not None and not self._inbox.lost.is_set()
+        return self._inbox is not None and not self._inbox.gone
 
     @abstractmethod
     async def _connect(self, inbox: Inbox) -> asyncio.Transport:
@@ -156,6 +167,8 @@ class RtuLine(ABC):
         """Close the stream (idempotent); back once it is closed (a device's lock released)."""
         transport, inbox = self._transport, self._inbox
         self._transport = self._inbox = None
+        if inbox is not None:
+            inbox.gone = True  # a transaction waiting on it ends at its next look
         self.stats.port_open = False
         self._timer.close()
         if transport is None:
@@ -183,7 +196,7 @@ class RtuLine(ABC):
         inbox = self._inbox
         if inbox is None or self._transport is None:
             raise BusClosedError(f"{self.port} is not open")
-        if inbox.lost.is_set():
+        if inbox.gone:
             self.stats.port_open = False
             raise BusClosedError(f"{self.port} went away: {self._lost_words(inbox)}")
         return inbox
@@ -226,7 +239,10 @@ class RtuLine(ABC):
         read_at = -math.inf  # when the loop had surely read all the port held
         while True:
             last_frame_end, last_byte_at = self.last_frame_end, inbox.last_byte_at
-            ready = max(max(last_frame_end, last_byte_at) + gap_s, not_before)
+            # max(max(last_frame_end, last_byte_at) + gap_s, not_before), without max()'s calls
+            ready = (last_frame_end if last_frame_end > last_byte_at else last_byte_at) + gap_s  # noqa: FURB136
+            if ready < not_before:  # noqa: PLR1730 - see above
+                ready = not_before
             now = time.monotonic()
             if ready <= now:
                 # Bytes the loop has not read (a late answer, noise, while the process
@@ -254,20 +270,15 @@ class RtuLine(ABC):
                 if watch is not None:
                     watch.awake(wake_at, time.monotonic())
             read_at = wake_at if woken else read_at  # read at wake_at or later if woken
-            self._live_inbox()
+            if inbox.gone or self._inbox is not inbox:  # lost, or closed, meanwhile
+                self._live_inbox()
 
     def _no_silence(self, device: int, gap_s: float, bound_s: float) -> None:
         inbox = self._live_inbox()
         noise = len(inbox.buffer)
         inbox.buffer.clear()
         self.stats.errors[device, ErrorKind.NO_SILENCE] += 1
-        message = (
-            f"{self.port}: the line never fell silent for the {gap_s * 1000:.1f} ms gap in "
-            f"{bound_s:.1f} s ({noise} bytes of noise); the request to device "
-            f"{device} was not sent. Check the termination (120 ohm at both ends only), "
-            "the bias resistors, the earth (GND) wire, and that no other master drives "
-            "the line"
-        )
+        message = no_silence_words(self.port, device, gap_s, bound_s, noise)
         if self.stats.noisy is None:
             _LOGGER.warning("%s", message)
         self.stats.noisy = message
@@ -310,7 +321,7 @@ class RtuLine(ABC):
             await self._broadcast_sent(request, sent_at, request_end)
             return None
         try:
-            if self.echo.expected:
+            if self.echo.echoes is True:  # ``expected``, without the property's call
                 await self.receiver.read_echo(request, request_end)
             response, received_at = await self.receiver.receive(
                 request, options, sent_at=sent_at, deadline=request_end + timeout_s

@@ -17,7 +17,6 @@ late is safe for every timing rule, only slower.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import ctypes
 import os
 import sys
@@ -84,7 +83,10 @@ class DeadlineTimer:
             return False
         if loop is None:
             loop = asyncio.get_running_loop()
-        if self._waiter is not None or not self._arm(loop, deadline):
+        if self._waiter is not None or not (
+            # The timer of this loop set at once: _arm()'s call only where one is to be opened.
+            self._set(deadline) if self._loop is loop else self._arm(loop, deadline)
+        ):
             await asyncio.sleep(deadline - time.monotonic())
             return False
         waiter = loop.create_future()
@@ -143,8 +145,10 @@ class DeadlineTimer:
 
     def _fired(self) -> None:
         assert self._fd is not None  # noqa: S101 - the reader goes with the descriptor
-        with contextlib.suppress(BlockingIOError):  # disarmed just before: nothing to read
+        try:  # noqa: SIM105 - contextlib.suppress: three calls more on every transaction
             os.read(self._fd, 8)  # the expiration count, to clear readiness
+        except BlockingIOError:  # disarmed just before: nothing to read
+            pass
         waiter = self._waiter
         if waiter is not None and not waiter.done():
             waiter.set_result(None)
