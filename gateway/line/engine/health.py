@@ -81,16 +81,15 @@ class Availability:
 
     async def answered(self, state: DeviceState, reason: str) -> None:
         """The device answered: online (again, polled in full if it was offline)."""
+        if self.answered_online(state):
+            return
         presence = state.presence
-        presence.failures = 0
-        presence.backoff_s = 0.0
-        if presence.online is not True:
-            was_offline = presence.online is False
-            presence.online = True
-            if was_offline:
-                _LOGGER.info("%s/%s is back online", self.bus, state.target.name)
-                self.schedule.restart_device(state, time.monotonic())
-            await self._announce(state, online=True, reason=reason)
+        was_offline = presence.online is False
+        presence.online = True
+        if was_offline:
+            _LOGGER.info("%s/%s is back online", self.bus, state.target.name)
+            self.schedule.restart_device(state, time.monotonic())
+        await self._announce(state, online=True, reason=reason)
 
     async def failed(self, state: DeviceState, reason: str) -> None:
         """One more failed transaction in a row; enough of them take the device offline."""
