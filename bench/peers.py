@@ -8,8 +8,10 @@ each is known. Each master runs as its users run it (``gateway run --config``; t
 publishes to one local mosquitto under its own prefix, which the bench subscribes to.
 
 Two phases, each master in turn: a clean line, then one with 2 % of the answers corrupted
-(one bit flipped) and 2 % dropped. After a warm-up (start-up reads are not measured), for
---seconds:
+(one bit flipped) and 2 % dropped. With --at-once the two masters of a phase run at the
+same time, each on a simulated line of its own, so that the machine's pace, which moves
+twofold within a minute on a virtual machine, is the same for both. After a warm-up
+(start-up reads are not measured), for --seconds:
 
 - frames per cycle: the different requests one poll of every point takes (frame log);
 - transactions/s: answered requests per second; values/s: the compared values published
@@ -27,7 +29,7 @@ Two phases, each master in turn: a clean line, then one with 2 % of the answers 
 Printed as a table and written to bench/results/peers.json.
 
 Run from the repository root (as root, for the control groups):
-.venv/bin/python -m bench.peers [--seconds 30] [--format 9600-E-1] [--keep DIR]
+.venv/bin/python -m bench.peers [--seconds 30] [--format 9600-E-1] [--at-once] [--keep DIR]
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ import argparse
 import asyncio
 import contextlib
 import getpass
+import itertools
 import json
 import math
 import os
@@ -403,11 +406,16 @@ class Received:
     lost: str | None = None  # why the subscription ended early: the figures would be short
 
 
+_LISTENERS: Final = itertools.count()
+
+
 @contextlib.asynccontextmanager
 async def listen(broker: int, subscription: str) -> AsyncIterator[Received]:
     """Subscribe before the master starts; retained copies from an earlier run are skipped."""
     received = Received()
-    identifier = f"bench-peers-{os.getpid()}"
+    # One client per subscription: two listening at once (--at-once) under one identifier
+    # would take the session over from each other.
+    identifier = f"bench-peers-{os.getpid()}-{next(_LISTENERS)}"
     async with aiomqtt.Client("127.0.0.1", broker, identifier=identifier) as client:
         await client.subscribe(subscription, qos=1)
 
@@ -529,9 +537,20 @@ def workspace(keep: Path | None) -> Iterator[Path]:
 
 
 async def run_all(
-    masters: Sequence[Master], line: LineFormat, seconds: float, *, keep: Path | None
+    masters: Sequence[Master],
+    line: LineFormat,
+    seconds: float,
+    *,
+    keep: Path | None,
+    at_once: bool = False,
 ) -> dict[str, dict[str, Figures]]:
-    """Every phase with every master in turn, on one broker; SIGTERM stops it all cleanly."""
+    """Every phase with every master in turn, on one broker; SIGTERM stops it all cleanly.
+
+    ``at_once``: the masters of a phase run at the same time, each on a simulated line of
+    its own, over the same seconds. A virtual machine's speed moves twofold within a minute
+    (bench/README, 2026-12-05), and in turns that move lands on one master only; each
+    master sleeps most of each second, so neither waits for the other on two cores.
+    """
     task = asyncio.current_task()
     assert task is not None
     asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, task.cancel)
@@ -539,6 +558,18 @@ async def run_all(
     with workspace(keep) as work:
         async with mosquitto(work) as broker:
             for phase in PHASES:
+                if at_once:
+                    names = " and ".join(m.name for m in masters)
+                    print(f"{names} at once, {phase.title}: {seconds:g} s", flush=True)
+                    figures = await asyncio.gather(
+                        *(
+                            one_run(m, phase, line=line, seconds=seconds, broker=broker, work=work)
+                            for m in masters
+                        )
+                    )
+                    for master, measured in zip(masters, figures, strict=True):
+                        results[master.name][phase.name] = measured
+                    continue
                 for master in masters:
                     print(f"{master.name}, {phase.title}: {seconds:g} s", flush=True)
                     results[master.name][phase.name] = await one_run(
@@ -678,12 +709,17 @@ def main() -> None:
     parser.add_argument(
         "--keep", type=Path, metavar="DIR", help="keep each run's configs and logs under DIR"
     )
+    parser.add_argument(
+        "--at-once", action="store_true", help="both masters at the same time, each on its line"
+    )
     args = parser.parse_args()
     line = parse_format(args.format)
     check_plant()
     masters = [peer_master(peer.ensure_venv()), GATEWAY]
     try:
-        results = asyncio.run(run_all(masters, line, args.seconds, keep=args.keep))
+        results = asyncio.run(
+            run_all(masters, line, args.seconds, keep=args.keep, at_once=args.at_once)
+        )
     except (asyncio.CancelledError, KeyboardInterrupt):
         raise SystemExit(
             "stopped: every process it started is stopped, no figures written"
@@ -693,6 +729,7 @@ def main() -> None:
         "line": str(line),
         "interval_s": INTERVAL_S,
         "seconds": args.seconds,
+        "at_once": args.at_once,
         "warm_up_s": WARM_UP_S,
         "peer": {"package": peer.PACKAGE, "dependencies": list(peer.DEPENDENCIES)},
         "peer_config": peer.config_csv(peer_devices(), interval_s=INTERVAL_S),
