@@ -10,13 +10,8 @@ cycle brings after the DDEATH is not news of it. A poll cycle of a born device b
 DDATA of the metrics that changed (report by exception): a Float by at least its deadband,
 anything else by any change, any metric whose quality changed.
 
-The ``Quality`` property has one meaning per code (the three codes Sparkplug 3.0 allows,
-``tck-id-payloads-propertyset-quality-value-value``):
-
-- 192 (good): the value the sensor holds now; null if it holds none (a date never set);
-- 0 (bad): the sensor answered with a fault instead of a value: null, and the property
-  ``fault`` names it (``overrange``, ``undecodable``, ...); never the fault float;
-- 500 (stale): no current reading: not read yet (in a birth), or its read failed (null).
+Each sample reads as its metrics' values as :mod:`gateway.publish.sparkplug.readings` says
+(one meaning per quality code).
 
 The care metrics (group ``care``) are not samples: they are the device's care report as
 the state's care book holds it (:class:`CareSource`). A cycle compares the book's version
@@ -31,39 +26,28 @@ Payloads are built without ``seq``; the session adds it as they go out.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Final, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from gateway.line.samples import Quality
 from gateway.publish.message import Message
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import BD_SEQ, REBIRTH
 from gateway.publish.sparkplug.payloads import (
-    QUALITY_BAD,
     QUALITY_GOOD,
     QUALITY_STALE,
     Payload,
-    Scalar,
     SpType,
 )
-from gateway.wire.codec import BitfieldValue, EnumValue
+from gateway.publish.sparkplug.readings import CARE_VALUES, Reported, differs, fill, readings
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterable, Mapping, Sequence
-    from datetime import datetime
+    from collections.abc import Callable, Iterable, Sequence
 
     from gateway.care import CareReport
     from gateway.line.samples import Sample
     from gateway.publish.sparkplug.catalogue import Catalogue, DeviceMetrics, MetricSpec
     from gateway.publish.sparkplug.topics import SparkplugTopics
 
-# The Sparkplug quality of each sample quality (see the module's docstring).
-_QUALITY_OF = {
-    Quality.GOOD: QUALITY_GOOD,
-    Quality.FAULT: QUALITY_BAD,
-    Quality.STALE: QUALITY_STALE,
-    Quality.COMMS_ERROR: QUALITY_STALE,
-}
 BIRTH_WAIT_S = 10.0  # sparkplug.birth_wait_s: the unit registers are read in the first cycle
 
 
@@ -78,40 +62,6 @@ class CareSource(Protocol):
 
     def tracked(self, device: str) -> bool:
         """Whether care follows the device."""
-
-
-def _ms(when: datetime | None) -> int | None:
-    return None if when is None else payloads.epoch_ms(when)
-
-
-def _ratio(value: float | None) -> float | None:
-    """A ratio to 4 places, as the care document has it (a finer change is no news)."""
-    return None if value is None else round(value, 4)
-
-
-# What each care metric (catalogue.CARE_METRICS, by name) reads of the report.
-CARE_VALUES: Final[Mapping[str, Callable[[CareReport], Scalar | None]]] = {
-    "state": lambda report: report.state.value,
-    "reasons": lambda report: "; ".join(report.reasons),
-    "last_calibration": lambda report: _ms(report.last_calibration),
-    "due": lambda report: _ms(report.due),
-    "slope_ratio": lambda report: _ratio(report.slope_ratio),
-    "slope_limit_projected": lambda report: (
-        None if report.projection is None else payloads.epoch_ms(report.projection.at)
-    ),
-    "cap_usage": lambda report: _ratio(report.cap_usage),
-}
-
-
-@dataclass(frozen=True, slots=True)
-class Reported:
-    """A metric's value as reported: ``None`` for no value; ``fault`` only with bad quality."""
-
-    value: Scalar | None
-    quality: int
-    time_ms: int
-    fault: str | None = None
-    unit: str | None = None
 
 
 def ndeath_payload(bd_seq: int, now_ms: int) -> bytes:
@@ -213,7 +163,7 @@ class Reporter:
                 quality = QUALITY_GOOD if spec.point is None else QUALITY_STALE
             else:
                 metric.timestamp = reported.time_ms
-                self._fill(metric, spec, reported)
+                fill(metric, spec, reported)
                 quality = reported.quality
             payloads.set_property(metric, payloads.QUALITY, SpType.INT32, quality)
             unit = reported.unit if reported is not None and reported.unit else spec.unit
@@ -349,7 +299,7 @@ class Reporter:
             metric.timestamp = reported.time_ms
             if historical:
                 metric.is_historical = True
-            self._fill(metric, spec, reported)
+            fill(metric, spec, reported)
             if reported.quality != QUALITY_GOOD or before != QUALITY_GOOD:
                 payloads.set_property(metric, payloads.QUALITY, SpType.INT32, reported.quality)
         return self._message(self.topics.device("DDATA", device), payload)
@@ -363,15 +313,6 @@ class Reporter:
         last[spec.alias] = reported
         return spec, reported, None if before is None else before.quality
 
-    @staticmethod
-    def _fill(metric: payloads.Metric, spec: MetricSpec, reported: Reported) -> None:
-        if reported.value is None:
-            metric.is_null = True
-            if reported.fault:
-                payloads.set_property(metric, payloads.FAULT, SpType.STRING, reported.fault)
-        else:
-            payloads.set_value(metric, spec.datatype, reported.value)
-
     def _changes(
         self, metrics: DeviceMetrics, samples: Sequence[Sample]
     ) -> list[tuple[MetricSpec, Reported, int | None]]:
@@ -382,8 +323,8 @@ class Reporter:
             spec = metrics.of_point.get(sample.point)
             if spec is None:
                 continue
-            for target, reported in self._readings(metrics, spec, sample):
-                if _differs(target, last.get(target.alias), reported):
+            for target, reported in readings(metrics, spec, sample):
+                if differs(target, last.get(target.alias), reported):
                     changed.append(self.record(metrics.device, target, reported))
         return changed
 
@@ -407,52 +348,9 @@ class Reporter:
             else:
                 value = CARE_VALUES[spec.care or ""](report)
                 reported = Reported(value, QUALITY_GOOD, payloads.epoch_ms(report.assessed_at))
-            if _differs(spec, last.get(spec.alias), reported):
+            if differs(spec, last.get(spec.alias), reported):
                 changed.append(self.record(device, spec, reported))
         return changed
 
-    @staticmethod
-    def _readings(
-        metrics: DeviceMetrics, spec: MetricSpec, sample: Sample
-    ) -> list[tuple[MetricSpec, Reported]]:
-        """A sample as the reading of its metric (and of its bits' and label's metrics).
-
-        One quality per meaning (see the module's docstring): a good sample is good even
-        without a value (a date never set); a fault is bad with its name; a read that
-        failed is stale, without a fault.
-        """
-        time_ms = payloads.epoch_ms(sample.time)
-        quality = _QUALITY_OF.get(sample.quality, QUALITY_STALE)
-        value = sample.value if sample.quality in {Quality.GOOD, Quality.STALE} else None
-        scalar = payloads.scalar_of(value, spec.datatype)
-        fault = (sample.fault or sample.quality.value) if quality == QUALITY_BAD else None
-        result = [(spec, Reported(scalar, quality, time_ms, fault, sample.unit))]
-        flags = dict(value.flags) if isinstance(value, BitfieldValue) else {}
-        for bit in metrics.bits_of.get(spec.name, ()):
-            state = flags.get(bit.bit or "")
-            result.append((bit, Reported(state, quality, time_ms, fault)))
-        label = metrics.label_of.get(spec.name)
-        if label is not None:
-            text = value.label if isinstance(value, EnumValue) else None
-            result.append((label, Reported(text, quality, time_ms, fault)))
-        return result
-
     def _message(self, topic: str, payload: Payload) -> Message:
         return Message(topic=topic, payload=payload.SerializeToString(), qos=0)
-
-
-def _differs(spec: MetricSpec, before: Reported | None, now: Reported) -> bool:
-    """Whether ``now`` is news to the host: a new quality, or a value past the deadband."""
-    if before is None or before.quality != now.quality:
-        return True
-    if now.unit is not None and now.unit != before.unit:
-        return True
-    if before.value is None or now.value is None:
-        return before.value is not now.value
-    if (
-        spec.deadband > 0
-        and isinstance(now.value, int | float)
-        and isinstance(before.value, int | float)
-    ):
-        return abs(float(now.value) - float(before.value)) >= spec.deadband
-    return now.value != before.value

@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING
 from gateway.publish.sparkplug import payloads
 from gateway.publish.sparkplug.catalogue import FIRST_DEVICE_ALIAS, Catalogue
 from gateway.publish.sparkplug.identity import GatewayIdentity
-from gateway.publish.sparkplug.reports import Reported, Reporter
+from gateway.publish.sparkplug.readings import Reported
+from gateway.publish.sparkplug.reports import Reporter
 from gateway.publish.sparkplug.session import SparkplugSession
 from gateway.publish.sparkplug.topics import SparkplugTopics
 from gateway.publish.store import MessageStore
