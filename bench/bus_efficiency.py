@@ -237,10 +237,11 @@ def lateness_figures(lateness_s: list[float]) -> dict[str, float]:
 
 
 SWEEP = ("9600-E-1", "19200-N-1", "38400-E-1", "115200-N-1", "9600-N-2")
-# Issue 23, target 1: CPU per transaction within 1.25 times the bare master's at every
-# format, the line as efficient as before.
-CPU_RATIO_TARGET = 1.25
-EFFICIENCY_TARGET = 0.95
+# Issue 38: CPU per transaction at most 1.30 times the bare master's at every format, by the
+# median of the runs, and the wire's efficiency at least 0.97 (issue 23 asked 1.25 and 0.95
+# when the bare master ran after the gateway in its process).
+CPU_RATIO_TARGET = 1.30
+EFFICIENCY_TARGET = 0.97
 
 
 def target_met(results: Sequence[dict[str, Any]]) -> bool:
