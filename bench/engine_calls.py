@@ -3,10 +3,12 @@
 The engine's CPU per transaction moves with the machine by far more than a step of a few
 per cent (``bench/engine_pairs.py`` measures two engines at once to see through that), but
 the calls it makes do not move at all. Between the gateway and the bare master of
-``bench/bare_master.py`` the two agree: the gateway made 1.49 times the bare master's calls
-a transaction (343 and 230 at 19200 8N1) when its CPU was 1.46-1.54 times the bare
-master's. So each call taken off the path of a transaction is CPU taken off it, and this
-count says how many, exactly, before the pairs say how much.
+``bench/bare_master.py`` the two agreed: the gateway made 1.49 times the bare master's
+calls a transaction (337 and 226 at 19200 8N1) when its CPU was 1.46-1.54 times the bare
+master's. Within the engine they are not in proportion: a tenth of its calls taken off
+was 4-6 % of its CPU (2026-12-05; the calls left cost more each, the event loop's wakes
+most). So this count says exactly what a step takes off the path of a transaction, and
+the pairs what that is worth.
 
 The reference plant of ``bench/bus_efficiency.py`` is polled on a simulated line as there
 (poll interval 1 ms, the line always busy) for --seconds under :mod:`cProfile`, after the
