@@ -93,11 +93,7 @@ class Decoder:
     ) -> list[Sample]:
         """The samples of a block read; the device's values and pending identity updated."""
         monotonic, now = time.monotonic(), datetime.now(tz=UTC)
-        known = self._layouts.get(id(block))  # _layout()'s cache looked at without its call
-        if known is not None and known[0] is block:
-            _, layout, floats = known
-        else:
-            layout, floats = self._layout(block)
+        layout, floats = self._layout(block)
         # Only a float's decoder reads the word order, which takes some looking up.
         order = state.float_order if floats else codec.DEFAULT_FLOAT_ORDER
         values = state.values

@@ -124,10 +124,7 @@ class LoopWatch:
         if self._sleepers >= self._users and self._handle is not None:
             self._handle.cancel()
             self._handle = None
-            # _sample_cpu()'s test, here without its call: once per transaction.
-            cpu, now = self._cpu, time.monotonic()
-            if not cpu or now - cpu[-1][0] >= TICK_S:
-                cpu.append((now, time.process_time()))
+            self._sample_cpu(time.monotonic())
 
     def awake(self, due: float, now: float) -> None:
         """A worker's timed wait due at ``due`` ended at ``now`` (early, when woken by work).
@@ -140,8 +137,7 @@ class LoopWatch:
             late = now - due
             if late > STALL_MIN_S:
                 self._stalls.append((now, late))
-            self._due = now + TICK_S  # _arm(), without its call: once per transaction
-            self._handle = self._loop.call_later(TICK_S, self._tick)
+            self._arm(now)
 
     def _arm(self, now: float) -> None:
         self._due = now + TICK_S

@@ -226,15 +226,9 @@ class Transactions:
         an exception included, shows it is there.
         """
         request = self.requests.read(state, block)
-        learn = state.target.min_response_point  # looked at here: a call less on every read
         try:
             response = await self.transact(
-                state,
-                request,
-                5 + 2 * block.count,
-                min_response_s=None
-                if learn is None or learn.name in state.values
-                else learning_wait(state, block),
+                state, request, 5 + 2 * block.count, min_response_s=learning_wait(state, block)
             )
         except DeviceExceptionError as exc:
             await self.availability.answered(state, "answered")
