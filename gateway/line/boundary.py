@@ -34,11 +34,18 @@ if TYPE_CHECKING:
 class WaitWatch(Protocol):
     """Told of the line's timed waits: the event loop's watch (``line/engine/lateness``)."""
 
+    @property
+    def look_s(self) -> float:
+        """How far ahead a line's timer is set while it looks for the watch."""
+
     def asleep(self) -> None:
         """A timed wait begins."""
 
     def awake(self, due: float, now: float) -> None:
         """The timed wait due at ``due`` ended at ``now``."""
+
+    def late(self, due: float, now: float) -> None:
+        """A line's timer looking for the watch, due at ``due``, fired at ``now``."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -89,7 +96,7 @@ class Line(Protocol):
     (behind a converter, its serial side), ``stats`` the line's counters. ``late_answer``
     is set when a device's answer came after its request timed out (the transactions take
     it and say how late); ``wait_watch`` is told of the line's timed waits while a worker
-    runs.
+    runs, and :meth:`rest` ends them.
     """
 
     port: str
@@ -104,6 +111,13 @@ class Line(Protocol):
 
     async def open(self) -> None:
         """Open the line; one that cannot be opened raises a ``BusClosedError``."""
+
+    def rest(self) -> None:
+        """The worker sleeps on a timer of its own, or stops: the line stops looking for it.
+
+        A line whose timer is the loop watch's look (``wait_watch``) disarms it; the next
+        wait of a transaction looks again.
+        """
 
     async def close(self) -> None:
         """Close the line (idempotent); back once its resources are released."""

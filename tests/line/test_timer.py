@@ -13,6 +13,7 @@ import time
 
 import pytest
 
+from gateway.line.engine.lateness import LoopWatch
 from gateway.line.transports import timer
 from gateway.line.transports.timer import DeadlineTimer
 
@@ -94,3 +95,91 @@ async def test_without_a_timerfd_the_wait_falls_back_to_the_event_loop(
     assert time.monotonic() >= deadline
     assert clock._fd is None
     clock.close()
+
+
+async def test_a_wake_resolves_its_waiter_at_the_deadline_never_before() -> None:
+    """An answer's wait: the line's timer ends it at its timeout (no timer of the loop)."""
+    clock = DeadlineTimer()
+    loop = asyncio.get_running_loop()
+    try:
+        for delay in (0.002, 0.0005):
+            waiter: asyncio.Future[None] = loop.create_future()
+            now = time.monotonic()
+            assert clock.wake(waiter, now + delay, now) is True
+            await waiter
+            assert time.monotonic() >= now + delay
+            clock.unwake(waiter)
+        # Bytes first: the waiter is resolved by them, and the timer wakes nobody after.
+        waiter = loop.create_future()
+        now = time.monotonic()
+        assert clock.wake(waiter, now + 0.02, now) is True
+        waiter.set_result(None)
+        clock.unwake(waiter)
+        await asyncio.sleep(0.03)
+        deadline = time.monotonic() + 0.001
+        assert await clock.sleep_until(deadline) is True  # the timer is free and on time
+        assert time.monotonic() >= deadline
+    finally:
+        clock.close()
+
+
+def _hold(seconds: float) -> None:
+    time.sleep(seconds)  # the event loop held: a process that is not scheduled
+
+
+async def test_while_it_looks_every_firing_says_how_late_the_loop_ran_it() -> None:
+    """The loop watch's look: a late firing is the loop's lateness; after an answer came,
+    the timer stays set over what the worker does next and, firing for nobody, looks
+    again one look on; a rest ends it."""
+    loop = asyncio.get_running_loop()
+    watch = LoopWatch(loop)  # no worker attached: its own timer never runs
+    clock = DeadlineTimer()
+    start = time.monotonic()
+    try:
+        clock.look(watch)
+        sleeping = asyncio.create_task(clock.sleep_until(start + 0.02, loop))
+        await asyncio.sleep(0)  # the timer is set
+        _hold(0.3)
+        assert await sleeping is True
+        assert 0.3 - 0.02 - 0.01 <= watch.since(start).stalled_s <= time.monotonic() - start
+        # An answer's wait, ended by its bytes: the look stays set, a look from its start.
+        waiter: asyncio.Future[None] = loop.create_future()
+        mark = time.monotonic()
+        assert clock.wake(waiter, mark + 5.0, mark) is True
+        waiter.set_result(None)
+        await waiter
+        clock.unwake(waiter)
+        for _ in range(2):  # held past it, and past the look it set again as it fired
+            _hold(0.3)
+            await asyncio.sleep(0.01)
+            late = watch.since(mark).stalled_s
+            assert 0.3 - watch.look_s - 0.02 <= late <= time.monotonic() - mark
+            mark = time.monotonic()
+        # At rest it looks no more: a hold now is no firing of it.
+        clock.rest()
+        await asyncio.sleep(0.1)  # a look set before the rest would have fired by now
+        mark = time.monotonic()
+        _hold(0.2)
+        await asyncio.sleep(0.06)
+        assert watch.since(mark).stalled_s == 0.0
+    finally:
+        clock.close()
+
+
+async def test_an_answer_wait_while_it_looks_ends_one_look_on() -> None:
+    """A slow answer does not blind the watch: the wait is woken a look after it began,
+    for the line to wait again, as the watch's own timer would have woken the loop."""
+    loop = asyncio.get_running_loop()
+    watch = LoopWatch(loop)
+    clock = DeadlineTimer()
+    try:
+        clock.look(watch)
+        waiter: asyncio.Future[None] = loop.create_future()
+        now = time.monotonic()
+        assert clock.wake(waiter, now + 5.0, now) is True
+        async with asyncio.timeout(2.0):
+            await waiter
+        assert time.monotonic() >= now + watch.look_s
+        clock.unwake(waiter)
+    finally:
+        clock.close()

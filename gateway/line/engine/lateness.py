@@ -90,7 +90,14 @@ class LoopWatch:
     lateness that can make a poll late, and the watch's timer does not wake the loop
     20 times a second for nothing (at one poll a second, that was 2.5 wakes per
     transaction; at 9600 baud some 50 µs of CPU per transaction).
+
+    A serial line's timer counts as such a sleep all the while its worker polls: it is
+    set no more than :attr:`look_s` ahead while the worker is awake, and says how late
+    each of its firings ran (:meth:`late`; ``line/transports/timer``). So the watch's
+    own timer is not set and cancelled in every transaction.
     """
+
+    look_s: Final = TICK_S  # how far ahead a line's timer looking for the watch is set
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         """Idle until :meth:`attach`."""
@@ -137,7 +144,21 @@ class LoopWatch:
             late = now - due
             if late > STALL_MIN_S:
                 self._stalls.append((now, late))
-            self._arm(now)
+            if self._sleepers < self._users:  # a line's timer may look for the others
+                self._arm(now)
+
+    def late(self, due: float, now: float) -> None:
+        """A line's timer looking for the watch, due at ``due``, fired at ``now``.
+
+        Counted as the loop's lateness while the watch's own timer rests, as a sleeper's
+        wake is (:meth:`awake`); the CPU is sampled at most once a tick, as the loop goes
+        idle.
+        """
+        if self._handle is None:
+            late = now - due
+            if late > STALL_MIN_S:
+                self._stalls.append((now, late))
+        self._sample_cpu(now)
 
     def _arm(self, now: float) -> None:
         self._due = now + TICK_S

@@ -155,10 +155,11 @@ class BusWorker:
         watch = loop_watch()
         self.poller.watch_loop(watch)
         watch.attach()
-        self.line.wait_watch = watch  # the gap's waits sleep and wake under the watch
+        self.line.wait_watch = watch  # the line's timer looks for the watch while it polls
         try:
             await self._run(delay)
         finally:
+            self.line.rest()
             self.line.wait_watch = None
             watch.detach()
             self.jobs.running = False
@@ -392,6 +393,7 @@ class BusWorker:
         return True
 
     def _swap_line(self, line: Line) -> None:
+        self.line.rest()
         line.wait_watch, self.line.wait_watch = self.line.wait_watch, None
         self.line = line
         self.poller.use_line(line)
@@ -495,6 +497,7 @@ class BusWorker:
             timeout = 1.0
         watch = self.line.wait_watch
         if watch is not None:
+            self.line.rest()  # its timer looks no more: this sleep is the worker's own
             watch.asleep()
         self._parked = True
         try:

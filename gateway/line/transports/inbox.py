@@ -11,7 +11,10 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from typing import Final
+from typing import TYPE_CHECKING, Final
+
+if TYPE_CHECKING:
+    from gateway.line.transports.timer import DeadlineTimer
 
 # Past an answer's deadline, while the kernel holds bytes the event loop has not handed
 # over: this many more passes of the loop, each waiting at most this long for them. A
@@ -30,11 +33,15 @@ class Inbox(asyncio.Protocol):
     transport closes ours and :meth:`connection_lost` follows.
     """
 
-    def __init__(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop | None = None, *, timer: DeadlineTimer | None = None
+    ) -> None:
         """Nothing received yet; not lost. ``loop``: the one the transport runs on.
 
         Known, it spares each wait asking for the running loop, a system call (``getpid``,
-        asyncio's check for a fork) that is dear on a virtual machine.
+        asyncio's check for a fork) that is dear on a virtual machine. ``timer``: the
+        line's own, which ends a wait at its timeout (an RTU line's): no timer of the loop
+        to set and cancel for every answer.
         """
         self.loop = loop
         self.buffer = bytearray()
@@ -45,6 +52,7 @@ class Inbox(asyncio.Protocol):
         self.lost_reason: Exception | None = None
         self.peer_closed = False  # the peer ended its side (a FIN) before the stream ended
         self._waiter: asyncio.Future[None] | None = None
+        self.timer = timer
 
     def data_received(self, data: bytes) -> None:
         """Keep the bytes, note when they came, wake a waiting transaction."""
@@ -80,9 +88,22 @@ class Inbox(asyncio.Protocol):
             waiter.set_result(None)
 
     async def wait(self, timeout_s: float) -> None:
-        """Return when bytes arrive, the connection ends, or after ``timeout_s``."""
+        """Return when bytes arrive, the connection ends, or after ``timeout_s``.
+
+        On the line's own timer where it has one (:attr:`timer`; it may end the wait
+        sooner, to look for the loop's watch), else on a timer of the loop.
+        """
         loop = self.loop or asyncio.get_running_loop()
         waiter = self._waiter = loop.create_future()
+        own = self.timer
+        now = time.monotonic()
+        if own is not None and own.wake(waiter, now + timeout_s, now):
+            try:
+                await waiter
+            finally:
+                own.unwake(waiter)
+                self._waiter = None
+            return
         timer = loop.call_later(timeout_s, self._wake)
         try:
             await waiter

@@ -130,6 +130,9 @@ class ModbusTcpLine:
         self.last_frame_end = now
         self._ready_at = now + self.tcp.connect_pause_s
 
+    def rest(self) -> None:
+        """Nothing to stop: this line's timer never looks for the loop's watch."""
+
     async def close(self) -> None:
         """End the session (idempotent); nothing in flight matters after a stop."""
         link, self._link, self._session = self._link, None, None

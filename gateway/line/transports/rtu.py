@@ -118,7 +118,7 @@ class RtuLine(ABC):
         # How late each request started after its gap was due (seconds), kept only when
         # a benchmark sets a list here; nothing in the gateway reads it.
         self.gap_lateness_s: list[float] | None = None
-        # Told when the gap's wait sleeps and wakes (the bus worker sets it while it runs).
+        # The loop's watch, which the line's timer looks for while a worker polls (to rest()).
         self.wait_watch: WaitWatch | None = None
 
     @property
@@ -156,12 +156,16 @@ class RtuLine(ABC):
 
     async def open(self) -> None:
         """Open the stream; one that cannot be opened raises :class:`BusClosedError`."""
-        inbox = Inbox(asyncio.get_running_loop())
+        inbox = Inbox(asyncio.get_running_loop(), timer=self._timer)
         transport = await self._connect(inbox)
         self._transport, self._inbox = transport, inbox
         self.stats.closed_because(None, "")
         self.stats.port_open = True
         self.last_frame_end = time.monotonic()
+
+    def rest(self) -> None:
+        """The worker sleeps, or stops: the line's timer looks for the loop's watch no more."""
+        self._timer.rest()
 
     async def close(self) -> None:
         """Close the stream (idempotent); back once it is closed (a device's lock released)."""
@@ -262,13 +266,8 @@ class RtuLine(ABC):
             if now >= give_up:
                 self._no_silence(device, gap_s, bound_s)
             wake_at = min(ready, give_up)
-            if (watch := self.wait_watch) is not None:
-                watch.asleep()
-            try:
-                woken = await self._timer.sleep_until(wake_at, inbox.loop)
-            finally:
-                if watch is not None:
-                    watch.awake(wake_at, time.monotonic())
+            # Looking for the loop's watch too, while a worker polls (till it rests).
+            woken = await self._timer.sleep_until(wake_at, inbox.loop, look_for=self.wait_watch)
             read_at = wake_at if woken else read_at  # read at wake_at or later if woken
             if inbox.gone or self._inbox is not inbox:  # lost, or closed, meanwhile
                 self._live_inbox()
