@@ -183,3 +183,25 @@ async def test_an_answer_wait_while_it_looks_ends_one_look_on() -> None:
         clock.unwake(waiter)
     finally:
         clock.close()
+
+
+async def test_set_anew_past_its_deadline_it_still_says_how_late_the_loop_was() -> None:
+    """A worker that computes past the look and waits again with no turn of the loop
+    between (a sink's work, then the next poll's wait): setting the timer clears the
+    firing the loop never handed over, and the watch is told of it all the same."""
+    loop = asyncio.get_running_loop()
+    watch = LoopWatch(loop)
+    clock = DeadlineTimer()
+    try:
+        clock.look(watch)
+        waiter: asyncio.Future[None] = loop.create_future()
+        mark = time.monotonic()
+        assert clock.wake(waiter, mark + 5.0, mark) is True
+        waiter.set_result(None)  # the answer came
+        clock.unwake(waiter)
+        _hold(0.3)  # past the look, and no turn of the loop before the next wait
+        assert await clock.sleep_until(time.monotonic() + 0.002, loop) is True
+        late = watch.since(mark).stalled_s
+        assert 0.3 - watch.look_s - 0.02 <= late <= time.monotonic() - mark
+    finally:
+        clock.close()

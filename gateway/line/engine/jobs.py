@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
     from gateway.line.engine.devices import DeviceState
     from gateway.line.engine.transactions import Transactions
+    from gateway.line.engine.wake import Wake
     from gateway.line.samples import Sample
     from gateway.profiles.model import Point
 
@@ -66,7 +67,7 @@ class JobQueue:
         bus: str,
         devices: Mapping[str, DeviceState],
         transactions: Transactions,
-        wake: asyncio.Event,
+        wake: Wake,
     ) -> None:
         """Queue work for ``devices``; ``wake`` is set whenever work arrives."""
         self.bus = bus

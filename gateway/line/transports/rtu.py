@@ -131,6 +131,11 @@ class RtuLine(ABC):
         self.receiver.late_answer = value
 
     @property
+    def timer(self) -> DeadlineTimer:
+        """The line's own timer (the gap's, the answer's), lent to the worker's sleeps."""
+        return self._timer
+
+    @property
     def is_open(self) -> bool:
         """Whether the stream is open and has not been lost."""
         return self._inbox is not None and not self._inbox.gone
@@ -162,10 +167,6 @@ class RtuLine(ABC):
         self.stats.closed_because(None, "")
         self.stats.port_open = True
         self.last_frame_end = time.monotonic()
-
-    def rest(self) -> None:
-        """The worker sleeps, or stops: the line's timer looks for the loop's watch no more."""
-        self._timer.rest()
 
     async def close(self) -> None:
         """Close the stream (idempotent); back once it is closed (a device's lock released)."""
@@ -266,8 +267,8 @@ class RtuLine(ABC):
             if now >= give_up:
                 self._no_silence(device, gap_s, bound_s)
             wake_at = min(ready, give_up)
-            # Looking for the loop's watch too, while a worker polls (till it rests).
-            woken = await self._timer.sleep_until(wake_at, inbox.loop, look_for=self.wait_watch)
+            self._timer.look(self.wait_watch)  # for the loop's watch too, till the worker rests
+            woken = await self._timer.sleep_until(wake_at, inbox.loop)
             read_at = wake_at if woken else read_at  # read at wake_at or later if woken
             if inbox.gone or self._inbox is not inbox:  # lost, or closed, meanwhile
                 self._live_inbox()

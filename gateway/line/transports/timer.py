@@ -78,15 +78,15 @@ class DeadlineTimer:
         self._armed = 0.0  # the deadline the timer is set to; 0.0 disarmed
         self._watch: WaitWatch | None = None  # while the timer looks for it (look() to rest())
 
-    def look(self, watch: WaitWatch) -> None:
+    def look(self, watch: WaitWatch | None) -> None:
         """Be ``watch``'s look until :meth:`rest`: the watch counts the worker as asleep.
 
         Every firing from now on tells ``watch`` how late it ran, and one that wakes
         nobody (the worker busy with other work) sets the timer ``watch.look_s`` ahead
         again. Where no timerfd can be used, the timer does not look, and the watch's own
-        tick keeps time.
+        tick keeps time. Nothing changes if it looks already, or ``watch`` is None.
         """
-        if self._watch is None and self._usable:
+        if watch is not None and self._watch is None and self._usable:
             self._watch = watch
             watch.asleep()
 
@@ -101,30 +101,25 @@ class DeadlineTimer:
         watch.awake(now, now)  # not late: the watch's tick takes over, if anyone is awake
 
     async def sleep_until(
-        self,
-        deadline: float,
-        loop: asyncio.AbstractEventLoop | None = None,
-        *,
-        look_for: WaitWatch | None = None,
+        self, deadline: float, loop: asyncio.AbstractEventLoop | None = None
     ) -> bool:
         """Return at ``deadline`` (monotonic seconds), or at once if it has passed.
 
         ``loop`` is the running loop where the caller knows it: asking for it costs a
         system call (``getpid``, asyncio's check for a fork), dear on a virtual machine.
-        ``look_for``: the loop's watch, to :meth:`look` for from this wait on, unless the
-        timer looks already.
 
         Returns whether the timer woke the wait: then the event loop looked at every
         descriptor it watches at or after ``deadline`` and, in the same pass, before this
         returns, handed over what any of them had to read (a port's bytes). ``False`` when
         the deadline had passed or the fallback slept.
         """
-        if deadline <= time.monotonic():
+        now = time.monotonic()
+        if deadline <= now:
             return False
         if loop is None:
             loop = asyncio.get_running_loop()
-        if look_for is not None and self._watch is None:
-            self.look(look_for)
+        if self._watch is not None and 0 < self._armed < now:
+            self._overdue(now)
         if self._waiter is not None or not (
             # The timer of this loop set at once: _arm()'s call only where one is to be opened.
             self._set(deadline) if self._loop is loop else self._arm(loop, deadline)
@@ -141,18 +136,31 @@ class DeadlineTimer:
                 self._set(0.0)
         return True
 
-    def wake(self, waiter: asyncio.Future[None], deadline: float, now: float) -> bool:
+    def wake(
+        self,
+        waiter: asyncio.Future[None],
+        deadline: float,
+        now: float,
+        *,
+        look_for: WaitWatch | None = None,
+        asleep: bool = False,
+    ) -> bool:
         """Resolve ``waiter`` at ``deadline``, unless something resolves it first.
 
         An inbox's wait for bytes: while the timer looks, no later than one look from
         ``now``, and it stays set when the bytes come first (it looks on over what the
-        worker does next, and the next wait sets it anew). ``False`` where no timerfd can be
-        used, or another wait holds the timer: the caller sets a timer of the loop.
+        worker does next, and the next wait sets it anew). ``asleep``: the worker's own
+        sleep between polls, set for ``deadline`` itself, looking for ``look_for`` from
+        now on as a gap's wait does. ``False`` where no timerfd can be used, or another
+        wait holds the timer: the caller sets a timer of the loop.
         """
-        if self._waiter is not None:
+        if self._waiter is not None or not self._usable:
             return False
+        self.look(look_for)
         watch = self._watch
-        if watch is not None:
+        if watch is not None and 0 < self._armed < now:
+            self._overdue(now)
+        if watch is not None and not asleep:
             look_at = now + watch.look_s
             if look_at < deadline:  # noqa: PLR1730 - min() is a call more on every answer
                 deadline = look_at
@@ -175,6 +183,9 @@ class DeadlineTimer:
         self._release()
 
     def _release(self) -> None:
+        waiter = self._waiter
+        if waiter is not None and not waiter.done():  # its wait ends: the line is closed
+            waiter.set_result(None)
         fd, loop, self._fd, self._loop = self._fd, self._loop, None, None
         self._armed = 0.0
         if fd is None:
@@ -218,6 +229,16 @@ class DeadlineTimer:
         else:
             value.tv_sec = value.tv_nsec = 0
         return bool(_LIBC.timerfd_settime(self._fd, TFD_TIMER_ABSTIME, self._spec, None) == 0)
+
+    def _overdue(self, now: float) -> None:
+        """Set anew past its deadline, its firing not handed over yet: the loop was held.
+
+        Setting the timer clears the firing the event loop has not seen (the worker's own
+        code ran on since: a sink that computes, a poll straight after it), so the watch
+        is told here how late it is, as the firing would have said.
+        """
+        assert self._watch is not None  # noqa: S101 - the callers' condition
+        self._watch.late(self._armed, now)
 
     def _fired(self) -> None:
         assert self._fd is not None  # noqa: S101 - the reader goes with the descriptor
