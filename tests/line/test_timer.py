@@ -127,6 +127,16 @@ def _hold(seconds: float) -> None:
     time.sleep(seconds)  # the event loop held: a process that is not scheduled
 
 
+def _answered(clock: DeadlineTimer, loop: asyncio.AbstractEventLoop) -> float:
+    """An answer's wait on ``clock``, ended by its bytes at once; when it began."""
+    waiter: asyncio.Future[None] = loop.create_future()
+    began = time.monotonic()
+    assert clock.wake(waiter, began + 5.0, began) is True
+    waiter.set_result(None)  # the answer came
+    clock.unwake(waiter)
+    return began
+
+
 async def test_while_it_looks_every_firing_says_how_late_the_loop_ran_it() -> None:
     """The loop watch's look: a late firing is the loop's lateness; after an answer came,
     the timer stays set over what the worker does next and, firing for nobody, looks
@@ -143,12 +153,7 @@ async def test_while_it_looks_every_firing_says_how_late_the_loop_ran_it() -> No
         assert await sleeping is True
         assert 0.3 - 0.02 - 0.01 <= watch.since(start).stalled_s <= time.monotonic() - start
         # An answer's wait, ended by its bytes: the look stays set, a look from its start.
-        waiter: asyncio.Future[None] = loop.create_future()
-        mark = time.monotonic()
-        assert clock.wake(waiter, mark + 5.0, mark) is True
-        waiter.set_result(None)
-        await waiter
-        clock.unwake(waiter)
+        mark = _answered(clock, loop)
         for _ in range(2):  # held past it, and past the look it set again as it fired
             _hold(0.3)
             await asyncio.sleep(0.01)
@@ -194,11 +199,7 @@ async def test_set_anew_past_its_deadline_it_still_says_how_late_the_loop_was() 
     clock = DeadlineTimer()
     try:
         clock.look(watch)
-        waiter: asyncio.Future[None] = loop.create_future()
-        mark = time.monotonic()
-        assert clock.wake(waiter, mark + 5.0, mark) is True
-        waiter.set_result(None)  # the answer came
-        clock.unwake(waiter)
+        mark = _answered(clock, loop)
         _hold(0.3)  # past the look, and no turn of the loop before the next wait
         assert await clock.sleep_until(time.monotonic() + 0.002, loop) is True
         late = watch.since(mark).stalled_s
