@@ -91,7 +91,7 @@ class DeadlineTimer:
             watch.asleep()
 
     def rest(self) -> None:
-        """Stop looking (the worker sleeps on a timer of its own, or stops); disarmed."""
+        """Stop looking (the worker stops, or leaves the line); disarmed."""
         watch, self._watch = self._watch, None
         if watch is None:
             return
@@ -251,7 +251,8 @@ class DeadlineTimer:
         watch = self._watch
         if watch is not None:
             now = time.monotonic()
-            watch.late(due, now)
+            if due:  # always, once set; never a lateness counted from 0.0
+                watch.late(due, now)
             if waiter is None or waiter.done():  # nobody waits: look again, one look on
                 self._set(now + watch.look_s)
         if waiter is not None and not waiter.done():
