@@ -25,7 +25,6 @@ from typing import TYPE_CHECKING, Protocol
 from gateway.wire import frames
 
 if TYPE_CHECKING:
-    import asyncio
     from collections.abc import Mapping
 
     from gateway.line.stats import LineStats
@@ -47,31 +46,6 @@ class WaitWatch(Protocol):
 
     def late(self, due: float, now: float) -> None:
         """A line's timer looking for the watch, due at ``due``, fired at ``now``."""
-
-
-class LineTimer(Protocol):
-    """A line's own timer, lent to its worker's sleeps (``line/transports/timer``).
-
-    While the worker polls it looks for the loop's watch: each firing says how late the
-    loop ran it. :meth:`rest` ends that (the worker stops).
-    """
-
-    def wake(
-        self,
-        waiter: asyncio.Future[None],
-        deadline: float,
-        now: float,
-        *,
-        look_for: WaitWatch | None = None,
-        asleep: bool = False,
-    ) -> bool:
-        """Resolve ``waiter`` at ``deadline`` unless resolved first; ``False``: cannot."""
-
-    def unwake(self, waiter: asyncio.Future[None]) -> None:
-        """The wait of :meth:`wake` ended."""
-
-    def rest(self) -> None:
-        """Look for the loop's watch no more (disarmed)."""
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -122,8 +96,7 @@ class Line(Protocol):
     (behind a converter, its serial side), ``stats`` the line's counters. ``late_answer``
     is set when a device's answer came after its request timed out (the transactions take
     it and say how late); ``wait_watch`` is told of the line's timed waits while a worker
-    runs. ``timer`` is the line's own timer, which the worker's sleeps between polls share
-    (None where it has none to lend: the worker sets a timer of the loop).
+    runs, and :meth:`rest` ends them.
     """
 
     port: str
@@ -133,15 +106,18 @@ class Line(Protocol):
     wait_watch: WaitWatch | None
 
     @property
-    def timer(self) -> LineTimer | None:
-        """The line's own timer, lent to the worker's sleeps."""
-
-    @property
     def is_open(self) -> bool:
         """Whether the line is open and has not been lost."""
 
     async def open(self) -> None:
         """Open the line; one that cannot be opened raises a ``BusClosedError``."""
+
+    def rest(self) -> None:
+        """The worker sleeps on a timer of its own, or stops: the line stops looking for it.
+
+        A line whose timer is the loop watch's look (``wait_watch``) disarms it; the next
+        wait of a transaction looks again.
+        """
 
     async def close(self) -> None:
         """Close the line (idempotent); back once its resources are released."""

@@ -39,7 +39,6 @@ if TYPE_CHECKING:
     from gateway.line.engine.devices import DeviceState
     from gateway.line.engine.schedule import Schedule
     from gateway.line.engine.transactions import Transactions
-    from gateway.line.engine.wake import Wake
     from gateway.wire import frames
 
 BURST_S: Final = 2.0  # the share is kept over this window: a burst may use it at once
@@ -131,7 +130,7 @@ class ForeignQueue:
         devices: Mapping[str, DeviceState],
         transactions: Transactions,
         schedule: Schedule,
-        wake: Wake,
+        wake: asyncio.Event,
     ) -> None:
         """No other master until :meth:`open` gives the line's share."""
         self.bus = bus

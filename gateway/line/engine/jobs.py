@@ -30,7 +30,6 @@ if TYPE_CHECKING:
 
     from gateway.line.engine.devices import DeviceState
     from gateway.line.engine.transactions import Transactions
-    from gateway.line.engine.wake import Wake
     from gateway.line.samples import Sample
     from gateway.profiles.model import Point
 
@@ -67,7 +66,7 @@ class JobQueue:
         bus: str,
         devices: Mapping[str, DeviceState],
         transactions: Transactions,
-        wake: Wake,
+        wake: asyncio.Event,
     ) -> None:
         """Queue work for ``devices``; ``wake`` is set whenever work arrives."""
         self.bus = bus

@@ -34,7 +34,6 @@ from gateway.line.engine.lateness import loop_watch
 from gateway.line.engine.poll import Poller
 from gateway.line.engine.schedule import Schedule
 from gateway.line.engine.transactions import LATE_ANSWER_WINDOW_S, Transactions
-from gateway.line.engine.wake import Wake
 from gateway.line.samples import DeviceEvent
 from gateway.line.transports.port_diagnosis import PortReason
 from gateway.profiles.effects import touched_by_write
@@ -75,7 +74,7 @@ class BusWorker:
         self.sinks = list(sinks)
         self.devices = {d.name: DeviceState(target=d) for d in devices}
         self.reconnect_max_s = reconnect_max_s
-        self._wake = Wake()
+        self._wake = asyncio.Event()
         self._rng = rng or random.Random()  # noqa: S311 - jitter, nothing secret
         self.schedule = Schedule(self.devices)
         self.availability = Availability(
@@ -160,7 +159,7 @@ class BusWorker:
         try:
             await self._run(delay)
         finally:
-            self._rest_line()
+            self.line.rest()
             self.line.wait_watch = None
             watch.detach()
             self.jobs.running = False
@@ -393,13 +392,8 @@ class BusWorker:
             self._swap_line(line)
         return True
 
-    def _rest_line(self) -> None:
-        """The line's timer looks for the loop's watch no more: the worker leaves it."""
-        if (timer := self.line.timer) is not None:
-            timer.rest()
-
     def _swap_line(self, line: Line) -> None:
-        self._rest_line()
+        self.line.rest()
         line.wait_watch, self.line.wait_watch = self.line.wait_watch, None
         self.line = line
         self.poller.use_line(line)
@@ -501,11 +495,21 @@ class BusWorker:
         timeout = max(0.0, wake_at - now)
         if math.isinf(timeout):
             timeout = 1.0
+        watch = self.line.wait_watch
+        if watch is not None:
+            self.line.rest()  # its timer looks no more: this sleep is the worker's own
+            watch.asleep()
         self._parked = True
         try:
-            await self._wake.sleep_until(now + timeout, self.line.timer, self.line.wait_watch)
+            # asyncio.timeout, not wait_for: wait_for wraps the wait in a task of its own,
+            # at every sleep (with devices' phases spread, a bus sleeps between most polls).
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(timeout):
+                    await self._wake.wait()
         finally:
             self._parked = False
+            if watch is not None:
+                watch.awake(now + timeout, time.monotonic())
         if self._resume is not None:
             return  # a pause: the port is closed on purpose
         if not self.line.is_open:

@@ -130,10 +130,8 @@ class ModbusTcpLine:
         self.last_frame_end = now
         self._ready_at = now + self.tcp.connect_pause_s
 
-    @property
-    def timer(self) -> None:
-        """None: the worker sleeps on a timer of the loop (this line's timer is the session's)."""
-        return None
+    def rest(self) -> None:
+        """Nothing to stop: this line's timer never looks for the loop's watch."""
 
     async def close(self) -> None:
         """End the session (idempotent); nothing in flight matters after a stop."""

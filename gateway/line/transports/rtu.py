@@ -131,11 +131,6 @@ class RtuLine(ABC):
         self.receiver.late_answer = value
 
     @property
-    def timer(self) -> DeadlineTimer:
-        """The line's own timer (the gap's, the answer's), lent to the worker's sleeps."""
-        return self._timer
-
-    @property
     def is_open(self) -> bool:
         """Whether the stream is open and has not been lost."""
         return self._inbox is not None and not self._inbox.gone
@@ -167,6 +162,10 @@ class RtuLine(ABC):
         self.stats.closed_because(None, "")
         self.stats.port_open = True
         self.last_frame_end = time.monotonic()
+
+    def rest(self) -> None:
+        """The worker sleeps, or stops: the line's timer looks for the loop's watch no more."""
+        self._timer.rest()
 
     async def close(self) -> None:
         """Close the stream (idempotent); back once it is closed (a device's lock released)."""

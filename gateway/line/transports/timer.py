@@ -91,7 +91,7 @@ class DeadlineTimer:
             watch.asleep()
 
     def rest(self) -> None:
-        """Stop looking (the worker stops, or leaves the line); disarmed."""
+        """Stop looking (the worker sleeps on a timer of its own, or stops); disarmed."""
         watch, self._watch = self._watch, None
         if watch is None:
             return
@@ -136,31 +136,20 @@ class DeadlineTimer:
                 self._set(0.0)
         return True
 
-    def wake(
-        self,
-        waiter: asyncio.Future[None],
-        deadline: float,
-        now: float,
-        *,
-        look_for: WaitWatch | None = None,
-        asleep: bool = False,
-    ) -> bool:
+    def wake(self, waiter: asyncio.Future[None], deadline: float, now: float) -> bool:
         """Resolve ``waiter`` at ``deadline``, unless something resolves it first.
 
         An inbox's wait for bytes: while the timer looks, no later than one look from
         ``now``, and it stays set when the bytes come first (it looks on over what the
-        worker does next, and the next wait sets it anew). ``asleep``: the worker's own
-        sleep between polls, set for ``deadline`` itself, looking for ``look_for`` from
-        now on as a gap's wait does. ``False`` where no timerfd can be used, or another
-        wait holds the timer: the caller sets a timer of the loop.
+        worker does next, and the next wait sets it anew). ``False`` where no timerfd can be
+        used, or another wait holds the timer: the caller sets a timer of the loop.
         """
         if self._waiter is not None or not self._usable:
             return False
-        self.look(look_for)
         watch = self._watch
         if watch is not None and 0 < self._armed < now:
             self._overdue(now)
-        if watch is not None and not asleep:
+        if watch is not None:
             look_at = now + watch.look_s
             if look_at < deadline:  # noqa: PLR1730 - min() is a call more on every answer
                 deadline = look_at
