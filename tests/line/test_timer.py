@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import socket
 import time
 
@@ -16,6 +17,7 @@ import pytest
 from gateway.line.engine.lateness import LoopWatch
 from gateway.line.transports import timer
 from gateway.line.transports.timer import DeadlineTimer
+from tests.waiting import eventually
 
 
 async def test_a_wait_never_ends_before_its_deadline() -> None:
@@ -127,6 +129,10 @@ def _hold(seconds: float) -> None:
     time.sleep(seconds)  # the event loop held: a process that is not scheduled
 
 
+def _stalled_since(watch: LoopWatch, start: float) -> float:
+    return watch.since(start).stalled_s
+
+
 def _answered(clock: DeadlineTimer, loop: asyncio.AbstractEventLoop) -> float:
     """An answer's wait on ``clock``, ended by its bytes at once; when it began."""
     waiter: asyncio.Future[None] = loop.create_future()
@@ -156,16 +162,16 @@ async def test_while_it_looks_every_firing_says_how_late_the_loop_ran_it() -> No
         mark = _answered(clock, loop)
         for _ in range(2):  # held past it, and past the look it set again as it fired
             _hold(0.3)
-            await asyncio.sleep(0.01)
-            late = watch.since(mark).stalled_s
+            late = await eventually(functools.partial(_stalled_since, watch, mark), within_s=2.0)
             assert 0.3 - watch.look_s - 0.02 <= late <= time.monotonic() - mark
             mark = time.monotonic()
         # At rest it looks no more: a hold now is no firing of it.
         clock.rest()
-        await asyncio.sleep(0.1)  # a look set before the rest would have fired by now
+        # An absence: waited out for as long as a look set before the rest would take.
+        await asyncio.sleep(2 * watch.look_s)
         mark = time.monotonic()
         _hold(0.2)
-        await asyncio.sleep(0.06)
+        await asyncio.sleep(watch.look_s + 0.01)
         assert watch.since(mark).stalled_s == 0.0
     finally:
         clock.close()

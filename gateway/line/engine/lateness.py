@@ -141,9 +141,7 @@ class LoopWatch:
         """
         self._sleepers = max(0, self._sleepers - 1)
         if self._handle is None and self._users:
-            late = now - due
-            if late > STALL_MIN_S:
-                self._stalls.append((now, late))
+            self._stalled(due, now)
             if self._sleepers < self._users:  # a line's timer may look for the others
                 self._arm(now)
 
@@ -155,10 +153,14 @@ class LoopWatch:
         idle.
         """
         if self._handle is None:
-            late = now - due
-            if late > STALL_MIN_S:
-                self._stalls.append((now, late))
+            self._stalled(due, now)
         self._sample_cpu(now)
+
+    def _stalled(self, due: float, now: float) -> None:
+        """A timer due at ``due`` ran at ``now``: a stall of the loop, if late enough."""
+        late = now - due
+        if late > STALL_MIN_S:
+            self._stalls.append((now, late))
 
     def _arm(self, now: float) -> None:
         self._due = now + TICK_S
@@ -166,9 +168,7 @@ class LoopWatch:
 
     def _tick(self) -> None:
         now = time.monotonic()
-        late = now - self._due
-        if late > STALL_MIN_S:
-            self._stalls.append((now, late))
+        self._stalled(self._due, now)
         self._sample_cpu(now)
         self._arm(now)
 

@@ -96,17 +96,16 @@ class Inbox(asyncio.Protocol):
         loop = self.loop or asyncio.get_running_loop()
         waiter = self._waiter = loop.create_future()
         own = self.timer
-        now = time.monotonic()
-        if own is not None and own.wake(waiter, now + timeout_s, now):
-            try:
-                await waiter
-            finally:
-                own.unwake(waiter)
-                self._waiter = None
-            return
-        timer = loop.call_later(timeout_s, self._wake)
+        if own is not None:
+            now = time.monotonic()
+            if not own.wake(waiter, now + timeout_s, now):
+                own = None  # no timerfd here, or another wait holds it
+        handle = loop.call_later(timeout_s, self._wake) if own is None else None
         try:
             await waiter
         finally:
-            timer.cancel()
+            if own is not None:
+                own.unwake(waiter)
+            elif handle is not None:
+                handle.cancel()
             self._waiter = None

@@ -118,12 +118,7 @@ class DeadlineTimer:
             return False
         if loop is None:
             loop = asyncio.get_running_loop()
-        if self._watch is not None and 0 < self._armed < now:
-            self._overdue(now)
-        if self._waiter is not None or not (
-            # The timer of this loop set at once: _arm()'s call only where one is to be opened.
-            self._set(deadline) if self._loop is loop else self._arm(loop, deadline)
-        ):
+        if self._waiter is not None or not self._rearm(loop, deadline, now):
             await asyncio.sleep(deadline - time.monotonic())
             return False
         waiter = loop.create_future()
@@ -147,14 +142,11 @@ class DeadlineTimer:
         if self._waiter is not None or not self._usable:
             return False
         watch = self._watch
-        if watch is not None and 0 < self._armed < now:
-            self._overdue(now)
         if watch is not None:
             look_at = now + watch.look_s
             if look_at < deadline:  # noqa: PLR1730 - min() is a call more on every answer
                 deadline = look_at
-        loop = waiter.get_loop()
-        if not (self._set(deadline) if self._loop is loop else self._arm(loop, deadline)):
+        if not self._rearm(waiter.get_loop(), deadline, now):
             return False
         self._waiter = waiter
         return True
@@ -219,15 +211,18 @@ class DeadlineTimer:
             value.tv_sec = value.tv_nsec = 0
         return bool(_LIBC.timerfd_settime(self._fd, TFD_TIMER_ABSTIME, self._spec, None) == 0)
 
-    def _overdue(self, now: float) -> None:
-        """Set anew past its deadline, its firing not handed over yet: the loop was held.
+    def _rearm(self, loop: asyncio.AbstractEventLoop, deadline: float, now: float) -> bool:
+        """Set for a wait's ``deadline`` on ``loop``: at once on its timer, opened if need be.
 
-        Setting the timer clears the firing the event loop has not seen (the worker's own
-        code ran on since: a sink that computes, a poll straight after it), so the watch
-        is told here how late it is, as the firing would have said.
+        Set anew past its last deadline, the timer's firing was not handed over yet: the
+        loop was held (the worker's own code ran on: a sink that computes, a poll straight
+        after it). Setting it clears that firing, so the watch it looks for is told here
+        how late it is, as the firing would have said.
         """
-        assert self._watch is not None  # noqa: S101 - the callers' condition
-        self._watch.late(self._armed, now)
+        watch = self._watch
+        if watch is not None and 0 < self._armed < now:
+            watch.late(self._armed, now)
+        return self._set(deadline) if self._loop is loop else self._arm(loop, deadline)
 
     def _fired(self) -> None:
         assert self._fd is not None  # noqa: S101 - the reader goes with the descriptor
@@ -240,8 +235,7 @@ class DeadlineTimer:
         watch = self._watch
         if watch is not None:
             now = time.monotonic()
-            if due:  # always, once set; never a lateness counted from 0.0
-                watch.late(due, now)
+            watch.late(due, now)
             if waiter is None or waiter.done():  # nobody waits: look again, one look on
                 self._set(now + watch.look_s)
         if waiter is not None and not waiter.done():
