@@ -11,17 +11,19 @@ timeout).
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import time
 from typing import TYPE_CHECKING
 
-from gateway.errors import DeviceExceptionError, EchoMismatchError, FrameError
+from gateway.errors import BusTimeoutError, DeviceExceptionError, EchoMismatchError, FrameError
 from gateway.line.boundary import LateAnswer
 from gateway.line.stats import ErrorKind
 from gateway.line.transports.answer import AnswerScan, holds_answer
 from gateway.line.transports.echo import ECHO_MARGIN_S, earliest_answer
 from gateway.line.transports.inbox import LAST_LOOK_S, LAST_LOOKS
+from gateway.line.transports.owed import OwedAnswer
 from gateway.wire import frames
 from gateway.wire.timing import FRAME_GAP_CHARACTERS
 
@@ -67,6 +69,8 @@ class Receiver:
         # that its answer coming later tells how late; the worker asks for it.
         self._timed_out: dict[int, tuple[float, float, float]] = {}
         self.late_answer: LateAnswer | None = None
+        # A cancelled transaction's answer still due (:meth:`settle_owed`).
+        self.owed: OwedAnswer | None = None
 
     def timed_out(self, device: int, sent_at: float, timeout_s: float, waited_s: float) -> None:
         """The device's request sent at ``sent_at`` got no answer of its own in time."""
@@ -96,6 +100,49 @@ class Receiver:
                 timeout_s=timeout_s,
                 waited_s=waited_s,
             )
+
+    def discard(self, inbox: Inbox, device: int, last_sent: bytes) -> None:
+        """Drop, judged, what came before ``device``'s request (``last_sent``: an echo's copy)."""
+        stale = bytes(inbox.buffer)
+        inbox.buffer.clear()
+        if stale == last_sent:
+            # The adapter's echo of a request that waited for no answer (a broadcast),
+            # or of a read whose answer never came: the adapter's doing, not the line's.
+            # (A unicast write's late answer is a copy of it too: not remembered.)
+            self.echo_seen(device)
+            return
+        kind = ErrorKind.STALE if frames.crc_ok(stale) else ErrorKind.NOISE
+        if kind == ErrorKind.STALE:
+            self.note_late(stale[0], inbox.last_byte_at)
+        self.stats.errors[device, kind] += 1
+        _LOGGER.debug("%s: discarded %d %s bytes: %s", self.port, len(stale), kind, stale.hex(" "))
+
+    def owe(
+        self, request: frames.Request, options: RequestOptions, deadline: float, inbox: Inbox
+    ) -> None:
+        """``request`` went out and its transaction was cancelled: its answer is still due."""
+        self.owed = OwedAnswer(request=request, options=options, deadline=deadline, inbox=inbox)
+
+    async def settle_owed(self, inbox: Inbox, quiet_since: float) -> float:
+        """Wait for the answer still due on ``inbox`` (:mod:`~gateway.line.transports.owed`).
+
+        When the line fell quiet: ``quiet_since`` if nothing is due on this stream.
+        """
+        owed, self.owed = self.owed, None
+        if owed is None or owed.inbox is not inbox:
+            return quiet_since
+        try:
+            _, quiet_at = await self._scan_until_answer(
+                inbox, owed.scan(), owed.request, owed.deadline
+            )
+        except asyncio.CancelledError:
+            self.owed = owed  # still due, for the next transaction
+            raise
+        except (BusTimeoutError, FrameError, DeviceExceptionError) as exc:
+            _LOGGER.debug("%s: a cancelled request's answer: %s", self.port, exc)
+            return time.monotonic()
+        _LOGGER.debug("%s: a cancelled request's answer dropped", self.port)
+        return quiet_at
 
     async def read_echo(self, request: frames.Request, request_end: float) -> None:
         """``echo: on``: read the request back, byte for byte, before its answer.

@@ -39,11 +39,11 @@ from gateway.line.transports.echo import EchoPolicy
 from gateway.line.transports.inbox import Inbox
 from gateway.line.transports.receive import Receiver
 from gateway.line.transports.timer import DeadlineTimer
-from gateway.wire import frames
 from gateway.wire.timing import FRAME_GAP_CHARACTERS
 
 if TYPE_CHECKING:
     from gateway.line.boundary import RequestOptions, WaitWatch
+    from gateway.wire import frames
     from gateway.wire.timing import LineFormat
 
 _LOGGER = logging.getLogger(__name__)
@@ -213,21 +213,7 @@ class RtuLine(ABC):
         """Discard whatever arrived between transactions: late answers and noise."""
         inbox = self._live_inbox()
         if inbox.buffer:
-            stale = bytes(inbox.buffer)
-            inbox.buffer.clear()
-            if stale == self._last_sent:
-                # The adapter's echo of a request that waited for no answer (a broadcast),
-                # or of a read whose answer never came: the adapter's doing, not the line's.
-                # (A unicast write's late answer is a copy of it too: not remembered.)
-                self.receiver.echo_seen(device)
-                return
-            kind = ErrorKind.STALE if frames.crc_ok(stale) else ErrorKind.NOISE
-            if kind == ErrorKind.STALE:
-                self.receiver.note_late(stale[0], inbox.last_byte_at)
-            self.stats.errors[device, kind] += 1
-            _LOGGER.debug(
-                "%s: discarded %d %s bytes: %s", self.port, len(stale), kind, stale.hex(" ")
-            )
+            self.receiver.discard(inbox, device, self._last_sent)
 
     async def wait_gap(self, gap_s: float, *, not_before: float = 0.0, device: int = 0) -> float:
         """Keep the line silent for ``gap_s`` after its last frame (and until ``not_before``).
@@ -238,6 +224,8 @@ class RtuLine(ABC):
         waiting without end held up every other device (a request went out 2.6 s late).
         """
         inbox = self._live_inbox()
+        if self.receiver.owed is not None:  # a cancelled transaction's answer still to come
+            self.last_frame_end = await self.receiver.settle_owed(inbox, self.last_frame_end)
         give_up = math.inf  # set at the first wait: most gaps are over when they are asked for
         bound_s = 0.0
         read_at = -math.inf  # when the loop had surely read all the port held
@@ -329,6 +317,9 @@ class RtuLine(ABC):
             self.stats.exception_codes[request.device, exc.code] += 1
             self.stats.errors[request.device, ErrorKind.EXCEPTION] += 1
             self._finish(sent_at)
+            raise
+        except asyncio.CancelledError:  # the device answers all the same: the line waits for it
+            self.receiver.owe(request, options, request_end + timeout_s, inbox)
             raise
         except (BusTimeoutError, FrameError) as exc:
             kind = failure_kind(exc, otherwise=ErrorKind.TIMEOUT)
