@@ -239,7 +239,7 @@ async def reference_run(broker: int, directory: Path, seconds: float) -> dict[st
     port, simulate = reference_line(directory)
     log = directory / "gateway.log"
     async with peers.child(simulate, log=directory / "line.log", ready=b"ready"):
-        argv = peers.gateway_command(port, REFERENCE_LINE, broker, directory)
+        argv = peers.GATEWAY.command(port, REFERENCE_LINE, broker, directory)
         async with peers.child(argv, log=log) as process:
             await asyncio.sleep(peers.WARM_UP_S + seconds)
             if process.returncode is not None:

@@ -57,6 +57,7 @@ import aiomqtt
 from bench import cgroups
 from bench import peer_modbus2mqtt as peer
 from bench.cgroups import process_tree
+from bench.engine_pairs import earlier_gateway as extracted
 from bench.peer_line import wire_figures
 from gateway.profiles import PollGroup, get_profile
 from gateway.wire.timing import LineFormat, Parity
@@ -187,13 +188,16 @@ def simulator_config(line: LineFormat, phase: Phase) -> dict[str, Any]:
     }
 
 
-def gateway_config(port: Path, line: LineFormat, broker: int, work: Path) -> dict[str, Any]:
+def gateway_config(
+    port: Path, line: LineFormat, broker: int, work: Path, *, prefix: str = GATEWAY_PREFIX
+) -> dict[str, Any]:
     """Our gateway as a user sets it up for these sensors: defaults but the slow groups.
 
     Diagnostics and configuration are read at start only (intervals of a day), so that
     both masters read the same points while measured. Timeouts, retries, publishing
     (every poll, values at QoS 1, a state document per device) and the Prometheus
-    endpoint are the defaults.
+    endpoint are the defaults. ``prefix``: its base topic (and client id), one per gateway
+    on the broker.
     """
     day = 86_400
     return {
@@ -218,7 +222,12 @@ def gateway_config(port: Path, line: LineFormat, broker: int, work: Path) -> dic
             }
             for s in PLANT
         ],
-        "mqtt": {"host": "127.0.0.1", "port": broker, "base_topic": GATEWAY_PREFIX},
+        "mqtt": {
+            "host": "127.0.0.1",
+            "port": broker,
+            "base_topic": prefix,
+            "client_id": f"bench-{prefix}",
+        },
         "prometheus": {"host": "127.0.0.1", "port": free_port()},
         "state_dir": str(work / "state"),
         "logging": {"level": "WARNING"},
@@ -251,23 +260,41 @@ class Master:
     subscription: str
 
 
-def gateway_command(port: Path, line: LineFormat, broker: int, work: Path) -> list[str]:
-    config = work / "gateway.yaml"  # JSON is YAML
-    config.write_text(json.dumps(gateway_config(port, line, broker, work)), encoding="utf-8")
+def gateway_master(name: str, prefix: str, program: Sequence[str]) -> Master:
+    """A gateway started by ``program`` (its command line up to ``run``), under ``prefix``."""
+
+    def command(port: Path, line: LineFormat, broker: int, work: Path) -> list[str]:
+        config = work / "gateway.yaml"  # JSON is YAML
+        settings = gateway_config(port, line, broker, work, prefix=prefix)
+        config.write_text(json.dumps(settings), encoding="utf-8")
+        return [*program, "run", "--config", str(config)]
+
+    def topic(topic: str) -> tuple[str, str] | None:
+        """``(device, point)`` of a plain value topic ``{prefix}/{device}/{point}``, else None."""
+        parts = topic.split("/")
+        if len(parts) == 3 and parts[0] == prefix:  # noqa: PLR2004
+            return parts[1], parts[2]
+        return None
+
+    return Master(name, command, topic, f"{prefix}/#")
+
+
+def this_gateway() -> list[str]:
+    """This tree's gateway, as installed (its console script)."""
     script = Path(sys.executable).parent / "gateway"
-    program = [str(script)] if script.exists() else [sys.executable, "-m", "gateway"]
-    return [*program, "run", "--config", str(config)]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "gateway"]
 
 
-def gateway_topic(topic: str) -> tuple[str, str] | None:
-    """``(device, point)`` of a plain value topic ``gw/{device}/{point}``, else None."""
-    parts = topic.split("/")
-    if len(parts) == 3 and parts[0] == GATEWAY_PREFIX:  # noqa: PLR2004
-        return parts[1], parts[2]
-    return None
+def earlier_gateway(tree: Path) -> list[str]:
+    """The gateway package extracted to ``tree`` (an earlier commit's), ahead of this one."""
+    boot = (
+        f"import sys; sys.path.insert(0, {str(tree)!r}); sys.argv[0] = 'gateway'; "
+        "from gateway.cli import main; sys.exit(main())"
+    )
+    return [sys.executable, "-c", boot]
 
 
-GATEWAY: Final = Master("gateway", gateway_command, gateway_topic, f"{GATEWAY_PREFIX}/#")
+GATEWAY: Final = gateway_master("gateway", GATEWAY_PREFIX, this_gateway())
 
 
 def peer_master(executable: Path) -> Master:
@@ -692,6 +719,25 @@ def verdicts(results: Mapping[str, Mapping[str, Figures]]) -> list[str]:
     ]
 
 
+def against(ref: str, line: LineFormat, seconds: float, *, keep: Path | None) -> None:
+    """This tree's gateway and commit ``ref``'s in the same plant, at once: CPU new / old.
+
+    A step of a few per cent is lost in the pace of the machine between runs of the peer
+    comparison; side by side, each on a line of its own, both gateways see the same pace.
+    """
+    with tempfile.TemporaryDirectory(prefix="bench-peers-against-") as tmp:
+        old = gateway_master(f"gateway@{ref}", "gwold", earlier_gateway(extracted(ref, Path(tmp))))
+        try:
+            results = asyncio.run(run_all([old, GATEWAY], line, seconds, keep=keep, at_once=True))
+        except (asyncio.CancelledError, KeyboardInterrupt):
+            raise SystemExit("stopped: every process it started is stopped") from None
+    print(table(results, line))
+    for phase in PHASES:
+        new_cpu = results[GATEWAY.name][phase.name]["cpu_share"]
+        old_cpu = results[old.name][phase.name]["cpu_share"]
+        print(f"CPU new / old, {phase.title}: {new_cpu / old_cpu:.3f}")
+
+
 def parse_format(text: str) -> LineFormat:
     """``9600-E-1`` as a line format; anything else ends the bench with a usage error."""
     baudrate, parity, stopbits = [*text.split("-"), "", "", ""][:3]
@@ -712,9 +758,17 @@ def main() -> None:
     parser.add_argument(
         "--at-once", action="store_true", help="both masters at the same time, each on its line"
     )
+    parser.add_argument(
+        "--against",
+        metavar="REF",
+        help="no peer: this tree's gateway against commit REF's, at once (written nowhere)",
+    )
     args = parser.parse_args()
     line = parse_format(args.format)
     check_plant()
+    if args.against:
+        against(args.against, line, args.seconds, keep=args.keep)
+        return
     masters = [peer_master(peer.ensure_venv()), GATEWAY]
     try:
         results = asyncio.run(

@@ -22,10 +22,13 @@ import aiomqtt
 import pytest
 
 from gateway.publish.mqtt.client import BrokerClient
+from tests.mqtt_broker import recording
 from tests.waiting import eventually
 
 if TYPE_CHECKING:
     from collections.abc import AsyncIterator
+
+    from tests.mqtt_broker import Broker
 
 CONNACK_ACCEPTED: Final = b"\x20\x02\x00\x00"
 WAIT_S: Final = 5.0
@@ -304,3 +307,19 @@ async def test_a_publish_queued_as_the_drop_is_read_logs_nothing() -> None:
         assert errors == []
     finally:
         broker.stop()
+
+
+@pytest.mark.broker
+async def test_a_publish_larger_than_the_socket_takes_goes_out_whole(broker: Broker) -> None:
+    """A publish of the loop's own is written in the loop's next pass, with no writer added.
+
+    What the socket does not take at once (16 MiB, beyond any loopback send buffer) goes
+    out as it drains: a writer is added for the rest. Without it the message was cut short
+    and never acknowledged.
+    """
+    payload = "0123456789abcdef" * (1024 * 1024)
+    async with recording(broker.port, "big/#") as recorder:
+        async with BrokerClient("127.0.0.1", broker.port, identifier="big-publisher") as client:
+            await client.publish("big/one", payload, qos=1, timeout=30)
+        await recorder.wait_for("big/one", within_s=30)
+    assert recorder.on("big/one") == [payload]
