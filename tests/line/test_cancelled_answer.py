@@ -32,12 +32,15 @@ if TYPE_CHECKING:
     from collections.abc import AsyncIterator
     from pathlib import Path
 
+    from gateway.line.boundary import Exchange
+
 pytestmark = [pytest.mark.line]
 
 LINE = LineFormat(baudrate=9600, parity="N", stopbits=1)
 GAP_S = LINE.frame_gap_s()
 FIRST = frames.read_request(1, 0x2620, 2)
 SECOND = frames.read_request(1, 0x2630, 2)
+SECOND_VALUES = (0x4148, 0x0000)
 # No request may follow the cancelled one within this: its answer is still due. Long
 # enough for a request sent at once to have reached the pseudo-terminal on a busy machine.
 HELD_S = 0.3
@@ -106,6 +109,17 @@ async def answer(master: int, request: frames.Request, registers: tuple[int, ...
     os.write(master, frame)
 
 
+async def second_answered(master: int, second: asyncio.Task[Exchange | None]) -> float:
+    """:data:`SECOND` goes out and the device answers it; when it went out (answer checked)."""
+    request, sent_at = await read_frame(master, len(SECOND.frame), within_s=5.0)
+    assert request == SECOND.frame
+    await answer(master, SECOND, SECOND_VALUES)
+    exchange = await second
+    assert exchange is not None
+    assert exchange.response.registers == SECOND_VALUES
+    return sent_at
+
+
 def errors_of_device_1(line: SerialLine) -> dict[str, int]:
     """Every failure counted against device 1, by kind."""
     return {kind: n for (device, kind), n in line.stats.errors.items() if device == 1 and n}
@@ -119,14 +133,9 @@ async def test_the_next_request_waits_for_the_answer_still_due_and_its_gap(tmp_p
         assert await nothing_sent(master, HELD_S), "a request went out into the answer still due"
         answered_at = time.monotonic()
         os.write(master, frames.read_response(1, 0x03, (0x0000, 0x41A2)))
-        request, sent_at = await read_frame(master, len(SECOND.frame), within_s=2.0)
-        assert request == SECOND.frame
+        sent_at = await second_answered(master, second)
         # 3.5 characters after the answer's last byte (9600 8N1: 4.01 ms)
         assert sent_at - answered_at >= GAP_S
-        await answer(master, SECOND, (0x4148, 0x0000))
-        exchange = await second
-        assert exchange is not None
-        assert exchange.response.registers == (0x4148, 0x0000)
         assert errors_of_device_1(line) == {}
         assert line.late_answer is None
 
@@ -139,13 +148,7 @@ async def test_an_answer_come_meanwhile_is_dropped_not_counted_stale(tmp_path: P
         inbox = line._inbox  # the answer in the line's hands: the case set up
         assert inbox is not None
         await eventually(lambda: len(inbox.buffer) == 9, within_s=2.0)
-        second = asyncio.create_task(line.transact(SECOND, options))
-        request, _ = await read_frame(master, len(SECOND.frame), within_s=2.0)
-        assert request == SECOND.frame
-        await answer(master, SECOND, (0x4148, 0x0000))
-        exchange = await second
-        assert exchange is not None
-        assert exchange.response.registers == (0x4148, 0x0000)
+        await second_answered(master, asyncio.create_task(line.transact(SECOND, options)))
         assert errors_of_device_1(line) == {}  # before: one stale frame of the device
 
 
@@ -155,14 +158,9 @@ async def test_no_answer_holds_the_line_for_the_cancelled_timeout_only(tmp_path:
         options = RequestOptions(timeout_s=timeout_s, gap_s=GAP_S)
         first_sent = time.monotonic()
         await cancelled_once_sent(line, master, options)
-        second = asyncio.create_task(line.transact(SECOND, options))
-        request, sent_at = await read_frame(master, len(SECOND.frame), within_s=5.0)
-        assert request == SECOND.frame
+        sent_at = await second_answered(master, asyncio.create_task(line.transact(SECOND, options)))
         # not before the cancelled request's own timeout, counted from its end on the wire
         assert sent_at - first_sent >= timeout_s
-        await answer(master, SECOND, (0x4148, 0x0000))
-        exchange = await second
-        assert exchange is not None
         assert errors_of_device_1(line) == {}  # the cancelled request's timeout is not the device's
 
 
@@ -172,8 +170,6 @@ async def test_a_line_opened_again_owes_nothing(tmp_path: Path) -> None:
         await cancelled_once_sent(line, master, options)
         await line.close()
         await line.open()
-        second = asyncio.create_task(line.transact(SECOND, options))
-        request, _ = await read_frame(master, len(SECOND.frame), within_s=1.0)
-        assert request == SECOND.frame
-        await answer(master, SECOND, (0x4148, 0x0000))
-        assert await second is not None
+        opened_at = time.monotonic()
+        sent_at = await second_answered(master, asyncio.create_task(line.transact(SECOND, options)))
+        assert sent_at - opened_at < 1.0  # not after the cancelled request's 5 s timeout
