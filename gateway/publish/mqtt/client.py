@@ -211,11 +211,12 @@ class BrokerClient(aiomqtt.Client):
                 self._loop.add_writer(current.fileno(), write)
 
         def write_now() -> None:
-            current = client.socket()
-            if current is None or current is not sock:
+            if client.socket() is not sock:  # closed meanwhile (a drop read in between)
                 return
             write()  # a socket that is writable nearly always: no turn of the loop to ask
-            if client.want_write():  # the socket took part: the rest as it can take more
+            # The socket took part: the rest as it can take more (unless the write failed).
+            current = client.socket()
+            if current is not None and current is sock and client.want_write():
                 self._loop.add_writer(current.fileno(), write)
 
         if _running_loop() is self._loop:  # a publish of the session's, in the loop
