@@ -28,8 +28,13 @@ twofold within a minute on a virtual machine, is the same for both. After a warm
 
 Printed as a table and written to bench/results/peers.json.
 
+With --against REF there is no peer: this tree's gateway and commit REF's run in the same
+plant at once, each on its own line and base topic, and CPU new / old is printed per phase
+(nothing written): a step of a few per cent, which the machine's pace hides between runs.
+
 Run from the repository root (as root, for the control groups):
 .venv/bin/python -m bench.peers [--seconds 30] [--format 9600-E-1] [--at-once] [--keep DIR]
+.venv/bin/python -m bench.peers --against REF [--seconds 30] [--format 9600-E-1]
 """
 
 from __future__ import annotations
