@@ -290,7 +290,7 @@ def this_gateway() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "gateway"]
 
 
-def earlier_gateway(tree: Path) -> list[str]:
+def earlier_gateway_program(tree: Path) -> list[str]:
     """The gateway package extracted to ``tree`` (an earlier commit's), ahead of this one."""
     boot = (
         f"import sys; sys.path.insert(0, {str(tree)!r}); sys.argv[0] = 'gateway'; "
@@ -731,7 +731,9 @@ def against(ref: str, line: LineFormat, seconds: float, *, keep: Path | None) ->
     comparison; side by side, each on a line of its own, both gateways see the same pace.
     """
     with tempfile.TemporaryDirectory(prefix="bench-peers-against-") as tmp:
-        old = gateway_master(f"gateway@{ref}", "gwold", earlier_gateway(extracted(ref, Path(tmp))))
+        old = gateway_master(
+            f"gateway@{ref}", "gwold", earlier_gateway_program(extracted(ref, Path(tmp)))
+        )
         try:
             results = asyncio.run(run_all([old, GATEWAY], line, seconds, keep=keep, at_once=True))
         except (asyncio.CancelledError, KeyboardInterrupt):

@@ -173,3 +173,20 @@ async def test_a_line_opened_again_owes_nothing(tmp_path: Path) -> None:
         opened_at = time.monotonic()
         sent_at = await second_answered(master, asyncio.create_task(line.transact(SECOND, options)))
         assert sent_at - opened_at < 1.0  # not after the cancelled request's 5 s timeout
+
+
+async def test_noise_instead_of_the_answer_holds_the_line_to_the_timeout_uncounted(
+    tmp_path: Path,
+) -> None:
+    """Garbage where the answer was due (a collision, a bad earth): the line keeps waiting
+    out the cancelled request's timeout, sends after the gap, and counts no noise."""
+    async with device_side(tmp_path) as (line, master):
+        timeout_s = 0.5
+        options = RequestOptions(timeout_s=timeout_s, gap_s=GAP_S)
+        first_sent = time.monotonic()
+        await cancelled_once_sent(line, master, options)
+        second = asyncio.create_task(line.transact(SECOND, options))
+        os.write(master, b"\x00\xff\x55\xaa\x13")  # no frame of any device
+        sent_at = await second_answered(master, second)
+        assert sent_at - first_sent >= timeout_s
+        assert errors_of_device_1(line) == {}

@@ -214,10 +214,8 @@ class BrokerClient(aiomqtt.Client):
             if client.socket() is not sock:  # closed meanwhile (a drop read in between)
                 return
             write()  # a socket that is writable nearly always: no turn of the loop to ask
-            # The socket took part: the rest as it can take more (unless the write failed).
-            current = client.socket()
-            if current is not None and current is sock and client.want_write():
-                self._loop.add_writer(current.fileno(), write)
+            if client.want_write():  # the socket took part: the rest as it can take more
+                add_writer()  # to the socket still open only: a failed write closed it
 
         if _running_loop() is self._loop:  # a publish of the session's, in the loop
             self._loop.call_soon(write_now)
