@@ -245,7 +245,7 @@ class Subscriber:
     """
 
     port: int
-    topic_filter: str
+    topic_filter: str | tuple[str, ...]  # one filter, or several
     name: str = "power-cut-recorder"
     arrivals: list[Arrival] = field(default_factory=list)
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -260,7 +260,8 @@ class Subscriber:
         self.client.reconnect_delay_set(min_delay=1, max_delay=1)
 
     def _on_connect(self, client: paho.Client, *_: Any) -> None:
-        client.subscribe(self.topic_filter, qos=1)
+        filters = (self.topic_filter,) if isinstance(self.topic_filter, str) else self.topic_filter
+        client.subscribe([(topic_filter, 1) for topic_filter in filters])
         self._subscribed.set()
 
     def _on_message(self, _client: paho.Client, _data: object, message: paho.MQTTMessage) -> None:

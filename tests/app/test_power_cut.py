@@ -114,9 +114,10 @@ DEVICES_9600 = (
 # A kill comes this long after the start: from the first polls (the start itself takes
 # some 0.6 s) to a couple of seconds of polling, publishing, writing.
 KILL_AFTER_S = (0.5, 2.2)
-# What arrives this long after a kill was sent by a later process (which cannot publish
-# sooner than some 0.5 s after its start), not by the one killed.
-AFTER_KILL_S = 0.25
+# The owner claim each gateway publishes at every connection, before its queue drains
+# (publish/mqtt/identity): its ``pid`` tells which process's messages follow in the
+# broker's order (see check_queue).
+OWNER = f"{BASE}/owner"
 
 
 def config_text(
@@ -159,7 +160,7 @@ def running_plant(tmp_path: Path, broker: Broker, simulated: str, **config: Any)
         path = tmp_path / "gateway.yaml"
         path.write_text(config_text(tmp_path, port, broker.port, **config), encoding="utf-8")
         gateway = GatewayProcess(config=path, log=tmp_path / "gateway.log")
-        with Subscriber(broker.port, f"{BASE}/+/state") as subscriber:
+        with Subscriber(broker.port, (f"{BASE}/+/state", OWNER)) as subscriber:
             yield Plant(
                 tmp_path=tmp_path,
                 stats=stats,
@@ -210,27 +211,38 @@ class Kill:
     at: float  # time.time()
     spool: list[Document]
     left_over: int  # messages of any kind on disk
+    starts_before: int  # how many gateways had been started when it came
 
 
 @dataclass
 class Run:
-    """The kills so far, the broker's stops, and each gateway start."""
+    """The kills so far, the broker's stops, and each gateway start's process id."""
 
     kills: list[Kill] = field(default_factory=list)
     broker_stops: list[float] = field(default_factory=list)
-    starts: list[float] = field(default_factory=list)
+    pids: list[int] = field(default_factory=list)
+
+    def start(self, plant: Plant) -> None:
+        plant.gateway.start()
+        assert plant.gateway.process is not None
+        self.pids.append(plant.gateway.process.pid)
 
 
 def kill_at_random(plant: Plant, run: Run, *, after_s: tuple[float, float] = KILL_AFTER_S) -> Kill:
     """Start the gateway, SIGKILL it at a random moment, and read what is left on disk."""
-    run.starts.append(time.time())
-    plant.gateway.start()
+    run.start(plant)
     time.sleep(plant.rng.uniform(*after_s))
     plant.gateway.kill()
     at = time.time()
     rows = spool_rows(plant.state_dir, plant.tmp_path / "copy")
     spool = [found[0] for _, t, p in rows if (found := document(t, p)) is not None]
-    kill = Kill(number=len(run.kills) + 1, at=at, spool=spool, left_over=len(rows))
+    kill = Kill(
+        number=len(run.kills) + 1,
+        at=at,
+        spool=spool,
+        left_over=len(rows),
+        starts_before=len(run.pids),
+    )
     run.kills.append(kill)
     return kill
 
@@ -249,8 +261,7 @@ def start_time(plant: Plant, device: str) -> float:
 def drain_and_stop(plant: Plant, run: Run) -> None:
     """A last start that sends every backlog (a document made after it arrives), then stops."""
     started = time.time()
-    run.starts.append(started)
-    plant.gateway.start()
+    run.start(plant)
     for device in ("aeration", "basin"):
         wait_until(functools.partial(made_since, plant, device, started), within_s=60)
     assert plant.gateway.stop() == 0
@@ -277,14 +288,26 @@ def made_at(key: Document) -> float:
 def check_queue(run: Run, arrivals: list[Arrival], context: str) -> dict[str, int]:
     """Every guarantee of the queue, from what the subscriber got; a few figures.
 
-    An arrival's time is when the subscriber got it: later than the broker took it while
-    the subscriber reconnects after a broker restart, which the checks allow for.
+    Which process sent a document is told by the broker's order, not by when it arrived.
+    The subscriber gets its messages in the order the broker took them, but late by as
+    long as its own reconnection after a broker restart takes: a document the killed
+    process sent can arrive well after the kill, after the next process started. Each
+    gateway publishes its owner claim, with its process id, at every connection before
+    its queue drains; a killed process's last messages were taken before the next process
+    could connect (a start takes some 0.5 s). So what arrives after the first claim of a
+    process started after a kill was sent after that kill.
     """
     docs: list[tuple[Document, int, Arrival]] = []
+    claims: list[tuple[int, int]] = []  # (how many documents had arrived, the claimer's pid)
     for a in arrivals:
+        if a.topic == OWNER:
+            if not a.retain:  # a retained copy comes at each of the subscriber's connections
+                claims.append((len(docs), int(json.loads(a.payload)["pid"])))
+            continue
         found = document(a.topic, a.payload)
         if found is not None and not a.retain:
             docs.append((found[0], found[1], a))
+    sent_after = {kill.number: first_sent_after(kill, run, claims) for kill in run.kills}
     first: dict[Document, int] = {}  # each document's first arrival (its index in docs)
     repeats: list[int] = []
     for index, (key, _, arrival) in enumerate(docs):
@@ -293,13 +316,15 @@ def check_queue(run: Run, arrivals: list[Arrival], context: str) -> dict[str, in
         elif not arrival.dup:  # DUP: the broker sent it to us again, not the gateway
             repeats.append(index)
     check_order_and_gaps(docs, first, context)
-    resent = sum(check_kill(kill, docs, first, context) for kill in run.kills)
+    resent = sum(
+        check_kill(kill, docs, first, sent_after[kill.number], context) for kill in run.kills
+    )
     # Nothing acknowledged is sent twice: a repeat was on disk at a kill before it, or was
     # in flight when the broker stopped (its PUBACK never came).
     for index in repeats:
         key, _, arrival = docs[index]
         was_on_disk = any(
-            key in kill.spool for kill in run.kills if kill.at + AFTER_KILL_S < arrival.at
+            key in kill.spool for kill in run.kills if sent_after[kill.number] <= index
         )
         in_flight = any(docs[first[key]][2].at <= stop < arrival.at for stop in run.broker_stops)
         assert was_on_disk or in_flight, (
@@ -332,12 +357,30 @@ def check_order_and_gaps(
             previous = seq
 
 
+def first_sent_after(kill: Kill, run: Run, claims: list[tuple[int, int]]) -> int:
+    """The index in the documents of the first one a process started after ``kill`` sent.
+
+    The last start of a run (``drain_and_stop``) connects, so some later process's claim
+    has arrived for every kill.
+    """
+    later = set(run.pids[kill.starts_before :])
+    found = next((index for index, pid in claims if pid in later), None)
+    assert found is not None, f"kill {kill.number}: no later gateway's owner claim arrived"
+    return found
+
+
 def check_kill(
-    kill: Kill, docs: list[tuple[Document, int, Arrival]], first: dict[Document, int], context: str
+    kill: Kill,
+    docs: list[tuple[Document, int, Arrival]],
+    first: dict[Document, int],
+    sent_after: int,
+    context: str,
 ) -> int:
-    """What was on disk at ``kill`` arrives after it, in order, first; how many had arrived."""
-    boundary = kill.at + AFTER_KILL_S
-    later = [i for i, (_, _, a) in enumerate(docs) if a.at > boundary]
+    """What was on disk at ``kill`` arrives after it, in order, first; how many had arrived.
+
+    ``sent_after``: the index of the first document sent by a later process (check_queue).
+    """
+    later = range(sent_after, len(docs))
     on_disk = set(kill.spool)
     # Nothing lost: every document on disk at the kill arrives after it, in order.
     after: dict[Document, int] = {}
