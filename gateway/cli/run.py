@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Final
 
 from gateway.app import configure_logging
 from gateway.app import run as run_gateway
-from gateway.cli.heap import return_large_blocks
+from gateway.cli.heap import one_arena, return_large_blocks
 from gateway.config import load_config
 from gateway.errors import GatewayError
 from gateway.publish.console import ConsoleSink
@@ -72,6 +72,7 @@ def run_command(config: Path, *, show: bool | None) -> None:
     settings = load_config(config)
     configure_logging(settings.logging)
     return_large_blocks()
+    one_arena()
     console = show if show is not None else sys.stdout.isatty()
     asyncio.run(run_gateway(settings, [ConsoleSink()] if console else [], config_path=config))
 

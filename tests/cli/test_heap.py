@@ -1,4 +1,5 @@
-"""The long-running commands return large freed blocks to the system (glibc's mmap threshold).
+"""The long-running commands return large freed blocks to the system (glibc's mmap threshold),
+and ``gateway run``'s threads allocate from one arena.
 
 Checked in a fresh interpreter, on the C library's own account (``mallinfo2``): a large
 block freed, then a smaller one still large: without the fixed threshold glibc serves the
@@ -69,3 +70,46 @@ def test_large_blocks_come_from_mappings_returned_when_freed() -> None:
     _, mapped_by_default, heap_by_default = where_it_went("default")
     assert heap_by_default >= BLOCK
     assert mapped_by_default < BLOCK
+
+
+# A thread's first allocation: in an arena of its own (a new heap, a 64 MiB reservation in the
+# process's mappings), unless every thread is held to the main arena.
+THREAD_PROBE = """
+import ctypes, json, sys, threading
+from gateway.cli.heap import one_arena
+
+def reservations():
+    heaps = 0
+    with open("/proc/self/maps", encoding="utf-8") as maps:
+        for line in maps:
+            start, end = (int(part, 16) for part in line.split()[0].split("-"))
+            heaps += end - start >= 32 * 1024 * 1024 and line.split()[1] == "---p"
+    return heaps
+
+took = one_arena() if sys.argv[1] == "one" else None
+libc = ctypes.CDLL(None)
+libc.malloc.restype = ctypes.c_void_p
+libc.free.argtypes = (ctypes.c_void_p,)
+before = reservations()
+thread = threading.Thread(target=lambda: libc.free(libc.malloc(1000)))
+thread.start()
+thread.join()
+print(json.dumps({"took": took, "new_heaps": reservations() - before}))
+"""
+
+
+def new_heaps(mode: str) -> tuple[bool | None, int]:
+    """Whether one arena took, and the heaps a thread's allocation added."""
+    result = subprocess.run(
+        [sys.executable, "-c", THREAD_PROBE, mode], capture_output=True, text=True, check=True
+    )
+    probe = json.loads(result.stdout)
+    return probe["took"], int(probe["new_heaps"])
+
+
+@pytest.mark.skipif(not glibc(), reason="mallopt's arenas are glibc's; elsewhere nothing is set")
+def test_threads_allocate_from_one_arena() -> None:
+    assert new_heaps("one") == (True, 0)
+    # The control: glibc's own behaviour, a heap of its own for the thread.
+    _, by_default = new_heaps("default")
+    assert by_default >= 1
