@@ -91,6 +91,9 @@ class BrokerClient(aiomqtt.Client):
     def __init__(self, *args: Any, **kwargs: Any) -> None:  # noqa: ANN401 - aiomqtt's own
         """Make aiomqtt's client (in the running loop), with a record of its connect call."""
         super().__init__(*args, **kwargs)
+        # The loop's thread (aiomqtt makes the client in it): told from paho's connect
+        # thread by its id, not by asking for the running loop, a system call a burst.
+        self._loop_thread = threading.get_ident()
         self._connect_call = ConnectCall()
         self._entering = False
         self._dropped_entering: BaseException | None = None
@@ -217,7 +220,7 @@ class BrokerClient(aiomqtt.Client):
             if client.want_write():  # the socket took part: the rest as it can take more
                 add_writer()  # to the socket still open only: a failed write closed it
 
-        if _running_loop() is self._loop:  # a publish of the session's, in the loop
+        if threading.get_ident() == self._loop_thread:  # a publish of the session's
             self._loop.call_soon(write_now)
         else:
             self._loop.call_soon_threadsafe(add_writer)
@@ -239,14 +242,6 @@ class BrokerClient(aiomqtt.Client):
             # Between the CONNACK and the end of __aenter__, which then replaces this
             # future: the drop would be lost, and the client would wait on a dead socket.
             self._dropped_entering = dropped.exception()
-
-
-def _running_loop() -> asyncio.AbstractEventLoop | None:
-    """The event loop running in this thread, if any."""
-    try:
-        return asyncio.get_running_loop()
-    except RuntimeError:
-        return None
 
 
 __all__ = ["BrokerClient"]
