@@ -32,9 +32,17 @@ With --against REF there is no peer: this tree's gateway and commit REF's run in
 plant at once, each on its own line and base topic, and CPU new / old is printed per phase
 (nothing written): a step of a few per cent, which the machine's pace hides between runs.
 
+With --poll-phase P every device of this tree's gateway has ``poll_phase: P`` (the manual's
+poll phases; by default the gateway spreads them over the interval), and with --qos Q every
+message it publishes has QoS Q (by default 1; the peer publishes its values at 0). With
+--against the commit's gateway keeps the defaults, so ``--against HEAD --poll-phase 0``
+measures what the spread costs, at once, and ``--against HEAD --qos 0`` what the PUBACKs do.
+
 Run from the repository root (as root, for the control groups):
 .venv/bin/python -m bench.peers [--seconds 30] [--format 9600-E-1] [--at-once] [--keep DIR]
-.venv/bin/python -m bench.peers --against REF [--seconds 30] [--format 9600-E-1]
+    [--poll-phase P] [--qos Q]
+.venv/bin/python -m bench.peers --against REF [--seconds 30] [--format 9600-E-1] [--poll-phase P]
+    [--qos Q]
 """
 
 from __future__ import annotations
@@ -194,7 +202,14 @@ def simulator_config(line: LineFormat, phase: Phase) -> dict[str, Any]:
 
 
 def gateway_config(
-    port: Path, line: LineFormat, broker: int, work: Path, *, prefix: str = GATEWAY_PREFIX
+    port: Path,
+    line: LineFormat,
+    broker: int,
+    work: Path,
+    *,
+    prefix: str = GATEWAY_PREFIX,
+    poll_phase: float | None = None,
+    qos: int | None = None,
 ) -> dict[str, Any]:
     """Our gateway as a user sets it up for these sensors: defaults but the slow groups.
 
@@ -202,9 +217,12 @@ def gateway_config(
     both masters read the same points while measured. Timeouts, retries, publishing
     (every poll, values at QoS 1, a state document per device) and the Prometheus
     endpoint are the defaults. ``prefix``: its base topic (and client id), one per gateway
-    on the broker.
+    on the broker. ``poll_phase``: every device's (the manual's poll phases); None: the
+    gateway's own spread, the default. ``qos``: of every message, values too (``mqtt.qos``
+    and ``mqtt.value_qos``); None: the default, 1.
     """
     day = 86_400
+    phase = {} if poll_phase is None else {"poll_phase": poll_phase}
     return {
         "buses": [
             {
@@ -224,6 +242,7 @@ def gateway_config(
                 "poll_interval": INTERVAL_S,
                 "diagnostics_interval": day,
                 "configuration_interval": day,
+                **phase,
             }
             for s in PLANT
         ],
@@ -232,6 +251,7 @@ def gateway_config(
             "port": broker,
             "base_topic": prefix,
             "client_id": f"bench-{prefix}",
+            **({} if qos is None else {"qos": qos, "value_qos": qos}),
         },
         "prometheus": {"host": "127.0.0.1", "port": free_port()},
         "state_dir": str(work / "state"),
@@ -265,12 +285,24 @@ class Master:
     subscription: str
 
 
-def gateway_master(name: str, prefix: str, program: Sequence[str]) -> Master:
-    """A gateway started by ``program`` (its command line up to ``run``), under ``prefix``."""
+def gateway_master(
+    name: str,
+    prefix: str,
+    program: Sequence[str],
+    *,
+    poll_phase: float | None = None,
+    qos: int | None = None,
+) -> Master:
+    """A gateway started by ``program`` (its command line up to ``run``), under ``prefix``.
+
+    ``poll_phase`` and ``qos``: as :func:`gateway_config` takes them.
+    """
 
     def command(port: Path, line: LineFormat, broker: int, work: Path) -> list[str]:
         config = work / "gateway.yaml"  # JSON is YAML
-        settings = gateway_config(port, line, broker, work, prefix=prefix)
+        settings = gateway_config(
+            port, line, broker, work, prefix=prefix, poll_phase=poll_phase, qos=qos
+        )
         config.write_text(json.dumps(settings), encoding="utf-8")
         return [*program, "run", "--config", str(config)]
 
@@ -724,23 +756,24 @@ def verdicts(results: Mapping[str, Mapping[str, Figures]]) -> list[str]:
     ]
 
 
-def against(ref: str, line: LineFormat, seconds: float, *, keep: Path | None) -> None:
-    """This tree's gateway and commit ``ref``'s in the same plant, at once: CPU new / old.
+def against(ref: str, line: LineFormat, seconds: float, *, new: Master, keep: Path | None) -> None:
+    """This tree's gateway, ``new``, and commit ``ref``'s in one plant at once: CPU new / old.
 
     A step of a few per cent is lost in the pace of the machine between runs of the peer
     comparison; side by side, each on a line of its own, both gateways see the same pace.
+    ``ref``'s gateway has the plant's defaults (no ``--poll-phase``).
     """
     with tempfile.TemporaryDirectory(prefix="bench-peers-against-") as tmp:
         old = gateway_master(
             f"gateway@{ref}", "gwold", earlier_gateway_program(extracted(ref, Path(tmp)))
         )
         try:
-            results = asyncio.run(run_all([old, GATEWAY], line, seconds, keep=keep, at_once=True))
+            results = asyncio.run(run_all([old, new], line, seconds, keep=keep, at_once=True))
         except (asyncio.CancelledError, KeyboardInterrupt):
             raise SystemExit("stopped: every process it started is stopped") from None
     print(table(results, line))
     for phase in PHASES:
-        new_cpu = results[GATEWAY.name][phase.name]["cpu_share"]
+        new_cpu = results[new.name][phase.name]["cpu_share"]
         old_cpu = results[old.name][phase.name]["cpu_share"]
         print(f"CPU new / old, {phase.title}: {new_cpu / old_cpu:.3f}")
 
@@ -770,13 +803,32 @@ def main() -> None:
         metavar="REF",
         help="no peer: this tree's gateway against commit REF's, at once (written nowhere)",
     )
+    parser.add_argument(
+        "--poll-phase",
+        type=float,
+        metavar="P",
+        help="every device of this tree's gateway at poll phase P (0 <= P < 1; default: spread)",
+    )
+    parser.add_argument(
+        "--qos",
+        type=int,
+        choices=(0, 1),
+        help="every message of this tree's gateway at this QoS, values too (default: 1)",
+    )
     args = parser.parse_args()
     line = parse_format(args.format)
     check_plant()
+    if args.poll_phase is not None and not 0 <= args.poll_phase < 1:
+        raise SystemExit(f"--poll-phase {args.poll_phase}: expected 0 <= P < 1")
+    gateway = GATEWAY
+    if args.poll_phase is not None or args.qos is not None:
+        gateway = gateway_master(
+            GATEWAY.name, GATEWAY_PREFIX, this_gateway(), poll_phase=args.poll_phase, qos=args.qos
+        )
     if args.against:
-        against(args.against, line, args.seconds, keep=args.keep)
+        against(args.against, line, args.seconds, new=gateway, keep=args.keep)
         return
-    masters = [peer_master(peer.ensure_venv()), GATEWAY]
+    masters = [peer_master(peer.ensure_venv()), gateway]
     try:
         results = asyncio.run(
             run_all(masters, line, args.seconds, keep=args.keep, at_once=args.at_once)
@@ -791,6 +843,8 @@ def main() -> None:
         "interval_s": INTERVAL_S,
         "seconds": args.seconds,
         "at_once": args.at_once,
+        "poll_phase": args.poll_phase,
+        "qos": args.qos,
         "warm_up_s": WARM_UP_S,
         "peer": {"package": peer.PACKAGE, "dependencies": list(peer.DEPENDENCIES)},
         "peer_config": peer.config_csv(peer_devices(), interval_s=INTERVAL_S),
