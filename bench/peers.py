@@ -761,7 +761,7 @@ def against(ref: str, line: LineFormat, seconds: float, *, new: Master, keep: Pa
 
     A step of a few per cent is lost in the pace of the machine between runs of the peer
     comparison; side by side, each on a line of its own, both gateways see the same pace.
-    ``ref``'s gateway has the plant's defaults (no ``--poll-phase``).
+    ``ref``'s gateway has the plant's defaults (neither ``--poll-phase`` nor ``--qos``).
     """
     with tempfile.TemporaryDirectory(prefix="bench-peers-against-") as tmp:
         old = gateway_master(
